@@ -1,0 +1,1 @@
+"""photoreal: generative package."""

@@ -1,0 +1,29 @@
+"""Mitsuba 3 plugins of photoreal, usable from any Mitsuba project.
+
+``import mi_plugins`` resolves libLLVM and, if no Mitsuba variant is set yet,
+sets one (``cuda_ad_rgb`` when a GPU works, else ``llvm_ad_rgb``;
+``PHOTOREAL_VARIANT`` overrides), then registers the plugins for the active
+variant: BSDF ``ggx_uv`` and integrator ``intrinsic``. After switching
+variants yourself, call :func:`register` again.
+"""
+
+from __future__ import annotations
+
+from . import backend
+
+variant = backend.setup()
+
+
+def register() -> str:
+    """Register every photoreal plugin for the active variant; returns it."""
+    import mitsuba as mi
+
+    from .bsdfs import ggx_uv
+    from .integrators import intrinsic
+
+    ggx_uv.register()
+    intrinsic.register()
+    return mi.variant()
+
+
+register()

@@ -1,0 +1,1 @@
+"""photoreal: photoreal package."""

@@ -1,0 +1,32 @@
+import numpy as np
+import pytest
+
+import mi_plugins  # noqa: F401  (sets the variant, registers plugins)
+import drjit as dr
+import mitsuba as mi
+
+
+def random_dirs(n: int, seed: int, upper: bool = True) -> mi.Vector3f:
+    """n unit vectors, uniform on the (upper) sphere, from a seeded numpy generator."""
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    if upper:
+        v[:, 2] = np.abs(v[:, 2])
+    return mi.Vector3f(v.T.astype(np.float32))
+
+
+def local_si(wi: mi.Vector3f, uv=(0.5, 0.5)) -> mi.SurfaceInteraction3f:
+    """Surface interaction with an identity shading frame (local = world)."""
+    n = dr.width(wi)
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+    si.n = mi.Normal3f(0, 0, 1)
+    si.wi = wi
+    si.uv = mi.Point2f(*uv)
+    return si
+
+
+@pytest.fixture
+def ctx():
+    return mi.BSDFContext()
