@@ -235,3 +235,25 @@ def bumped_local_normal(
     n = c * dr.rsqrt(dr.maximum(norm2, 1e-30))
     n = dr.select(n.z < 0.0, -n, n)
     return dr.select(norm2 > 1e-20, n, mi.Vector3f(0.0, 0.0, 1.0))
+
+
+def perturbation(n_local: mi.Vector3f | None, wi: mi.Vector3f) -> tuple[mi.Frame3f | None, mi.Vector3f, mi.Bool]:
+    """Frame of a perturbed shading normal (local coords), wi in it, and wi's validity.
+
+    ``n_local`` is first mirrored to face wi (:func:`face_incident_side`);
+    ``None`` means "unperturbed" and skips the work. Valid means wi is above
+    both the unperturbed and the perturbed horizon.
+    """
+    if n_local is None:
+        return None, wi, wi.z > 0.0
+    frame = perturbed_local_frame(face_incident_side(n_local, wi))
+    wi_p = frame.to_local(wi)
+    return frame, wi_p, (wi.z > 0.0) & (wi_p.z > 0.0)
+
+
+def to_perturbed(frame: mi.Frame3f | None, wo: mi.Vector3f) -> tuple[mi.Vector3f, mi.Bool]:
+    """wo in a perturbed frame and its validity (above both horizons, as Mitsuba's normalmap)."""
+    if frame is None:
+        return wo, wo.z > 0.0
+    wo_p = frame.to_local(wo)
+    return wo_p, (wo.z > 0.0) & (wo_p.z > 0.0)

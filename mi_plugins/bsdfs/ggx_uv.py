@@ -132,23 +132,16 @@ class GGXUV(mi.BSDF):
             n_base = sh.bumped_local_normal(si.to_local(si.dp_du), si.to_local(si.dp_dv), grad)
         else:
             n_base = mi.Vector3f(0.0, 0.0, 1.0)
-        if self.normal is not None:
-            # Tangent-space normal relative to the (bumped) frame, T re-orthogonalised.
-            n_ts = sh.decode_normal(self.normal.eval(si, active))
-            base = sh.perturbed_local_frame(n_base)
-            n = base.to_world(n_ts)
-        else:
-            n = n_base
-        return sh.face_incident_side(n, si.wi)
+        if self.normal is None:
+            return n_base
+        # Tangent-space normal relative to the (bumped) frame, T re-orthogonalised.
+        n_ts = sh.decode_normal(self.normal.eval(si, active))
+        return sh.perturbed_local_frame(n_base).to_world(n_ts)
 
     def _local(self, si: mi.SurfaceInteraction3f, active: mi.Bool):
         """(frame or None, wi in the perturbed frame, validity of wi)."""
-        n = self._perturbed_normal(si, active)
-        if n is None:
-            return None, si.wi, active & (si.wi.z > 0.0)
-        frame = sh.perturbed_local_frame(n)
-        wi_p = frame.to_local(si.wi)
-        return frame, wi_p, active & (si.wi.z > 0.0) & (wi_p.z > 0.0)
+        frame, wi_p, valid = sh.perturbation(self._perturbed_normal(si, active), si.wi)
+        return frame, wi_p, active & valid
 
     def _maps(self, si: mi.SurfaceInteraction3f, active: mi.Bool):
         return (
@@ -194,9 +187,8 @@ class GGXUV(mi.BSDF):
         if not (has_d or has_s):
             return mi.Color3f(0.0), mi.Float(0.0)
         frame, wi_p, valid = self._local(si, active)
-        wo_p = wo if frame is None else frame.to_local(wo)
-        valid &= (wo.z > 0.0) & (wo_p.z > 0.0)
-        return self._eval_pdf_local(ctx, self._maps(si, active), wi_p, wo_p, valid)
+        wo_p, valid_o = sh.to_perturbed(frame, wo)
+        return self._eval_pdf_local(ctx, self._maps(si, active), wi_p, wo_p, valid & valid_o)
 
     def eval(self, ctx, si, wo, active=True):
         return self.eval_pdf(ctx, si, wo, active)[0]

@@ -1,0 +1,92 @@
+"""libLLVM resolution order and the refusal message (mi_plugins.backend)."""
+
+import os
+
+import pytest
+
+from mi_plugins import backend as bk
+
+
+def _lib(folder, name):
+    folder.mkdir(parents=True, exist_ok=True)
+    p = folder / name
+    p.write_bytes(b"\x7fELF")
+    return str(p)
+
+
+def test_version_parsing():
+    assert bk.llvm_major("/x/libLLVM-15.so") == 15
+    assert bk.llvm_major("/x/libLLVM-14.0.6.so.1") == 14
+    assert bk.llvm_major("/x/libLLVM.so.23.1") == 23
+    assert bk.llvm_major("/x/libLLVM.so.19.1") == 19
+    assert bk.llvm_major("/x/libLLVM-19.so") == 19
+
+
+def test_env_variable_wins(tmp_path):
+    env_lib = _lib(tmp_path / "env", "libLLVM.so.20.1")
+    venv = _lib(tmp_path / "venv", "libLLVM.so.23.1")
+    choice = bk.resolve_libllvm({bk.ENV_LLVM: env_lib}, [os.path.dirname(venv)], [])
+    assert choice == bk.LLVMChoice(env_lib, "env", 20)
+
+
+def test_env_variable_naming_llvm15_is_refused(tmp_path):
+    old = _lib(tmp_path, "libLLVM-15.so")
+    with pytest.raises(bk.LLVMVersionError, match="fminimum"):
+        bk.resolve_libllvm({bk.ENV_LLVM: old}, [], [])
+
+
+def test_env_variable_naming_missing_file(tmp_path):
+    with pytest.raises(bk.LLVMVersionError, match="no such file"):
+        bk.resolve_libllvm({bk.ENV_LLVM: str(tmp_path / "nope.so")}, [], [])
+
+
+def test_venv_before_system(tmp_path):
+    venv = _lib(tmp_path / "venv" / "lib", "libLLVM.so.23.1")
+    _lib(tmp_path / "sys", "libLLVM-19.so")
+    choice = bk.resolve_libllvm({}, [str(tmp_path / "venv" / "lib")], [str(tmp_path / "sys")])
+    assert choice == bk.LLVMChoice(venv, "venv", 23)
+
+
+def test_system_newest_usable_and_old_ones_skipped(tmp_path):
+    sysdir = tmp_path / "sys"
+    _lib(sysdir, "libLLVM-14.so")
+    _lib(sysdir, "libLLVM-15.so")
+    new = _lib(sysdir, "libLLVM-19.so")
+    _lib(sysdir, "libLLVM-17.so")
+    choice = bk.resolve_libllvm({}, [str(tmp_path / "emptyvenv")], [str(sysdir)])
+    assert choice == bk.LLVMChoice(new, "system", 19)
+
+
+def test_only_old_llvm_gives_message_with_why_and_fix(tmp_path):
+    sysdir = tmp_path / "sys"
+    _lib(sysdir, "libLLVM-14.so")
+    _lib(sysdir, "libLLVM-15.so")
+    with pytest.raises(bk.LLVMVersionError) as err:
+        bk.resolve_libllvm({}, [], [str(sysdir)])
+    msg = str(err.value)
+    assert "libLLVM 15" in msg and "libLLVM-15.so" in msg  # names the newest too-old library
+    assert "Cannot select" in msg and "fminimum" in msg  # why
+    assert "karellen-llvm-core" in msg and "libllvm19" in msg and bk.ENV_LLVM in msg  # how to fix
+
+
+def test_nothing_found_sets_nothing(tmp_path):
+    assert bk.resolve_libllvm({}, [str(tmp_path)], [str(tmp_path)]) == bk.LLVMChoice(None, "none", None)
+
+
+def test_this_environment_resolves_a_usable_llvm():
+    # The project installs karellen-llvm-core, so the venv always has one.
+    choice = bk.resolve_libllvm({})
+    assert choice.path and choice.major >= bk.MIN_LLVM_MAJOR
+
+
+def test_variant_override_and_validation(monkeypatch):
+    assert bk.choose_variant({bk.ENV_VARIANT: "scalar_rgb"}) == "scalar_rgb"
+    with pytest.raises(ValueError, match="PHOTOREAL_VARIANT"):
+        bk.choose_variant({bk.ENV_VARIANT: "cuda_magic_rgb"})
+
+
+def test_variant_default_follows_cuda_probe(monkeypatch):
+    monkeypatch.setattr(bk, "cuda_works", lambda: False)
+    assert bk.choose_variant({}) == "llvm_ad_rgb"
+    monkeypatch.setattr(bk, "cuda_works", lambda: True)
+    assert bk.choose_variant({}) == "cuda_ad_rgb"
