@@ -1,0 +1,126 @@
+"""Benchmarks that write JSON: speed as ratios against a reference measured in the same run."""
+
+from __future__ import annotations
+
+import gc
+import json
+import os
+import platform
+import statistics
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+import mi_plugins  # noqa: F401
+import drjit as dr
+import mitsuba as mi
+
+from .imageio import atomic_path
+from .progress import progress_bar
+
+ASSETS = Path(__file__).resolve().parent.parent / "scenes" / "assets"
+
+
+@dataclass
+class PluginBenchSettings:
+    resolution: int = 256
+    spp: int = 64
+    repetitions: int = 5  #: timed renders per plugin per round
+    rounds: int = 2  #: rounds alternate which plugin goes first
+    max_depth: int = 6
+    seed: int = 0
+
+
+def plugin_bench_scene(bsdf: dict, s: PluginBenchSettings) -> dict:
+    """Armadillo on a floor under a real HDRI; every surface uses ``bsdf``."""
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": s.max_depth},
+        "sensor": {
+            "type": "perspective", "fov": 38,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0.6, 1.3, 3.4], target=[0, 0.35, 0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": s.resolution, "height": s.resolution},
+            "sampler": {"type": "independent", "sample_count": s.spp},
+        },
+        "env": {"type": "envmap", "filename": str(ASSETS / "hdri" / "forest.exr")},
+        "armadillo": {
+            "type": "ply", "filename": str(ASSETS / "meshes" / "armadillo.ply"), "bsdf": bsdf,
+            "to_world": mi.ScalarTransform4f().scale(0.01).translate([0, 54.2, 0]).rotate([0, 1, 0], 180),
+        },
+        "floor": {"type": "rectangle", "bsdf": bsdf,
+                  "to_world": mi.ScalarTransform4f().scale(5).rotate([1, 0, 0], -90)},
+    }
+
+
+# Matching parameters: base colour, roughness (α = r² in both), specular level.
+BENCH_BSDFS = {
+    "ggx_uv": {"type": "ggx_uv", "albedo": {"type": "rgb", "value": [0.55, 0.45, 0.3]},
+               "roughness": 0.3, "specular": 0.5},
+    "principled": {"type": "principled", "base_color": {"type": "rgb", "value": [0.55, 0.45, 0.3]},
+                   "roughness": 0.3, "specular": 0.5},
+}
+
+
+def _time_render(scene: mi.Scene, spp: int, seed: int) -> float:
+    t0 = time.perf_counter()
+    img = mi.render(scene, spp=spp, seed=seed)
+    dr.eval(img)
+    dr.sync_thread()
+    return time.perf_counter() - t0
+
+
+def bench_plugins(s: PluginBenchSettings, show_progress: bool = True) -> dict:
+    """Render the same scene with ggx_uv and builtin principled; report ms per render.
+
+    Each plugin's scene is loaded on its own and freed before the other is
+    loaded: Mitsuba traces every *live* BSDF instance in every render, so a
+    scene alive in the background would inflate the other's timings. The first
+    render of each load (tracing + JIT compilation, or a kernel-cache hit) is
+    timed separately as the warm-up and excluded from the medians.
+    """
+    times: dict[str, list[float]] = {k: [] for k in BENCH_BSDFS}
+    first: dict[str, list[float]] = {k: [] for k in BENCH_BSDFS}
+    order = list(BENCH_BSDFS)
+    total = s.rounds * len(order) * (s.repetitions + 1)
+    with progress_bar(total=total, desc="bench plugins", unit="render", disable=not show_progress) as bar:
+        for r in range(s.rounds):
+            for name in order if r % 2 == 0 else order[::-1]:
+                scene = mi.load_dict(plugin_bench_scene(BENCH_BSDFS[name], s))
+                first[name].append(_time_render(scene, s.spp, s.seed))
+                bar.update(1)
+                for i in range(s.repetitions):
+                    times[name].append(_time_render(scene, s.spp, s.seed + 1 + i))
+                    bar.update(1)
+                del scene
+                gc.collect()
+    ms = {k: 1000.0 * statistics.median(v) for k, v in times.items()}
+    compile_s = statistics.median(first["ggx_uv"]) - ms["ggx_uv"] / 1000.0
+    return {
+        "ggx_uv_ms": ms["ggx_uv"],
+        "principled_ms": ms["principled"],
+        "ggx_uv_vs_principled": ms["ggx_uv"] / ms["principled"],
+        "compile_s": compile_s,
+        "first_render_s": {k: statistics.median(v) for k, v in first.items()},
+        "all_ms": {k: [1000.0 * t for t in v] for k, v in times.items()},
+        "settings": asdict(s),
+        "variant": mi.variant(),
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+        "scene": "armadillo + floor, forest.exr envmap, path tracer; every surface uses the plugin",
+    }
+
+
+def write_json(path: str | os.PathLike, data: dict) -> Path:
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, default=_jsonable) + "\n")
+    return path
+
+
+def _jsonable(x):
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON serialisable: {type(x)}")
