@@ -90,7 +90,7 @@ def load_scene(path: str | os.PathLike, settings: RenderSettings | None = None) 
     path = Path(path)
     settings = settings or RenderSettings()
     xml = prepare_scene_xml(path, settings)
-    resolver = mi.Thread.thread().file_resolver()
+    resolver = mi.file_resolver()
     saved = [resolver[i] for i in range(len(resolver))]
     resolver.prepend(str(path.parent.resolve()))
     try:

@@ -1,0 +1,118 @@
+"""CLI: rendering scene files, errors that name the file, no partial outputs, JSON benchmarks, demo."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from photoreal import imageio
+from photoreal.cli import main
+
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+
+
+def _run(argv, capsys):
+    code = main(argv)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+@pytest.mark.parametrize("scene", ["josie", "material_test", "armadillo"])
+def test_render_builtin_scene_with_aovs(scene, tmp_path, capsys):
+    out = tmp_path / f"{scene}.exr"
+    code, stdout, err = _run(["render", str(SCENES / f"{scene}.xml"), "--spp", "4", "--resolution", "24", "16",
+                              "--aovs", "-o", str(out)], capsys)
+    assert code == 0, err
+    ch = imageio.read_exr(out)
+    for name in ["R", "G", "B", "albedo.R", "irradiance.G", "specular.B", "normal.X", "depth.T", "uv.U",
+                 "position.Z"]:
+        assert name in ch, (name, sorted(ch))
+    assert ch["R"].shape == (16, 24)
+    rgb = imageio.exr_layer(ch, "")
+    assert np.isfinite(rgb).all() and rgb.mean() > 0.01
+    assert out.with_suffix(".png").is_file()
+    assert json.loads(stdout)["exr"] == str(out)
+
+
+def _bad_scene(tmp_path, body: str) -> Path:
+    p = tmp_path / "bad.xml"
+    p.write_text(f'<scene version="3.0.0">\n{body}\n</scene>\n')
+    return p
+
+
+@pytest.mark.parametrize(
+    "body,expected",
+    [
+        ('<shape type="sphere">\n  <bsdf type="ggx_uv">\n</shape>', r"bad.xml:4:\d+: malformed XML"),
+        ('<shape type="sphere"><bsdf type="no_such_bsdf"/></shape>', r"bad.xml: .*no_such_bsdf"),
+        ('<shape type="obj"><string name="filename" value="missing_mesh.obj"/></shape>', r"bad.xml: .*missing_mesh.obj"),
+        ('<shape type="sphere"><bsdf type="ggx_uv"><float name="roughness" value="3"/></bsdf></shape>',
+         r"bad.xml: .*'roughness' = 3.0 is outside \[0.0, 1.0\]"),
+    ],
+    ids=["malformed", "unknown-plugin", "missing-file", "out-of-range"],
+)
+def test_bad_scene_gives_clear_error_and_no_output(body, expected, tmp_path, capsys):
+    import re
+
+    scene = _bad_scene(tmp_path, body)
+    out = tmp_path / "out.exr"
+    code, _, err = _run(["render", str(scene), "-o", str(out)], capsys)
+    assert code == 2
+    assert re.search(expected, err), err
+    assert str(scene) in err
+    assert list(tmp_path.iterdir()) == [scene]  # nothing written, not even a temp file
+
+
+def test_missing_scene_file(tmp_path, capsys):
+    code, _, err = _run(["render", str(tmp_path / "nope.xml"), "-o", str(tmp_path / "o.exr")], capsys)
+    assert code == 2 and "nope.xml: scene file not found" in err
+
+
+def test_exr_roundtrip_and_atomic_write(tmp_path):
+    rng = np.random.default_rng(0)
+    layers = {"": rng.random((5, 7, 3)), "albedo": rng.random((5, 7, 3)), "depth": rng.random((5, 7)),
+              "uv": rng.random((5, 7, 2))}
+    path = imageio.write_exr(tmp_path / "a.exr", layers)
+    ch = imageio.read_exr(path)
+    np.testing.assert_allclose(imageio.exr_layer(ch, "albedo"), layers["albedo"], rtol=1e-6)
+    np.testing.assert_allclose(ch["depth.T"], layers["depth"], rtol=1e-6)
+    np.testing.assert_allclose(imageio.exr_layer(ch, "uv"), layers["uv"], rtol=1e-6)
+    with pytest.raises(imageio.ImageIOError):
+        imageio.write_exr(tmp_path / "b.exr", {"a": np.zeros((2, 2)), "b": np.zeros((3, 3))})
+    assert not (tmp_path / "b.exr").exists()
+    (tmp_path / "corrupt.exr").write_bytes(b"not an exr")
+    with pytest.raises(imageio.ImageIOError, match="corrupt.exr"):
+        imageio.read_exr(tmp_path / "corrupt.exr")
+
+
+def test_srgb_transfer_is_the_standard_curve():
+    x = np.array([0.0, 0.0031308, 0.2, 1.0])
+    # IEC 61966-2-1 closed form.
+    ref = np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+    np.testing.assert_allclose(imageio.linear_to_srgb(x), ref, atol=1e-6)
+    np.testing.assert_allclose(imageio.srgb_to_linear(imageio.linear_to_srgb(x)), x, atol=1e-6)
+
+
+def test_bench_plugins_writes_json(tmp_path, capsys):
+    out = tmp_path / "b.json"
+    code, _, err = _run(["bench", "plugins", "--json", str(out), "--resolution", "32", "--spp", "4",
+                         "--repetitions", "1", "--rounds", "1"], capsys)
+    assert code == 0, err
+    data = json.loads(out.read_text())
+    for key in ("ggx_uv_ms", "principled_ms", "ggx_uv_vs_principled", "compile_s"):
+        assert np.isfinite(data[key])
+    assert data["ggx_uv_vs_principled"] == pytest.approx(data["ggx_uv_ms"] / data["principled_ms"])
+
+
+def test_demo_writes_report(tmp_path, capsys):
+    out = tmp_path / "demo"
+    code, stdout, err = _run(["demo", "--out", str(out), "--resolution", "24", "--spp", "4", "--no-bench"], capsys)
+    assert code == 0, err
+    index = (out / "index.html").read_text()
+    for scene in ("josie", "material_test", "armadillo"):
+        assert f"{scene}.png" in index and (out / f"{scene}.png").is_file()
+        assert (out / f"{scene}_irradiance.png").is_file()
+    summary = json.loads((out / "demo.json").read_text())
+    # The report's recomposition figure is R = A·I + S against the same render: exact.
+    assert all(v["psnr_recomposed_vs_full_db"] > 80 for v in summary["scenes"].values())
