@@ -212,14 +212,62 @@ def choose_variant(environ: Mapping[str, str] | None = None) -> str:
     return "cuda_ad_rgb" if cuda_works() else "llvm_ad_rgb"
 
 
+def loaded_libllvm(maps_file: str = "/proc/self/maps") -> list[str]:
+    """libLLVM files mapped into this process (Linux), e.g. after drjit was imported."""
+    try:
+        with open(maps_file) as f:
+            paths = {line.split()[-1] for line in f if "libLLVM" in line and "/" in line}
+    except OSError:
+        return []
+    return sorted(paths)
+
+
+def check_loaded_libllvm(maps_file: str = "/proc/self/maps") -> None:
+    """Raise (instead of letting the process abort later) if Dr.Jit already loaded LLVM <= 15."""
+    for path in loaded_libllvm(maps_file):
+        major = llvm_major(path)
+        if major is not None and major < MIN_LLVM_MAJOR:
+            raise LLVMVersionError(
+                "drjit was imported before mi_plugins and has already loaded " + too_old_message(path, major)
+                + " Or import mi_plugins before drjit/mitsuba, so that it can choose the library."
+            )
+
+
 def setup() -> str:
     """Resolve libLLVM, import Mitsuba and set a variant unless one is set.
 
     Returns the active variant. Called once by ``import mi_plugins``.
     """
+    early = "drjit" in sys.modules
     configure_libllvm()
     import mitsuba as mi
+
+    if early:
+        check_loaded_libllvm()
 
     if mi.variant() is None:
         mi.set_variant(choose_variant())
     return mi.variant()
+
+
+def write_pth() -> Path | None:
+    """Write ``photoreal_libllvm.pth`` into site-packages: sets DRJIT_LIBLLVM_PATH at start-up.
+
+    Only the environment variable is set (with ``setdefault``, so a user's own
+    value wins); nothing is imported.
+    """
+    import sysconfig
+
+    choice = resolve_libllvm({})
+    if choice.path is None:
+        return None
+    target = Path(sysconfig.get_paths()["purelib"]) / "photoreal_libllvm.pth"
+    target.write_text(f"import os; os.environ.setdefault({ENV_LLVM!r}, {os.path.abspath(choice.path)!r})\n")
+    return target
+
+
+if __name__ == "__main__":
+    if sys.argv[1:] == ["--write-pth"]:
+        print(write_pth())
+    else:
+        print(resolve_libllvm())

@@ -35,16 +35,20 @@ from . import shading as sh
 
 @dataclass(frozen=True)
 class UVLight:
+    """A light; ``vector``/``intensity`` are triples, or Dr.Jit arrays when being optimised."""
+
     kind: Literal["directional", "point"]
-    vector: tuple[float, float, float]  #: towards the light (directional) or position (point)
-    intensity: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    vector: tuple[float, float, float] | mi.Vector3f  #: towards the light (directional) or position (point)
+    intensity: tuple[float, float, float] | mi.Color3f = (1.0, 1.0, 1.0)
 
     def __post_init__(self):
         if self.kind not in ("directional", "point"):
             raise ValueError(f"UVLight.kind must be 'directional' or 'point', got {self.kind!r}")
-        if not np.all(np.isfinite(self.vector)) or not np.all(np.isfinite(self.intensity)):
-            raise ValueError(f"UVLight has non-finite vector/intensity: {self}")
-        if self.kind == "directional" and np.linalg.norm(self.vector) == 0:
+        for name in ("vector", "intensity"):
+            v = getattr(self, name)
+            if not dr.is_array_v(v) and not np.all(np.isfinite(np.asarray(v, float))):
+                raise ValueError(f"UVLight.{name} is not finite: {v}")
+        if self.kind == "directional" and not dr.is_array_v(self.vector) and np.linalg.norm(self.vector) == 0:
             raise ValueError("UVLight: a directional light needs a non-zero direction")
 
 
@@ -78,7 +82,23 @@ class UVMaps:
 
 
 def _const3(v) -> mi.Vector3f:
+    if dr.is_array_v(v):
+        return mi.Vector3f(v)
     return mi.Vector3f(*(float(c) for c in v))
+
+
+def unravel_channels(arr: mi.Float, c: int) -> list[mi.Float]:
+    """Split an interleaved (…, C) array into C channel arrays with plain gathers.
+
+    Not ``dr.unravel``: in Dr.Jit 1.5 its backward pass *overwrites* the
+    source's gradient, so when the same array is unravelled more than once
+    (e.g. one shading call per light) only one call's gradient survives
+    (``tests/test_uv_shader.py::test_gradients_accumulate_over_lights``).
+    ``dr.gather`` accumulates correctly.
+    """
+    n = dr.width(arr) // c
+    i = dr.arange(mi.UInt32, n) * c
+    return [dr.gather(mi.Float, arr, i + k) for k in range(c)]
 
 
 def _vec3(x, n: int) -> mi.Vector3f:
@@ -86,7 +106,7 @@ def _vec3(x, n: int) -> mi.Vector3f:
     if isinstance(x, mi.TensorXf):
         if x.shape[-1] != 3 or len(x.shape) != 3:
             raise ValueError(f"expected an (H, W, 3) tensor, got shape {x.shape}")
-        return dr.unravel(mi.Vector3f, x.array)
+        return mi.Vector3f(*unravel_channels(x.array, 3))
     c = np.broadcast_to(np.asarray(x, dtype=np.float32), (3,))
     return mi.Vector3f(*[dr.full(mi.Float, float(v), n) for v in c])
 
@@ -108,13 +128,18 @@ def shade_uv(
     view: UVView,
     ambient: float | Sequence[float] = 0.0,
     mask: mi.TensorXf | None = None,
+    light_visibility: Sequence[mi.TensorXf | None] | None = None,
 ) -> mi.TensorXf:
     """Shaded UV texture T̂_shaded, an (H, W, 3) tensor (seed 003).
 
     position/normal/tangent: (H, W, 3) geometry maps of the template mesh.
     mask: (H, W) or (H, W, 1) visibility M(u) in [0, 1]; None = all visible.
     ambient: I_amb (scalar or RGB), multiplies the albedo.
+    light_visibility: per light, an optional (H, W) cast-shadow factor in [0, 1]
+    (1 = the light reaches the texel), e.g. precomputed by ray tracing.
     """
+    if light_visibility is not None and len(light_visibility) != len(lights):
+        raise ValueError(f"light_visibility has {len(light_visibility)} entries for {len(lights)} lights")
     if len(position.shape) != 3 or position.shape[-1] != 3:
         raise ValueError(f"position map must be (H, W, 3), got {position.shape}")
     h, w = position.shape[0], position.shape[1]
@@ -141,7 +166,7 @@ def shade_uv(
     rough, spec, metal = (_scalar(m, n) for m in (maps.roughness, maps.specular, maps.metallic))
 
     result = mi.Color3f(0.0)
-    for light in lights:
+    for k, light in enumerate(lights):
         if light.kind == "directional":
             l_world = dr.normalize(_const3(light.vector))
             radiance = mi.Color3f(_const3(light.intensity))
@@ -152,7 +177,10 @@ def shade_uv(
             radiance = mi.Color3f(_const3(light.intensity)) / dist2
         wo_p, valid_o = sh.to_perturbed(frame, geo.to_local(l_world))
         f_d, f_s = sh.brdf_lobes(albedo, rough, spec, metal, wi_p, wo_p)
-        result += dr.select(valid_i & valid_o, radiance * (f_d + f_s), 0.0)
+        contrib = dr.select(valid_i & valid_o, radiance * (f_d + f_s), 0.0)
+        if light_visibility is not None and light_visibility[k] is not None:
+            contrib *= mi.Float(light_visibility[k].array)
+        result += contrib
 
     amb = np.broadcast_to(np.asarray(ambient, dtype=np.float32), (3,))
     result += albedo * mi.Color3f(*[float(a) for a in amb])

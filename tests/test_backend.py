@@ -90,3 +90,28 @@ def test_variant_default_follows_cuda_probe(monkeypatch):
     assert bk.choose_variant({}) == "llvm_ad_rgb"
     monkeypatch.setattr(bk, "cuda_works", lambda: True)
     assert bk.choose_variant({}) == "cuda_ad_rgb"
+
+
+def test_already_loaded_old_llvm_is_reported_not_aborted(tmp_path):
+    maps = tmp_path / "maps"
+    maps.write_text("7f00-7f01 r-xp 00000000 08:01 1 /usr/lib/x86_64-linux-gnu/libLLVM-15.so.1\n"
+                    "7f02-7f03 r-xp 00000000 08:01 2 /usr/lib/libc.so.6\n")
+    assert bk.loaded_libllvm(str(maps)) == ["/usr/lib/x86_64-linux-gnu/libLLVM-15.so.1"]
+    with pytest.raises(bk.LLVMVersionError, match="imported before mi_plugins"):
+        bk.check_loaded_libllvm(str(maps))
+    maps.write_text("7f00-7f01 r-xp 00000000 08:01 1 /venv/lib/libLLVM.so.23.1\n")
+    bk.check_loaded_libllvm(str(maps))  # fine
+
+
+def test_venv_interpreter_finds_llvm_even_when_mitsuba_is_imported_first():
+    # `make install` writes a .pth that exports DRJIT_LIBLLVM_PATH at interpreter start-up,
+    # so `import mitsuba` before `import mi_plugins` does not load the system's LLVM 15.
+    import subprocess
+    import sys
+
+    code = ("import drjit as dr, mitsuba as mi; mi.set_variant('llvm_ad_rgb'); "
+            "x = dr.llvm.ad.Float([1, 2, 3]); print(float(dr.sum(dr.minimum(dr.maximum(x, 0.5), 2.5))[0]))")
+    env = {k: v for k, v in __import__("os").environ.items() if k != bk.ENV_LLVM}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "5.5"

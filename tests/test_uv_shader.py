@@ -171,3 +171,23 @@ def test_bsdf_eval_gradients_match_central_differences(which, ctx):
 
     grad = _fd_check(loss, base, indices=range(dr.width(base.array)), h=5e-3)
     assert np.abs(grad).max() > 1e-3
+
+
+def test_gradients_accumulate_over_lights():
+    """One shade_uv call per light on the same maps: the gradients must add up.
+
+    Regression test for Dr.Jit 1.5's ``dr.unravel``, whose backward pass
+    overwrites instead of accumulating (only the last call's gradient survived).
+    Oracle: Lambert is linear in albedo, so d/dalbedo Σ_k T_k = Σ_k E_k cosθ_k / π.
+    """
+    pos, nrm, tan = _flat_patch_geometry(2, 2)
+    albedo = mi.TensorXf(np.full((2, 2, 3), 0.5, np.float32))
+    dr.enable_grad(albedo)
+    dirs = [(0.0, 0.0, 1.0), (0.6, 0.0, 0.8), (0.0, 0.8, 0.6)]
+    total = 0
+    for d in dirs:
+        total += dr.sum(shade_uv(pos, nrm, tan, UVMaps(albedo=albedo, specular=0.0),
+                                 [UVLight("directional", d, (1, 1, 1))], UVView(direction=(0, 0, 1))), axis=None)
+    dr.backward(total)
+    expected = sum(d[2] for d in dirs) / np.pi
+    np.testing.assert_allclose(np.array(dr.grad(albedo)), expected, rtol=1e-5)

@@ -1,0 +1,395 @@
+"""Face material benchmark from a real scan: ground-truth maps + Mitsuba observations.
+
+A scan in OBJ + texture form (the Cyberware heads ``josie``/``paul``, or any
+other) becomes a benchmark with known answers:
+
+* **Ground truth maps** at ``uv_res``: albedo = the scanned texture (sRGB →
+  linear); displacement = seeded procedural skin relief (pores + wrinkles);
+  normal = the tangent-space normal of that relief (so the two agree);
+  roughness and specular = seeded smooth fields in skin-like ranges.
+* **Light-stage observations**: Mitsuba renders the mesh with ``ggx_uv`` and
+  the ground-truth maps under ``K`` directional lights from ``V`` viewpoints
+  (direct lighting with cast shadows, ``path`` with max_depth 2). Each
+  observation is taken *texel-aligned*: one camera ray per UV texel, from the
+  viewpoint through the texel's 3D point; a texel counts as seen when the ray's
+  first hit is that point. This is what a camera sees, resampled into UV
+  without filtering blur.
+* **Per-light visibility** (cast shadows of the known geometry) and per-view
+  visibility masks, as the UV-space shader needs them.
+* **Held-out lighting**: camera renders under real HDR environments, kept for
+  relighting the fitted maps.
+
+Everything is written to one folder (EXR layers + ``benchmark.json``);
+:func:`load_benchmark` reads it back.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import mi_plugins  # noqa: F401
+import drjit as dr
+import mitsuba as mi
+
+from photoreal import imageio
+from photoreal.progress import progress_bar
+
+from .uv_bake import GeometryMaps, UVMesh, bake_geometry, load_obj
+
+ASSETS = Path(__file__).resolve().parent.parent / "scenes" / "assets"
+HDRI_DIR = ASSETS / "hdri"
+
+
+@dataclass
+class FaceBenchmarkSettings:
+    uv_res: int = 256
+    n_lights: int = 6  #: directional training lights on the frontal hemisphere
+    light_irradiance: float = 3.0
+    views: tuple[tuple[float, float], ...] = ((0.0, 0.0), (-35.0, 5.0), (35.0, 5.0))  #: (yaw, pitch) degrees
+    camera_distance: float = 4.0  #: in units of the mesh's bounding radius
+    heldout_hdris: tuple[str, ...] = ("sunset", "forest", "interior")
+    render_res: int = 192  #: held-out camera renders
+    render_spp: int = 64
+    normal_strength_deg: float = 10.0  #: RMS tilt of the ground-truth normal map
+    s_disp: float = 0.01
+    seed: int = 0
+
+
+# -- the scan and its frame -------------------------------------------------------------
+
+
+def scan_frame(mesh: UVMesh) -> tuple[np.ndarray, float, np.ndarray]:
+    """Centre, bounding radius, and the direction the face looks at (mean normal)."""
+    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    centre = 0.5 * (lo + hi)
+    radius = 0.5 * float(np.linalg.norm(hi - lo))
+    n = mesh.vertex_normals().mean(0)
+    front = n / max(np.linalg.norm(n), 1e-12)
+    return centre, radius, front
+
+
+def orbit_direction(front: np.ndarray, yaw_deg: float, pitch_deg: float, up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """Unit direction obtained by turning ``front`` by yaw about ``up`` and pitch about the side axis."""
+    up = np.asarray(up, float)
+    f = front - up * np.dot(front, up)
+    f = f / max(np.linalg.norm(f), 1e-12) if np.linalg.norm(f) > 1e-6 else front
+    side = np.cross(up, f)
+    y, p = np.radians(yaw_deg), np.radians(pitch_deg)
+    d = np.cos(p) * (np.cos(y) * f + np.sin(y) * side) + np.sin(p) * up
+    return d / np.linalg.norm(d)
+
+
+def training_lights(front: np.ndarray, n: int, irradiance: float, seed: int) -> list[dict]:
+    """``n`` directional lights spread over the frontal hemisphere (seeded jitter)."""
+    rng = np.random.default_rng(seed + 17)
+    lights = []
+    golden = np.pi * (3 - np.sqrt(5))
+    for k in range(n):
+        # Fibonacci-like spiral in yaw/pitch within ±60°, jittered.
+        r = np.sqrt((k + 0.5) / n)
+        yaw = 60 * r * np.cos(k * golden) + rng.uniform(-5, 5)
+        pitch = 45 * r * np.sin(k * golden) + rng.uniform(-5, 5)
+        d = orbit_direction(front, yaw, pitch)
+        lights.append({"kind": "directional", "to_light": d.tolist(), "irradiance": [irradiance] * 3})
+    return lights
+
+
+# -- ground-truth maps ---------------------------------------------------------------------
+
+
+def _smooth_noise(rng: np.random.Generator, res: int, cells: int) -> np.ndarray:
+    """Bicubic-upsampled random grid in [-1, 1] (periodic-free value noise)."""
+    from scipy.ndimage import zoom
+
+    grid = rng.uniform(-1, 1, (cells + 3, cells + 3))
+    up = zoom(grid, (res + 3 * res / cells) / (cells + 3), order=3)
+    off = int(round(res / cells))
+    return np.clip(up[off:off + res, off:off + res], -1.5, 1.5)
+
+
+def skin_relief(res: int, rng: np.random.Generator) -> np.ndarray:
+    """Height field in [0, 1]: pores (fine) + wrinkles (elongated) + broad undulation."""
+    from scipy.ndimage import gaussian_filter
+
+    pores = gaussian_filter(rng.normal(size=(res, res)), 0.8 * res / 256)
+    pores = pores / (pores.std() + 1e-12)
+    wrinkles = gaussian_filter(rng.normal(size=(res, res)), sigma=(0.7 * res / 256, 6.0 * res / 256))
+    wrinkles = wrinkles / (wrinkles.std() + 1e-12)
+    broad = _smooth_noise(rng, res, 6)
+    h = 0.35 * pores + 0.45 * wrinkles + 0.6 * broad
+    return (h - h.min()) / (h.max() - h.min())
+
+
+def normals_from_height(height: np.ndarray, geo: GeometryMaps, strength_deg: float) -> np.ndarray:
+    """Tangent-space normal map (H, W, 3) of a height field, RMS tilt ``strength_deg``.
+
+    The tangent frame is (t, n × t) with t = ∂p/∂u; ``bitangent_sign`` maps the
+    image's y axis onto n × t.
+    """
+    gy, gx = np.gradient(height)
+    gy = gy * geo.bitangent_sign
+    slope = np.stack([-gx, -gy], axis=-1)
+    rms = np.sqrt(np.mean(np.sum(slope[geo.mask] ** 2, axis=-1)))
+    slope *= np.tan(np.radians(strength_deg)) / max(rms, 1e-12)
+    n = np.concatenate([slope, np.ones(height.shape + (1,))], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return n.astype(np.float32)
+
+
+def ground_truth_maps(mesh: UVMesh, geo: GeometryMaps, s: FaceBenchmarkSettings) -> dict[str, np.ndarray]:
+    """Seeded ground truth: albedo (scan texture), normal (tangent space, unit), roughness, specular, displacement."""
+    from PIL import Image
+
+    if mesh.texture is None or not Path(mesh.texture).is_file():
+        raise FileNotFoundError(f"{mesh.path}: the scan needs a texture (mtllib with map_Kd), none found")
+    res = s.uv_res
+    rng = np.random.default_rng(s.seed)
+    tex = Image.open(mesh.texture).convert("RGB").resize((res, res), Image.BICUBIC)
+    albedo = imageio.srgb_to_linear(np.asarray(tex, np.float32) / 255.0)
+    height = skin_relief(res, rng)
+    normal = normals_from_height(height, geo, s.normal_strength_deg)
+    roughness = np.clip(0.45 + 0.15 * _smooth_noise(rng, res, 5), 0.25, 0.7)
+    specular = np.clip(0.45 + 0.2 * _smooth_noise(rng, res, 5), 0.15, 0.8)
+    return {
+        "albedo": albedo.astype(np.float32),
+        "normal": normal,
+        "roughness": roughness[..., None].astype(np.float32),
+        "specular": specular[..., None].astype(np.float32),
+        "displacement": height[..., None].astype(np.float32),
+    }
+
+
+# -- Mitsuba scene of the scan with given maps -----------------------------------------------
+
+
+def _bitmap(arr: np.ndarray) -> dict:
+    # raw: the maps are linear data already; bilinear like the UV shader's texel lookup.
+    return {"type": "bitmap", "raw": True, "data": mi.TensorXf(np.ascontiguousarray(arr, np.float32))}
+
+
+def material_dict(maps: dict[str, np.ndarray], s_disp: float) -> dict:
+    """ggx_uv (two-sided) with the given UV maps. Displacement shades as bump in the plugin."""
+    bsdf = {
+        "type": "ggx_uv",
+        "albedo": _bitmap(maps["albedo"]),
+        "normal": _bitmap(maps["normal"] * 0.5 + 0.5),
+        "roughness": _bitmap(maps["roughness"]),
+        "specular": _bitmap(maps["specular"]),
+    }
+    return {"type": "twosided", "bsdf": bsdf}
+
+
+def scan_scene(mesh_path: Path, maps: dict, s: FaceBenchmarkSettings, emitters: dict,
+               sensor: dict | None = None, integrator: dict | None = None) -> mi.Scene:
+    shape = {"type": "obj", "filename": str(mesh_path), "bsdf": material_dict(maps, s.s_disp),
+             "face_normals": False}
+    d = {"type": "scene", "integrator": integrator or {"type": "path", "max_depth": 2}, "scan": shape, **emitters}
+    if sensor is not None:
+        d["sensor"] = sensor
+    return mi.load_dict(d)
+
+
+def directional_emitters(lights: list[dict]) -> dict:
+    return {
+        f"light{k}": {"type": "directional", "direction": (-np.asarray(l["to_light"])).tolist(),
+                      "irradiance": {"type": "rgb", "value": l["irradiance"]}}
+        for k, l in enumerate(lights)
+    }
+
+
+# -- texel-aligned observation ------------------------------------------------------------------
+
+
+def _texel_interactions(scene: mi.Scene, geo: GeometryMaps) -> tuple[np.ndarray, mi.SurfaceInteraction3f]:
+    """Covered texel indices and Mitsuba's surface interactions at their uv (the scan is shape 0)."""
+    from .uv_bake import texel_uvs
+
+    h, w = geo.mask.shape
+    idx = np.nonzero(geo.mask.ravel())[0]
+    uv = texel_uvs(h, w)
+    uv = mi.Point2f(np.array(uv.x)[idx], np.array(uv.y)[idx])
+    return idx, scene.shapes()[0].eval_parameterization(uv)
+
+
+def texel_observation(scene: mi.Scene, geo: GeometryMaps, eye: np.ndarray, radius: float,
+                      seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Radiance seen from ``eye`` at every texel's 3D point, and the texels actually seen.
+
+    One ray per covered texel through its point; seen = first hit within
+    1e-3·radius of the point, on the front side of its shading normal (the
+    UV-space shader is one-sided). Lighting is deterministic (delta lights,
+    direct only), so one sample per texel is exact.
+    """
+    idx = np.nonzero(geo.mask.ravel())[0]
+    p = geo.position.reshape(-1, 3)[idx].astype(np.float64)
+    n = geo.normal.reshape(-1, 3)[idx].astype(np.float64)
+    d = p - eye[None, :]
+    dist = np.linalg.norm(d, axis=1)
+    d /= dist[:, None]
+    ray = mi.Ray3f(mi.Point3f(np.tile(eye, (len(idx), 1)).T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
+    si = scene.ray_intersect(ray)
+    hit = np.array(si.p, dtype=np.float64).T
+    seen = (np.array(si.is_valid()) & (np.linalg.norm(hit - p, axis=1) < 1e-3 * radius)
+            & (np.sum(n * d, axis=1) < 0.0))
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, len(idx))
+    value, _, _ = scene.integrator().sample(scene, sampler, ray)
+    value = np.array(value, dtype=np.float32).T
+    h, w = geo.mask.shape
+    out = np.zeros((h * w, 3), np.float32)
+    out[idx] = np.where(seen[:, None], value, 0.0)
+    vis = np.zeros(h * w, np.float32)
+    vis[idx] = seen
+    return out.reshape(h, w, 3), vis.reshape(h, w)
+
+
+def light_visibility(scene: mi.Scene, geo: GeometryMaps, to_light: np.ndarray) -> np.ndarray:
+    """1 where the texel's point sees the directional light (no cast shadow), else 0.
+
+    The shadow ray is spawned from Mitsuba's own surface interaction at the
+    texel, with Mitsuba's offset, exactly as its renderer does.
+    """
+    idx, si = _texel_interactions(scene, geo)
+    ray = si.spawn_ray(mi.Vector3f(*map(float, to_light)))
+    blocked = np.array(scene.ray_test(ray)) | ~np.array(si.is_valid())
+    out = np.zeros(geo.mask.size, np.float32)
+    out[idx] = ~blocked
+    return out.reshape(geo.mask.shape)
+
+
+def camera_sensor(eye: np.ndarray, target: np.ndarray, res: int, fov: float = 30.0) -> dict:
+    return {
+        "type": "perspective", "fov": fov,
+        "to_world": mi.ScalarTransform4f().look_at(origin=eye.tolist(), target=target.tolist(), up=[0, 1, 0]),
+        "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
+        "sampler": {"type": "independent"},
+    }
+
+
+def render_heldout(mesh_path: Path, maps: dict, s: FaceBenchmarkSettings, hdri: str, eye: np.ndarray,
+                   target: np.ndarray, fov: float) -> tuple[np.ndarray, np.ndarray]:
+    """Camera render under a real HDRI (full path tracing) and the fully covered face pixels."""
+    hdr = HDRI_DIR / f"{hdri}.exr"
+    if not hdr.is_file():
+        raise FileNotFoundError(f"{hdr}: no such HDRI (available: {sorted(p.stem for p in HDRI_DIR.glob('*.exr'))})")
+    scene = scan_scene(mesh_path, maps, s, {"env": {"type": "envmap", "filename": str(hdr)}},
+                       camera_sensor(eye, target, s.render_res, fov), {"type": "intrinsic", "max_depth": 4})
+    img = np.array(mi.render(scene, spp=s.render_spp, seed=s.seed + 7))
+    rgb = img[..., :3]
+    depth = img[..., 3 + 3 * 3 + 3]  # albedo, diffuse, specular, normal (3 each), then depth
+    mask = depth > 0
+    return rgb.astype(np.float32), mask
+
+
+# -- the whole benchmark ------------------------------------------------------------------------------
+
+
+def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings | None = None,
+                   show_progress: bool = True) -> Path:
+    """Build a face benchmark folder from an OBJ scan with a texture; returns the folder."""
+    s = s or FaceBenchmarkSettings()
+    scan, out = Path(scan), Path(out)
+    mesh = load_obj(scan)
+    t0 = time.perf_counter()
+    tmp = out.with_name(f".{out.name}.partial")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+
+    geo = bake_geometry(mesh, s.uv_res)
+    gt = ground_truth_maps(mesh, geo, s)
+    centre, radius, front = scan_frame(mesh)
+    lights = training_lights(front, s.n_lights, s.light_irradiance, s.seed)
+    views = [centre + orbit_direction(front, yaw, pitch) * s.camera_distance * radius for yaw, pitch in s.views]
+
+    obs, vis_view, vis_light = {}, {}, {}
+    steps = len(lights) * (len(views) + 1) + len(s.heldout_hdris)
+    with progress_bar(total=steps, desc=f"face benchmark {scan.stem}", unit="render",
+                      disable=not show_progress) as bar:
+        for k, light in enumerate(lights):
+            scene = scan_scene(scan, gt, s, directional_emitters([light]))
+            vis_light[f"light{k}"] = light_visibility(scene, geo, np.asarray(light["to_light"]))
+            bar.update(1)
+            for v, eye in enumerate(views):
+                img, seen = texel_observation(scene, geo, eye, radius, seed=s.seed + 31 * k + v)
+                obs[f"v{v}_l{k}"] = img
+                vis_view[f"v{v}"] = seen
+                bar.update(1)
+            del scene
+        heldout = {}
+        fov = float(np.degrees(2 * np.arctan(1.15 / s.camera_distance)))
+        for hdri in s.heldout_hdris:
+            rgb, mask = render_heldout(scan, gt, s, hdri, views[0], centre, fov)
+            heldout[hdri] = rgb
+            heldout[f"{hdri}_mask"] = mask.astype(np.float32)
+            bar.update(1)
+
+    imageio.write_exr(tmp / "geometry.exr", {"position": geo.position, "normal": geo.normal,
+                                             "tangent": geo.tangent, "bitangent_sign": geo.bitangent_sign,
+                                             "mask": geo.mask.astype(np.float32)})
+    imageio.write_exr(tmp / "ground_truth.exr", gt)
+    imageio.write_exr(tmp / "observations.exr", obs)
+    imageio.write_exr(tmp / "visibility.exr", {**vis_view, **vis_light})
+    imageio.write_exr(tmp / "heldout.exr", heldout)
+    imageio.write_png(tmp / "albedo_gt.png", gt["albedo"])
+    imageio.write_png(tmp / "observation_v0_l0.png", obs["v0_l0"])
+    meta = {
+        "scan": str(scan.resolve()),
+        "settings": asdict(s),
+        "lights": lights,
+        "views": [v.tolist() for v in views],
+        "centre": centre.tolist(), "radius": radius, "front": front.tolist(),
+        "heldout_camera": {"eye": views[0].tolist(), "target": centre.tolist(), "fov": fov},
+        "seconds": time.perf_counter() - t0,
+        "format": "photoreal-face-benchmark/1",
+    }
+    (tmp / "benchmark.json").write_text(json.dumps(meta, indent=2) + "\n")
+    if out.exists():
+        shutil.rmtree(out)
+    tmp.rename(out)
+    return out
+
+
+@dataclass
+class FaceBenchmark:
+    path: Path
+    meta: dict
+    geometry: dict[str, np.ndarray]
+    ground_truth: dict[str, np.ndarray]
+    observations: dict[str, np.ndarray]  #: "v{view}_l{light}" -> (H, W, 3)
+    visibility: dict[str, np.ndarray]  #: "v{view}" and "light{k}" -> (H, W)
+    heldout: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def settings(self) -> FaceBenchmarkSettings:
+        d = dict(self.meta["settings"])
+        d["views"] = tuple(tuple(v) for v in d["views"])
+        d["heldout_hdris"] = tuple(d["heldout_hdris"])
+        return FaceBenchmarkSettings(**d)
+
+
+def _layers(path: Path) -> dict[str, np.ndarray]:
+    ch = imageio.read_exr(path)
+    names = sorted({k.rsplit(".", 1)[0] if "." in k else "" for k in ch})
+    return {n: imageio.exr_layer(ch, n) for n in names}
+
+
+def load_benchmark(path: str | Path) -> FaceBenchmark:
+    path = Path(path)
+    meta_path = path / "benchmark.json"
+    if not meta_path.is_file():
+        raise FileNotFoundError(f"{path}: not a face benchmark folder (no benchmark.json)")
+    meta = json.loads(meta_path.read_text())
+    if meta.get("format") != "photoreal-face-benchmark/1":
+        raise ValueError(f"{meta_path}: unknown format {meta.get('format')!r}")
+    geometry = _layers(path / "geometry.exr")
+    geometry = {k: (v[..., 0] if v.shape[-1] == 1 else v) for k, v in geometry.items()}
+    vis = {k: v[..., 0] for k, v in _layers(path / "visibility.exr").items()}
+    return FaceBenchmark(path, meta, geometry, _layers(path / "ground_truth.exr"),
+                         _layers(path / "observations.exr"), vis, _layers(path / "heldout.exr"))
