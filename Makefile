@@ -31,6 +31,7 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	mkdir -p out/bench
 	$(BIN)/photoreal bench plugins --json out/bench/plugins.json
+	$(BIN)/photoreal bench face --json out/bench/face.json
 
 clean:
 	rm -rf out .pytest_cache

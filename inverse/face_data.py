@@ -50,6 +50,7 @@ HDRI_DIR = ASSETS / "hdri"
 class FaceBenchmarkSettings:
     uv_res: int = 256
     n_lights: int = 6  #: directional training lights on the frontal hemisphere
+    light_spread_deg: tuple[float, float] = (60.0, 45.0)  #: max |yaw|, |pitch| of the lights from the front
     light_irradiance: float = 3.0
     views: tuple[tuple[float, float], ...] = ((0.0, 0.0), (-35.0, 5.0), (35.0, 5.0))  #: (yaw, pitch) degrees
     camera_distance: float = 4.0  #: in units of the mesh's bounding radius
@@ -85,16 +86,17 @@ def orbit_direction(front: np.ndarray, yaw_deg: float, pitch_deg: float, up=(0.0
     return d / np.linalg.norm(d)
 
 
-def training_lights(front: np.ndarray, n: int, irradiance: float, seed: int) -> list[dict]:
+def training_lights(front: np.ndarray, n: int, irradiance: float, seed: int,
+                    spread: tuple[float, float] = (60.0, 45.0)) -> list[dict]:
     """``n`` directional lights spread over the frontal hemisphere (seeded jitter)."""
     rng = np.random.default_rng(seed + 17)
     lights = []
     golden = np.pi * (3 - np.sqrt(5))
     for k in range(n):
-        # Fibonacci-like spiral in yaw/pitch within ±60°, jittered.
+        # Fibonacci-like spiral in yaw/pitch within the spread, jittered.
         r = np.sqrt((k + 0.5) / n)
-        yaw = 60 * r * np.cos(k * golden) + rng.uniform(-5, 5)
-        pitch = 45 * r * np.sin(k * golden) + rng.uniform(-5, 5)
+        yaw = spread[0] * r * np.cos(k * golden) + rng.uniform(-5, 5)
+        pitch = spread[1] * r * np.sin(k * golden) + rng.uniform(-5, 5)
         d = orbit_direction(front, yaw, pitch)
         lights.append({"kind": "directional", "to_light": d.tolist(), "irradiance": [irradiance] * 3})
     return lights
@@ -292,8 +294,14 @@ def render_heldout(mesh_path: Path, maps: dict, s: FaceBenchmarkSettings, hdri: 
 
 def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings | None = None,
                    show_progress: bool = True) -> Path:
-    """Build a face benchmark folder from an OBJ scan with a texture; returns the folder."""
+    """Build a face benchmark folder from an OBJ scan with a texture; returns the folder.
+
+    Written atomically: everything goes to a hidden sibling folder that is
+    renamed into place at the end.
+    """
     s = s or FaceBenchmarkSettings()
+    if s.uv_res < 8 or s.n_lights < 1 or not s.views or s.render_res < 8 or s.render_spp < 1:
+        raise ValueError(f"face benchmark settings out of range: {s}")
     scan, out = Path(scan), Path(out)
     mesh = load_obj(scan)
     t0 = time.perf_counter()
@@ -305,7 +313,7 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
     geo = bake_geometry(mesh, s.uv_res)
     gt = ground_truth_maps(mesh, geo, s)
     centre, radius, front = scan_frame(mesh)
-    lights = training_lights(front, s.n_lights, s.light_irradiance, s.seed)
+    lights = training_lights(front, s.n_lights, s.light_irradiance, s.seed, s.light_spread_deg)
     views = [centre + orbit_direction(front, yaw, pitch) * s.camera_distance * radius for yaw, pitch in s.views]
 
     obs, vis_view, vis_light = {}, {}, {}
@@ -371,6 +379,7 @@ class FaceBenchmark:
         d = dict(self.meta["settings"])
         d["views"] = tuple(tuple(v) for v in d["views"])
         d["heldout_hdris"] = tuple(d["heldout_hdris"])
+        d["light_spread_deg"] = tuple(d.get("light_spread_deg", (60.0, 45.0)))
         return FaceBenchmarkSettings(**d)
 
 

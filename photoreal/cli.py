@@ -27,7 +27,38 @@ def _cmd_bench(a: argparse.Namespace) -> int:
         print(json.dumps({k: result[k] for k in ("ggx_uv_ms", "principled_ms", "ggx_uv_vs_principled",
                                                  "compile_s")}, indent=2))
         return 0
+    if a.what == "face":
+        from pathlib import Path
+
+        from .face import FaceBenchSettings, bench_face
+
+        result = bench_face(FaceBenchSettings(scan=a.scan), out_dir=Path(a.json).parent)
+        write_json(a.json, result)
+        print(json.dumps({k: result[k] for k in ("albedo_psnr", "normal_err_deg", "roughness_mae", "specular_mae",
+                                                 "relit_psnr", "relit_flip", "fit_seconds_256", "chosen_uv_res")},
+                         indent=2))
+        return 0
     raise SystemExit(f"unknown benchmark {a.what!r}")
+
+
+def _cmd_face(a: argparse.Namespace) -> int:
+    if a.face_cmd == "make-benchmark":
+        from inverse.face_data import FaceBenchmarkSettings, make_benchmark
+
+        out = make_benchmark(a.scan, a.out, FaceBenchmarkSettings(uv_res=a.uv_res, n_lights=a.lights, seed=a.seed))
+        print(f"benchmark: {out}")
+        return 0
+    if a.face_cmd == "fit":
+        from inverse.face_fit import FaceFitSettings
+
+        from .face import fit_benchmark_dir
+
+        fs = FaceFitSettings(fit_lights=a.fit_lights, seed=a.seed,
+                             iterations=tuple(a.iterations) if a.iterations else FaceFitSettings().iterations)
+        m = fit_benchmark_dir(a.benchmark, a.json, a.maps, fs)
+        print(json.dumps({k: m[k] for k in ("albedo_psnr", "normal_err_deg", "relit_psnr", "seconds")}, indent=2))
+        return 0
+    raise SystemExit(f"unknown face command {a.face_cmd!r}")
 
 
 def _cmd_demo(a: argparse.Namespace) -> int:
@@ -54,13 +85,31 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_render)
 
     b = sub.add_parser("bench", help="benchmarks writing JSON")
-    b.add_argument("what", choices=["plugins"])
+    b.add_argument("what", choices=["plugins", "face"])
+    b.add_argument("--scan", default="josie", help="face bench: josie, paul, or an OBJ path")
     b.add_argument("--json", required=True, help="output JSON path")
     b.add_argument("--resolution", type=int, default=256)
     b.add_argument("--spp", type=int, default=64)
     b.add_argument("--repetitions", type=int, default=5)
     b.add_argument("--rounds", type=int, default=2)
     b.set_defaults(func=_cmd_bench)
+
+    f = sub.add_parser("face", help="face material fitting in UV space (seed 003)")
+    fsub = f.add_subparsers(dest="face_cmd", required=True)
+    fm = fsub.add_parser("make-benchmark", help="ground truth + Mitsuba observations from an OBJ scan with texture")
+    fm.add_argument("--scan", required=True, help="OBJ with texture coordinates and a map_Kd texture")
+    fm.add_argument("--out", required=True, help="benchmark folder to create")
+    fm.add_argument("--uv-res", type=int, default=256)
+    fm.add_argument("--lights", type=int, default=6)
+    fm.add_argument("--seed", type=int, default=0)
+    ff = fsub.add_parser("fit", help="fit UV maps to a benchmark and score them")
+    ff.add_argument("benchmark", help="folder made by make-benchmark")
+    ff.add_argument("--json", required=True, help="metrics JSON")
+    ff.add_argument("--maps", default=None, help="folder for the fitted maps (EXR + PNG)")
+    ff.add_argument("--fit-lights", action="store_true", help="treat lighting as unknown and fit it jointly")
+    ff.add_argument("--iterations", type=int, nargs="+", default=None, help="Adam steps per pyramid level")
+    ff.add_argument("--seed", type=int, default=0)
+    f.set_defaults(func=_cmd_face)
 
     d = sub.add_parser("demo", help="render the built-in scenes and write an HTML report")
     d.add_argument("--out", default="out/demo")
@@ -76,10 +125,11 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from .imageio import ImageIOError
     from .render import SceneError
+    from inverse.uv_bake import MeshError
 
     try:
         return args.func(args)
-    except (SceneError, ImageIOError, ValueError, FileNotFoundError, FloatingPointError) as exc:
+    except (SceneError, ImageIOError, ValueError, FileNotFoundError, FloatingPointError, MeshError) as exc:
         print(f"photoreal: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

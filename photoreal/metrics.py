@@ -22,3 +22,49 @@ def psnr(test: np.ndarray, ref: np.ndarray, peak: float = 1.0, clip: bool = True
         a, b = np.clip(a, 0, peak), np.clip(b, 0, peak)
     m = float(np.mean((a - b) ** 2))
     return float("inf") if m == 0 else float(10.0 * np.log10(peak * peak / m))
+
+
+def masked_psnr(test: np.ndarray, ref: np.ndarray, mask: np.ndarray, peak: float = 1.0, clip: bool = True) -> float:
+    """PSNR over the pixels where ``mask`` (H, W) is true."""
+    m = np.asarray(mask, bool)
+    return psnr(np.asarray(test)[m], np.asarray(ref)[m], peak=peak, clip=clip)
+
+
+def ssim(test: np.ndarray, ref: np.ndarray, data_range: float = 1.0) -> float:
+    """Structural similarity (scikit-image, Gaussian-weighted as Wang et al. 2004), RGB averaged."""
+    from skimage.metrics import structural_similarity
+
+    a, b = np.clip(np.asarray(test, np.float64), 0, data_range), np.clip(np.asarray(ref, np.float64), 0, data_range)
+    return float(structural_similarity(a, b, data_range=data_range, channel_axis=-1 if a.ndim == 3 else None,
+                                       gaussian_weights=True, sigma=1.5, use_sample_covariance=False))
+
+
+def flip(test: np.ndarray, ref: np.ndarray, hdr: bool = False, mask: np.ndarray | None = None) -> float:
+    """Mean ꟻLIP error (NVIDIA, weight-free perceptual metric); LDR inputs are linear, encoded to sRGB here."""
+    import flip_evaluator
+
+    from .imageio import linear_to_srgb
+
+    a, b = np.asarray(test, np.float32)[..., :3], np.asarray(ref, np.float32)[..., :3]
+    if hdr:
+        err, mean, _ = flip_evaluator.evaluate(np.maximum(b, 0), np.maximum(a, 0), "HDR", applyMagma=False)
+    else:
+        err, mean, _ = flip_evaluator.evaluate(linear_to_srgb(b), linear_to_srgb(a), "LDR", applyMagma=False)
+    err = np.asarray(err)
+    if err.ndim == 3:
+        err = err[..., 0]
+    return float(err[np.asarray(mask, bool)].mean()) if mask is not None else float(mean)
+
+
+def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle in degrees between unit vectors along the last axis."""
+    an = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
+    bn = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-12)
+    return np.degrees(np.arccos(np.clip(np.sum(an * bn, axis=-1), -1.0, 1.0)))
+
+
+def global_scale(test: np.ndarray, ref: np.ndarray) -> float:
+    """Least-squares s minimising ‖s·test − ref‖² (the scale delighting cannot resolve)."""
+    t, r = np.asarray(test, np.float64).ravel(), np.asarray(ref, np.float64).ravel()
+    den = float(t @ t)
+    return float(t @ r / den) if den > 0 else 1.0
