@@ -16,6 +16,8 @@ other) becomes a benchmark with known answers:
   without filtering blur.
 * **Per-light visibility** (cast shadows of the known geometry) and per-view
   visibility masks, as the UV-space shader needs them.
+* **Camera images** of the same views and lights (ordinary renders), for
+  fitting through full Mitsuba renders instead of UV bakes.
 * **Held-out lighting**: camera renders under real HDR environments, kept for
   relighting the fitted maps.
 
@@ -310,54 +312,67 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
 
-    geo = bake_geometry(mesh, s.uv_res)
-    gt = ground_truth_maps(mesh, geo, s)
-    centre, radius, front = scan_frame(mesh)
-    lights = training_lights(front, s.n_lights, s.light_irradiance, s.seed, s.light_spread_deg)
-    views = [centre + orbit_direction(front, yaw, pitch) * s.camera_distance * radius for yaw, pitch in s.views]
-
-    obs, vis_view, vis_light = {}, {}, {}
-    steps = len(lights) * (len(views) + 1) + len(s.heldout_hdris)
-    with progress_bar(total=steps, desc=f"face benchmark {scan.stem}", unit="render",
-                      disable=not show_progress) as bar:
-        for k, light in enumerate(lights):
-            scene = scan_scene(scan, gt, s, directional_emitters([light]))
-            vis_light[f"light{k}"] = light_visibility(scene, geo, np.asarray(light["to_light"]))
-            bar.update(1)
-            for v, eye in enumerate(views):
-                img, seen = texel_observation(scene, geo, eye, radius, seed=s.seed + 31 * k + v)
-                obs[f"v{v}_l{k}"] = img
-                vis_view[f"v{v}"] = seen
-                bar.update(1)
-            del scene
-        heldout = {}
+    try:
+        # The benchmark carries its own copy of the geometry (self-contained folder).
+        shutil.copyfile(scan, tmp / "mesh.obj")
+        geo = bake_geometry(mesh, s.uv_res)
+        gt = ground_truth_maps(mesh, geo, s)
+        centre, radius, front = scan_frame(mesh)
         fov = float(np.degrees(2 * np.arctan(1.15 / s.camera_distance)))
-        for hdri in s.heldout_hdris:
-            rgb, mask = render_heldout(scan, gt, s, hdri, views[0], centre, fov)
-            heldout[hdri] = rgb
-            heldout[f"{hdri}_mask"] = mask.astype(np.float32)
-            bar.update(1)
+        lights = training_lights(front, s.n_lights, s.light_irradiance, s.seed, s.light_spread_deg)
+        views = [centre + orbit_direction(front, yaw, pitch) * s.camera_distance * radius for yaw, pitch in s.views]
 
-    imageio.write_exr(tmp / "geometry.exr", {"position": geo.position, "normal": geo.normal,
-                                             "tangent": geo.tangent, "bitangent_sign": geo.bitangent_sign,
-                                             "mask": geo.mask.astype(np.float32)})
-    imageio.write_exr(tmp / "ground_truth.exr", gt)
-    imageio.write_exr(tmp / "observations.exr", obs)
-    imageio.write_exr(tmp / "visibility.exr", {**vis_view, **vis_light})
-    imageio.write_exr(tmp / "heldout.exr", heldout)
-    imageio.write_png(tmp / "albedo_gt.png", gt["albedo"])
-    imageio.write_png(tmp / "observation_v0_l0.png", obs["v0_l0"])
-    meta = {
-        "scan": str(scan.resolve()),
-        "settings": asdict(s),
-        "lights": lights,
-        "views": [v.tolist() for v in views],
-        "centre": centre.tolist(), "radius": radius, "front": front.tolist(),
-        "heldout_camera": {"eye": views[0].tolist(), "target": centre.tolist(), "fov": fov},
-        "seconds": time.perf_counter() - t0,
-        "format": "photoreal-face-benchmark/1",
-    }
-    (tmp / "benchmark.json").write_text(json.dumps(meta, indent=2) + "\n")
+        obs, vis_view, vis_light, camera = {}, {}, {}, {}
+        steps = len(lights) * (len(views) + 1) + len(s.heldout_hdris)
+        with progress_bar(total=steps, desc=f"face benchmark {scan.stem}", unit="render",
+                          disable=not show_progress) as bar:
+            for k, light in enumerate(lights):
+                scene = scan_scene(scan, gt, s, directional_emitters([light]))
+                vis_light[f"light{k}"] = light_visibility(scene, geo, np.asarray(light["to_light"]))
+                bar.update(1)
+                for v, eye in enumerate(views):
+                    img, seen = texel_observation(scene, geo, eye, radius, seed=s.seed + 31 * k + v)
+                    obs[f"v{v}_l{k}"] = img
+                    vis_view[f"v{v}"] = seen
+                    # The same view as an ordinary camera image (for fitting through full renders).
+                    sensor = mi.load_dict(camera_sensor(eye, centre, s.render_res, fov))
+                    camera[f"v{v}_l{k}"] = np.array(mi.render(scene, sensor=sensor, spp=s.render_spp,
+                                                              seed=s.seed + 97 * k + v))[..., :3]
+                    bar.update(1)
+                del scene
+            heldout = {}
+            for hdri in s.heldout_hdris:
+                rgb, mask = render_heldout(scan, gt, s, hdri, views[0], centre, fov)
+                heldout[hdri] = rgb
+                heldout[f"{hdri}_mask"] = mask.astype(np.float32)
+                bar.update(1)
+
+        imageio.write_exr(tmp / "geometry.exr", {"position": geo.position, "normal": geo.normal,
+                                                 "tangent": geo.tangent, "bitangent_sign": geo.bitangent_sign,
+                                                 "mask": geo.mask.astype(np.float32)})
+        imageio.write_exr(tmp / "ground_truth.exr", gt)
+        imageio.write_exr(tmp / "observations.exr", obs)
+        imageio.write_exr(tmp / "visibility.exr", {**vis_view, **vis_light})
+        imageio.write_exr(tmp / "heldout.exr", heldout)
+        imageio.write_exr(tmp / "camera.exr", camera)
+        imageio.write_png(tmp / "albedo_gt.png", gt["albedo"])
+        imageio.write_png(tmp / "observation_v0_l0.png", obs["v0_l0"])
+        meta = {
+            "scan": str(scan.resolve()),
+            "mesh": "mesh.obj",
+            "settings": asdict(s),
+            "lights": lights,
+            "views": [v.tolist() for v in views],
+            "centre": centre.tolist(), "radius": radius, "front": front.tolist(),
+            "heldout_camera": {"eye": views[0].tolist(), "target": centre.tolist(), "fov": fov},
+            "camera_fov": fov,
+            "seconds": time.perf_counter() - t0,
+            "format": "photoreal-face-benchmark/1",
+        }
+        (tmp / "benchmark.json").write_text(json.dumps(meta, indent=2) + "\n")
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)  # no half-written benchmark
+        raise
     if out.exists():
         shutil.rmtree(out)
     tmp.rename(out)
@@ -373,6 +388,11 @@ class FaceBenchmark:
     observations: dict[str, np.ndarray]  #: "v{view}_l{light}" -> (H, W, 3)
     visibility: dict[str, np.ndarray]  #: "v{view}" and "light{k}" -> (H, W)
     heldout: dict[str, np.ndarray] = field(default_factory=dict)
+    camera: dict[str, np.ndarray] = field(default_factory=dict)  #: "v{view}_l{light}" camera images
+
+    @property
+    def mesh_path(self) -> Path:
+        return self.path / self.meta.get("mesh", "mesh.obj")
 
     @property
     def settings(self) -> FaceBenchmarkSettings:
@@ -400,5 +420,6 @@ def load_benchmark(path: str | Path) -> FaceBenchmark:
     geometry = _layers(path / "geometry.exr")
     geometry = {k: (v[..., 0] if v.shape[-1] == 1 else v) for k, v in geometry.items()}
     vis = {k: v[..., 0] for k, v in _layers(path / "visibility.exr").items()}
+    camera = _layers(path / "camera.exr") if (path / "camera.exr").is_file() else {}
     return FaceBenchmark(path, meta, geometry, _layers(path / "ground_truth.exr"),
-                         _layers(path / "observations.exr"), vis, _layers(path / "heldout.exr"))
+                         _layers(path / "observations.exr"), vis, _layers(path / "heldout.exr"), camera)

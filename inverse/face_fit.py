@@ -155,7 +155,7 @@ def fit_face(bench: FaceBenchmark, s: FaceFitSettings | None = None, show_progre
     s = s or FaceFitSettings()
     t0 = time.perf_counter()
     rng = np.random.default_rng(s.seed)
-    mesh = load_obj(bench.meta["scan"])
+    mesh = load_obj(bench.mesh_path)
     full = bench.geometry["mask"].shape[0]
     views = [np.asarray(v) for v in bench.meta["views"]]
     lights_meta = bench.meta["lights"]
@@ -395,7 +395,7 @@ def evaluate_fit(bench: FaceBenchmark, result: FaceFitResult, relight: bool = Tr
         maps = dict(fit, albedo=albedo)
         per = {}
         for hdri in s.heldout_hdris:
-            rgb, _ = render_heldout(Path(bench.meta["scan"]), maps, s, hdri, np.asarray(cam["eye"]),
+            rgb, _ = render_heldout(bench.mesh_path, maps, s, hdri, np.asarray(cam["eye"]),
                                     np.asarray(cam["target"]), cam["fov"])
             ref = bench.heldout[hdri]
             mask = bench.heldout[f"{hdri}_mask"][..., 0] > 0.5
@@ -404,3 +404,77 @@ def evaluate_fit(bench: FaceBenchmark, result: FaceFitResult, relight: bool = Tr
         out["relit_psnr"] = float(np.mean([v["psnr"] for v in per.values()]))
         out["relit_flip"] = float(np.mean([v["flip"] for v in per.values()]))
     return out
+
+
+# -- fitting through full Mitsuba renders ------------------------------------------------------
+
+
+@dataclass
+class RenderRefineSettings:
+    iterations: int = 10
+    spp: int = 4
+    lr: float = 0.005
+    seed: int = 0
+
+
+def refine_through_renders(bench: FaceBenchmark, maps: dict[str, np.ndarray], s: RenderRefineSettings | None = None,
+                           show_progress: bool = True) -> tuple[dict[str, np.ndarray], list[float]]:
+    """Refine albedo, roughness and normal maps by differentiating *camera renders* (``prb``).
+
+    The scan is rendered with the ``ggx_uv`` plugin from the benchmark's views
+    under each training light and compared (L2) with the benchmark's camera
+    images; gradients flow through Mitsuba into the plugin's bitmap textures.
+    This exercises the plugin's derivatives the way an image-space pipeline
+    would use them; the UV-space fit is the fast path. Returns the refined
+    maps and the per-iteration camera-space loss.
+    """
+    from .face_data import camera_sensor, directional_emitters, scan_scene
+
+    s = s or RenderRefineSettings()
+    if not bench.camera:
+        raise ValueError(f"{bench.path}: benchmark has no camera images (made by an older version?)")
+    bs = bench.settings
+    lights = bench.meta["lights"]
+    centre = np.asarray(bench.meta["centre"])
+    fov = bench.meta.get("camera_fov", bench.meta["heldout_camera"]["fov"])
+    scene = scan_scene(bench.mesh_path, maps, bs, directional_emitters(lights), integrator={"type": "prb", "max_depth": 2})
+    sensors = [mi.load_dict(camera_sensor(np.asarray(eye), centre, bs.render_res, fov)) for eye in bench.meta["views"]]
+    params = mi.traverse(scene)
+    prefix = "scan.bsdf.brdf_0."
+    keys = {"albedo": prefix + "albedo.data", "roughness": prefix + "roughness.data", "normal": prefix + "normal.data"}
+    irr = {k: mi.Color3f(params[f"light{k}.irradiance.value"]) for k in range(len(lights))}
+    opt = mi.ad.Adam(lr=s.lr)
+    for name, key in keys.items():
+        opt[key] = params[key]
+    params.update(opt)
+    history = []
+    n_img = len(lights) * len(sensors)
+    with progress_bar(total=s.iterations, desc="refine through renders", unit="it", disable=not show_progress) as bar:
+        for it in range(s.iterations):
+            total = 0.0
+            for k in range(len(lights)):
+                for j in range(len(lights)):  # one light at a time, as in the benchmark images
+                    params[f"light{j}.irradiance.value"] = irr[j] if j == k else mi.Color3f(0.0)
+                params.update(opt)
+                for v, sensor in enumerate(sensors):
+                    img = mi.render(scene, params, sensor=sensor, spp=s.spp, seed=s.seed + it * 1000 + k * 10 + v)
+                    target = mi.TensorXf(np.ascontiguousarray(bench.camera[f"v{v}_l{k}"], np.float32))
+                    loss = dr.mean(dr.square(img[..., :3] - target), axis=None) / n_img
+                    dr.backward(loss)
+                    total += float(loss.array[0])
+            opt.step()
+            opt[keys["albedo"]] = dr.clip(opt[keys["albedo"]], 0.0, 1.0)
+            opt[keys["roughness"]] = dr.clip(opt[keys["roughness"]], 0.05, 1.0)
+            opt[keys["normal"]] = dr.clip(opt[keys["normal"]], 0.0, 1.0)
+            params.update(opt)
+            if not np.isfinite(total):
+                raise FloatingPointError(f"refine_through_renders: loss became {total} at iteration {it}")
+            history.append(total)
+            bar.update(1)
+    out = dict(maps)
+    out["albedo"] = np.array(params[keys["albedo"]])
+    out["roughness"] = np.array(params[keys["roughness"]])
+    n = np.array(params[keys["normal"]]) * 2.0 - 1.0
+    out["normal"] = (n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)).astype(np.float32)
+    del scene, params, opt
+    return out, history

@@ -85,6 +85,8 @@ def load_obj(path: str | Path) -> UVMesh:
                     fuvs.append([ti[0], ti[k], ti[k + 1]])
             elif parts[0] == "mtllib" and mtllib is None:
                 mtllib = path.parent / " ".join(parts[1:])
+        except MeshError:
+            raise
         except (ValueError, IndexError) as exc:
             raise MeshError(f"{path}:{n}: malformed line {line!r}") from exc
     if not faces:

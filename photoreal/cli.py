@@ -55,7 +55,10 @@ def _cmd_face(a: argparse.Namespace) -> int:
 
         fs = FaceFitSettings(fit_lights=a.fit_lights, seed=a.seed,
                              iterations=tuple(a.iterations) if a.iterations else FaceFitSettings().iterations)
-        m = fit_benchmark_dir(a.benchmark, a.json, a.maps, fs)
+        from inverse.face_fit import RenderRefineSettings
+
+        refine = RenderRefineSettings(iterations=a.refine_renders, seed=a.seed) if a.refine_renders else None
+        m = fit_benchmark_dir(a.benchmark, a.json, a.maps, fs, refine=refine)
         print(json.dumps({k: m[k] for k in ("albedo_psnr", "normal_err_deg", "relit_psnr", "seconds")}, indent=2))
         return 0
     raise SystemExit(f"unknown face command {a.face_cmd!r}")
@@ -108,6 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
     ff.add_argument("--maps", default=None, help="folder for the fitted maps (EXR + PNG)")
     ff.add_argument("--fit-lights", action="store_true", help="treat lighting as unknown and fit it jointly")
     ff.add_argument("--iterations", type=int, nargs="+", default=None, help="Adam steps per pyramid level")
+    ff.add_argument("--refine-renders", type=int, default=0, metavar="N",
+                    help="then refine N Adam steps through full camera renders (prb through ggx_uv)")
     ff.add_argument("--seed", type=int, default=0)
     f.set_defaults(func=_cmd_face)
 

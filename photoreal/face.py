@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from inverse.face_data import FaceBenchmarkSettings, load_benchmark, make_benchmark
-from inverse.face_fit import FaceFitSettings, evaluate_fit, fit_face, save_maps
+from inverse.face_fit import (FaceFitSettings, RenderRefineSettings, evaluate_fit, fit_face, refine_through_renders,
+                              save_maps)
 
 from .bench import write_json
 from .progress import progress_bar
@@ -20,11 +21,23 @@ SCANS = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "face" / 
 
 
 def fit_benchmark_dir(bench_dir: str | Path, json_path: str | Path | None, maps_out: str | Path | None,
-                      settings: FaceFitSettings, relight: bool = True, show_progress: bool = True) -> dict:
-    """`photoreal face fit`: fit, evaluate against the ground truth, write maps and metrics."""
+                      settings: FaceFitSettings, relight: bool = True, show_progress: bool = True,
+                      refine: RenderRefineSettings | None = None) -> dict:
+    """`photoreal face fit`: fit, evaluate against the ground truth, write maps and metrics.
+
+    With ``refine``, the UV-space fit is followed by refinement through full
+    camera renders (``prb`` through the ggx_uv plugin); both stages are scored.
+    """
     bench = load_benchmark(bench_dir)
     result = fit_face(bench, settings, show_progress=show_progress)
     metrics = evaluate_fit(bench, result, relight=relight)
+    if refine is not None and refine.iterations > 0:
+        t0 = time.perf_counter()
+        maps, history = refine_through_renders(bench, result.maps, refine, show_progress=show_progress)
+        result.maps = maps
+        result.seconds += time.perf_counter() - t0
+        metrics = {"uv_fit": metrics, **evaluate_fit(bench, result, relight=relight),
+                   "render_refine": {"settings": asdict(refine), "camera_loss": history}}
     metrics["fit_settings"] = asdict(settings)
     metrics["benchmark"] = str(Path(bench_dir).resolve())
     if maps_out is not None:

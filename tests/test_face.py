@@ -1,0 +1,138 @@
+"""Face material fitting (issue: face PBR fitting): baking, benchmark oracle, fit accuracy, errors."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from inverse import face_data as fd
+from inverse.face_fit import FaceFitSettings, evaluate_fit, fit_face, integrate_normals
+from inverse.uv_bake import MeshError, bake_geometry, load_obj
+
+SCANS = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "face" / "cyberheads"
+JOSIE = SCANS / "josie.obj"
+
+
+def test_load_obj_errors_name_file_and_line(tmp_path):
+    with pytest.raises(MeshError, match="no such mesh file"):
+        load_obj(tmp_path / "missing.obj")
+    p = tmp_path / "nouv.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(MeshError, match=r"nouv.obj:4: face without texture coordinates"):
+        load_obj(p)
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 7/1\n")
+    with pytest.raises(MeshError, match=r":5: vertex index 7 out of range"):
+        load_obj(p)
+    p.write_text("v 0 0 nan\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n")
+    with pytest.raises(MeshError, match="NaN"):
+        load_obj(p)
+
+
+def test_bake_geometry_of_real_scan():
+    mesh = load_obj(JOSIE)
+    assert mesh.texture is not None and mesh.texture.name == "josie_tex.png"
+    g = bake_geometry(mesh, 64)
+    m = g.mask
+    assert 0.8 < m.mean() < 0.95  # the scan's UV layout covers ~89% of the square
+    np.testing.assert_allclose(np.linalg.norm(g.normal[m], axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(g.tangent[m], axis=1), 1.0, atol=1e-5)
+    assert np.abs(np.sum(g.normal[m] * g.tangent[m], axis=1)).max() < 1e-4  # Gram–Schmidt
+    lo, hi = mesh.vertices.min(0) - 1e-6, mesh.vertices.max(0) + 1e-6
+    assert ((g.position[m] >= lo) & (g.position[m] <= hi)).all()
+
+
+def test_integrate_normals_recovers_a_known_height_field():
+    n = 64
+    y, x = np.mgrid[0:n, 0:n] / n
+    h = np.sin(2 * np.pi * x) * np.cos(2 * np.pi * y)  # periodic: the FFT solver's setting
+    gy, gx = np.gradient(h)
+    normal = np.stack([-gx, -gy, np.ones_like(h)], -1)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    z = integrate_normals(normal, np.ones((n, n)), np.ones((n, n), bool))[..., 0]
+    assert np.corrcoef(z.ravel(), h.ravel())[0, 1] > 0.99
+
+
+@pytest.fixture(scope="module")
+def small_benchmark(tmp_path_factory):
+    out = tmp_path_factory.mktemp("face") / "josie64"
+    s = fd.FaceBenchmarkSettings(uv_res=64, render_res=48, render_spp=8, heldout_hdris=("sunset",))
+    return fd.load_benchmark(fd.make_benchmark(JOSIE, out, s, show_progress=False))
+
+
+def test_uv_shader_reproduces_mitsuba_observations_on_the_scan(small_benchmark):
+    """Oracle: the ggx_uv plugin rendered by Mitsuba (observations) and the UV-space shader applied
+    to the same ground-truth maps on the same mesh agree texel by texel."""
+    import mitsuba as mi
+
+    from mi_plugins.uv_shader import UVLight, UVMaps, UVView, shade_uv
+
+    b = small_benchmark
+    geo = bake_geometry(load_obj(b.mesh_path), 64)
+    t = lambda a: mi.TensorXf(np.ascontiguousarray(a, np.float32))  # noqa: E731
+    gt = b.ground_truth
+    maps = UVMaps(albedo=t(gt["albedo"]), normal=t(gt["normal"] * 0.5 + 0.5), roughness=t(gt["roughness"]),
+                  specular=t(gt["specular"]))
+    errs = []
+    for v, eye in enumerate(b.meta["views"]):
+        seen = b.visibility[f"v{v}"] > 0
+        for k, light in enumerate(b.meta["lights"]):
+            pred = np.array(shade_uv(t(geo.position), t(geo.normal), t(geo.tangent), maps,
+                                     [UVLight("directional", tuple(light["to_light"]), tuple(light["irradiance"]))],
+                                     UVView(position=tuple(eye)),
+                                     light_visibility=[t(b.visibility[f"light{k}"][..., None])]))
+            errs.append(np.abs(pred - b.observations[f"v{v}_l{k}"])[seen].max(-1))
+    e = np.concatenate(errs)
+    # Same float32 maths: the typical texel agrees to ~1e-7; a few shadow-terminator texels, where
+    # Mitsuba's shadow-ray offset and ours differ, may not. Bounds: median 1e-5, 99.5% within 1e-2.
+    assert np.median(e) < 1e-5, np.median(e)
+    assert np.mean(e < 1e-2) > 0.995, np.mean(e < 1e-2)
+
+
+def test_fit_recovers_ground_truth_maps(small_benchmark):
+    r = fit_face(small_benchmark, FaceFitSettings(iterations=(40, 200)), show_progress=False)
+    m = evaluate_fit(small_benchmark, r)
+    # 64² is coarse (the issue's targets are for 256²); still well inside them.
+    assert m["albedo_psnr"] >= 30.0, m
+    assert m["normal_err_deg"] <= 5.0, m
+    assert m["relit_psnr"] >= 30.0, m
+    assert abs(m["albedo_scale"] - 1.0) < 0.05  # known lights: no scale ambiguity to speak of
+    assert all(np.isfinite(v).all() for v in r.maps.values())
+    assert r.loss_history[-1] < 0.1 * r.loss_history[0]
+
+
+def test_unknown_lighting_with_wrong_init_stays_finite_and_bounded(small_benchmark):
+    s = FaceFitSettings(iterations=(30, 80), fit_lights=True, light_init_error_deg=30.0)
+    r = fit_face(small_benchmark, s, show_progress=False)
+    m = evaluate_fit(small_benchmark, r, relight=False)
+    assert all(np.isfinite(v).all() for v in r.maps.values())
+    assert 0.0 <= r.ambient < 1.0
+    assert m["albedo_psnr"] > 20.0, m  # degraded but bounded; the bench reports the exact drop
+
+
+def test_refinement_through_camera_renders_reduces_albedo_error(small_benchmark):
+    """Gradients through Mitsuba renders of the ggx_uv plugin move a wrong albedo towards the truth."""
+    from inverse.face_fit import RenderRefineSettings, refine_through_renders
+
+    gt = small_benchmark.ground_truth
+    start = dict(gt, albedo=np.clip(gt["albedo"] * 0.7 + 0.05, 0, 1))
+    out, hist = refine_through_renders(small_benchmark, start, RenderRefineSettings(iterations=6, lr=0.01),
+                                       show_progress=False)
+    m = small_benchmark.geometry["mask"] > 0
+    before = np.abs(start["albedo"] - gt["albedo"])[m].mean()
+    after = np.abs(out["albedo"] - gt["albedo"])[m].mean()
+    assert after < 0.85 * before, (before, after)
+    assert np.isfinite(hist).all()
+
+
+def test_cli_errors(tmp_path, capsys):
+    from photoreal.cli import main
+
+    notex = tmp_path / "notex.obj"
+    notex.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n")
+    assert main(["face", "make-benchmark", "--scan", str(notex), "--out", str(tmp_path / "b"),
+                 "--uv-res", "16"]) == 2
+    assert "notex.obj: the scan needs a texture" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()
+    assert main(["face", "fit", str(tmp_path), "--json", str(tmp_path / "m.json")]) == 2
+    assert "not a face benchmark folder" in capsys.readouterr().err
+    assert not (tmp_path / "m.json").exists()
