@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet --upgrade pip
 	# torch first and alone, so pip takes the local CPU wheel and never resolves a CUDA build.
 	$(BIN)/pip install --quiet torch==2.13.0
-	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/pip install --quiet -e '.[dev,face]'
 	# Export the venv's libLLVM at interpreter start-up, so that even `import mitsuba`
 	# before `import mi_plugins` never loads a system LLVM 14/15 (mi_plugins/backend.py).
 	$(BIN)/python -c 'from mi_plugins.backend import write_pth; print(write_pth())'

@@ -355,7 +355,8 @@ def save_maps(maps: dict[str, np.ndarray], out: Path) -> None:
     imageio.write_png(out / "displacement.png", np.repeat(maps["displacement"], 3, -1), linear=False)
 
 
-def evaluate_fit(bench: FaceBenchmark, result: FaceFitResult, relight: bool = True) -> dict:
+def evaluate_fit(bench: FaceBenchmark, result: FaceFitResult, relight: bool = True,
+                 images: dict | None = None) -> dict:
     """Metrics against the benchmark's ground truth and held-out relighting.
 
     Albedo is compared after the least-squares global scale (reported as
@@ -364,7 +365,8 @@ def evaluate_fit(bench: FaceBenchmark, result: FaceFitResult, relight: bool = Tr
     observation constrains (``observed_fraction`` of the covered ones).
     Relighting renders the fitted maps (scaled albedo) under each held-out
     HDRI with the benchmark's camera, spp and seed, and compares with the
-    ground-truth render on the face pixels.
+    ground-truth render on the face pixels. Pass a dict as ``images`` to
+    receive the relit renders ({hdri: (H, W, 3)}).
     """
     from photoreal.metrics import angular_error_deg, flip, global_scale, masked_psnr, psnr, ssim
 
@@ -400,6 +402,8 @@ def evaluate_fit(bench: FaceBenchmark, result: FaceFitResult, relight: bool = Tr
             ref = bench.heldout[hdri]
             mask = bench.heldout[f"{hdri}_mask"][..., 0] > 0.5
             per[hdri] = {"psnr": masked_psnr(rgb, ref, mask), "flip": flip(rgb, ref, mask=mask)}
+            if images is not None:
+                images[hdri] = rgb
         out["relit"] = per
         out["relit_psnr"] = float(np.mean([v["psnr"] for v in per.values()]))
         out["relit_flip"] = float(np.mean([v["flip"] for v in per.values()]))

@@ -61,13 +61,25 @@ def _cmd_face(a: argparse.Namespace) -> int:
         m = fit_benchmark_dir(a.benchmark, a.json, a.maps, fs, refine=refine)
         print(json.dumps({k: m[k] for k in ("albedo_psnr", "normal_err_deg", "relit_psnr", "seconds")}, indent=2))
         return 0
+    if a.face_cmd == "from-photo":
+        from inverse.face_photo import PhotoFitSettings, load_landmarks, photo_to_face
+
+        from .imageio import read_photo
+
+        image = read_photo(a.image)
+        lm = load_landmarks(a.landmarks) if a.landmarks else None
+        r = photo_to_face(image, a.out, PhotoFitSettings(uv_res=a.uv_res, seed=a.seed), landmarks=lm)
+        print(json.dumps({k: r[k] for k in ("landmark_reprojection_px", "rerender_psnr_visible_face",
+                                            "visible_uv_fraction", "seconds")}, indent=2))
+        return 0
     raise SystemExit(f"unknown face command {a.face_cmd!r}")
 
 
 def _cmd_demo(a: argparse.Namespace) -> int:
     from .demo import DemoSettings, run_demo
 
-    index = run_demo(a.out, DemoSettings(resolution=a.resolution, spp=a.spp, seed=a.seed),
+    index = run_demo(a.out, DemoSettings(resolution=a.resolution, spp=a.spp, seed=a.seed, face=not a.no_face,
+                                         face_uv_res=a.face_uv_res),
                      with_bench=not a.no_bench)
     print(f"report: {index}")
     return 0
@@ -114,6 +126,12 @@ def build_parser() -> argparse.ArgumentParser:
     ff.add_argument("--refine-renders", type=int, default=0, metavar="N",
                     help="then refine N Adam steps through full camera renders (prb through ggx_uv)")
     ff.add_argument("--seed", type=int, default=0)
+    fp = fsub.add_parser("from-photo", help="one photograph -> relightable face (landmarks, unwrap, delight, relight)")
+    fp.add_argument("image", help="image file, or 'astronaut' for scikit-image's photograph")
+    fp.add_argument("--out", required=True)
+    fp.add_argument("--landmarks", default=None, help="468x3 landmarks (.npy/.json) instead of running mediapipe")
+    fp.add_argument("--uv-res", type=int, default=256)
+    fp.add_argument("--seed", type=int, default=0)
     f.set_defaults(func=_cmd_face)
 
     d = sub.add_parser("demo", help="render the built-in scenes and write an HTML report")
@@ -122,6 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--spp", type=int, default=64)
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--no-bench", action="store_true", help="skip the plugin speed section")
+    d.add_argument("--no-face", action="store_true", help="skip the face fitting section")
+    d.add_argument("--face-uv-res", type=int, default=256)
     d.set_defaults(func=_cmd_demo)
     return p
 
@@ -134,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return args.func(args)
-    except (SceneError, ImageIOError, ValueError, FileNotFoundError, FloatingPointError, MeshError) as exc:
+    except (SceneError, ImageIOError, ValueError, FileNotFoundError, FloatingPointError, MeshError, ImportError) as exc:
         print(f"photoreal: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

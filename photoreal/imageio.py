@@ -145,3 +145,20 @@ def write_png(path: str | os.PathLike, image: np.ndarray, linear: bool = True, e
     with atomic_path(path) as tmp:
         Image.fromarray(a[..., :3]).save(tmp, format="PNG")
     return Path(path)
+
+
+def read_photo(path_or_name: str) -> np.ndarray:
+    """8-bit RGB photo from a file, or one of scikit-image's bundled photographs by name."""
+    from PIL import Image
+
+    p = Path(path_or_name)
+    if not p.is_file():
+        import skimage.data
+
+        if path_or_name in ("astronaut", "chelsea", "coffee", "rocket") and hasattr(skimage.data, path_or_name):
+            return np.asarray(getattr(skimage.data, path_or_name)())[..., :3]
+        raise ImageIOError(f"{path_or_name}: no such image file")
+    try:
+        return np.asarray(Image.open(p).convert("RGB"))
+    except Exception as exc:  # PIL raises several unrelated types for bad files
+        raise ImageIOError(f"{p}: not a readable image ({exc})") from exc

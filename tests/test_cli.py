@@ -107,12 +107,27 @@ def test_bench_plugins_writes_json(tmp_path, capsys):
 
 def test_demo_writes_report(tmp_path, capsys):
     out = tmp_path / "demo"
-    code, stdout, err = _run(["demo", "--out", str(out), "--resolution", "24", "--spp", "4", "--no-bench"], capsys)
+    code, stdout, err = _run(["demo", "--out", str(out), "--resolution", "24", "--spp", "4", "--no-bench",
+                              "--face-uv-res", "32"], capsys)
     assert code == 0, err
     index = (out / "index.html").read_text()
     for scene in ("josie", "material_test", "armadillo"):
         assert f"{scene}.png" in index and (out / f"{scene}.png").is_file()
         assert (out / f"{scene}_irradiance.png").is_file()
+    assert "face/relit_fit_sunset.png" in index and (out / "face" / "fit_albedo.png").is_file()
     summary = json.loads((out / "demo.json").read_text())
     # The report's recomposition figure is R = A·I + S against the same render: exact.
     assert all(v["psnr_recomposed_vs_full_db"] > 80 for v in summary["scenes"].values())
+    assert np.isfinite(summary["face"]["relit_psnr"])
+    assert "photo/relit_studio.png" in index and summary["photo"]["landmark_reprojection_px"] < 3.0
+
+
+def test_face_from_photo_cli(tmp_path, capsys):
+    lm = Path(__file__).resolve().parent / "data" / "astronaut_landmarks.npy"
+    code, stdout, err = _run(["face", "from-photo", "astronaut", "--landmarks", str(lm), "--uv-res", "64",
+                              "--out", str(tmp_path / "astro")], capsys)
+    assert code == 0, err
+    assert json.loads(stdout)["landmark_reprojection_px"] < 3.0
+    assert (tmp_path / "astro" / "relit_sunset.png").is_file()
+    code, _, err = _run(["face", "from-photo", str(tmp_path / "nope.png"), "--out", str(tmp_path / "x")], capsys)
+    assert code == 2 and "nope.png: no such image file" in err

@@ -136,3 +136,74 @@ def test_cli_errors(tmp_path, capsys):
     assert main(["face", "fit", str(tmp_path), "--json", str(tmp_path / "m.json")]) == 2
     assert "not a face benchmark folder" in capsys.readouterr().err
     assert not (tmp_path / "m.json").exists()
+
+
+# -- one photograph to a relightable face ----------------------------------------------------------
+
+DATA = Path(__file__).resolve().parent / "data"
+
+
+def test_umeyama_recovers_a_known_similarity():
+    from inverse.face_photo import umeyama
+
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(50, 3))
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    r = q * np.sign(np.linalg.det(q))
+    dst = 2.5 * src @ r.T + np.array([1.0, -2.0, 3.0])
+    s, r_est, t = umeyama(src, dst)
+    assert abs(s - 2.5) < 1e-9 and np.allclose(r_est, r, atol=1e-9) and np.allclose(t, [1, -2, 3], atol=1e-9)
+
+
+def test_template_fit_reproduces_deformed_template_landmarks():
+    from inverse.face_photo import TEMPLATE, fit_template
+
+    template = load_obj(TEMPLATE)
+    rng = np.random.default_rng(4)
+    # Oracle: the template itself, smoothly deformed, scaled by 7 and moved: a fit must land within 0.5 px.
+    v = template.vertices.copy()
+    v[:, 0] *= 1.0 + 0.05 * np.sin(v[:, 1] / 3.0)
+    target = 7.0 * v[:468] + np.array([250.0, 300.0, 10.0]) + rng.normal(scale=0.05, size=(468, 3))
+    fit = fit_template(template, target, laplacian_weight=0.5)
+    assert fit.reprojection_px < 0.5, fit.reprojection_px
+    assert fit.reprojection_px < fit.reprojection_px_rigid
+
+
+def test_photo_to_relightable_face_from_landmark_file(tmp_path):
+    import json
+
+    import skimage.data
+
+    from inverse.face_photo import PhotoFitSettings, load_landmarks, photo_to_face
+
+    lm = load_landmarks(DATA / "astronaut_landmarks.npy")
+    r = photo_to_face(skimage.data.astronaut(), tmp_path, PhotoFitSettings(uv_res=96, relight_res=64, relight_spp=16,
+                                                                           hdris=("sunset",), light_iterations=120),
+                      landmarks=lm, show_progress=False)
+    assert r["landmark_reprojection_px"] < 3.0  # 512² photo, 468 landmarks
+    assert r["rerender_psnr_visible_face"] > 18.0  # a relit baseline, not a copy of the photo
+    assert 0.5 < r["visible_uv_fraction"] < 1.0
+    for name in ("albedo.png", "relit_sunset.png", "face_fitted.obj", "maps.exr", "photo_face.json"):
+        assert (tmp_path / name).is_file(), name
+    assert json.loads((tmp_path / "photo_face.json").read_text())["image_size"] == [512, 512]
+
+
+def test_mediapipe_finds_the_astronaut_landmarks():
+    import skimage.data
+
+    pytest.importorskip("mediapipe", reason="the 'face' extra is not installed")
+    from inverse.face_photo import detect_landmarks
+
+    lm = detect_landmarks(skimage.data.astronaut())
+    ref = np.load(DATA / "astronaut_landmarks.npy")
+    assert lm.shape == (468, 3)
+    assert np.abs(lm[:, :2] - ref[:, :2]).max() * 512 < 2.0  # same model, same image: within 2 px
+
+
+def test_bad_landmark_file(tmp_path):
+    from inverse.face_photo import load_landmarks
+
+    p = tmp_path / "lm.json"
+    p.write_text("[[0, 0, 0]]")
+    with pytest.raises(ValueError, match="lm.json: expected 468"):
+        load_landmarks(p)
