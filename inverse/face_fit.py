@@ -46,7 +46,7 @@ class FaceFitSettings:
     w_smooth_roughness: float = 2.0
     w_smooth_specular: float = 2.0
     w_smooth_normal: float = 0.0
-    w_chroma: float = 0.0
+    w_chroma: float = 0.0  #: smoothness of albedo chromaticity (useful when lighting is unknown)
     fit_lights: bool = False  #: unknown lighting: fit directions, intensities and ambient
     light_init_error_deg: float = 0.0  #: perturb the initial light directions (stability tests)
     init_roughness: float = 0.5
@@ -245,6 +245,14 @@ def fit_face(bench: FaceBenchmark, s: FaceFitSettings | None = None, show_progre
                    + s.w_smooth_specular * _grad_penalty(opt["specular"], res, res))
             if s.w_smooth_normal > 0:
                 reg += s.w_smooth_normal * _grad_penalty(opt["slope"], res, res)
+            if s.w_chroma > 0:
+                # Chromaticity a / (r + g + b): shading changes brightness, rarely hue, so hue
+                # edges in the albedo should be rare (a Retinex-style prior).
+                alb = opt["albedo"]
+                r_, g_, b_ = unravel_channels(alb.array, 3)
+                total_c = dr.maximum(r_ + g_ + b_, 1e-3)
+                chroma = mi.TensorXf(dr.ravel(mi.Vector3f(r_, g_, b_) / total_c), shape=alb.shape)
+                reg += s.w_chroma * _grad_penalty(chroma, res, res)
             total = loss + reg
             dr.backward(total)
             opt.step()

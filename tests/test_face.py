@@ -207,3 +207,15 @@ def test_bad_landmark_file(tmp_path):
     p.write_text("[[0, 0, 0]]")
     with pytest.raises(ValueError, match="lm.json: expected 468"):
         load_landmarks(p)
+
+
+def test_chroma_regulariser_smooths_albedo_hue(small_benchmark):
+    """With the chromaticity prior on, the fitted albedo's hue varies less between neighbours."""
+
+    def hue_roughness(a):
+        c = a / np.maximum(a.sum(-1, keepdims=True), 1e-3)
+        return float(np.mean(np.abs(np.diff(c, axis=0))) + np.mean(np.abs(np.diff(c, axis=1))))
+
+    base = fit_face(small_benchmark, FaceFitSettings(iterations=(10, 40)), show_progress=False)
+    reg = fit_face(small_benchmark, FaceFitSettings(iterations=(10, 40), w_chroma=50.0), show_progress=False)
+    assert hue_roughness(reg.maps["albedo"]) < hue_roughness(base.maps["albedo"])
