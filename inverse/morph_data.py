@@ -1,0 +1,509 @@
+"""Geometry-morphing benchmark with ground truth (REAL-DIBS §2.3 artifacts, measured).
+
+A case is built from any mesh file (OBJ/PLY/OFF) or from a procedural
+village, and holds:
+
+* the **ground-truth** geometry (PLY) and its textured materials;
+* **photos**: ~32 views on a drone-like orbit, path traced under a real HDR
+  environment, split into train and held-out (test) views, with cameras;
+* a **degraded reconstruction** reproducing the thesis' photogrammetry
+  artifacts: decimation (fast-simplification), bumpy flat regions, eroded
+  or floating small parts (chimneys), wobbly sharp edges, and vertex colours
+  from a blurred, misregistered texture lookup;
+* ``morph_benchmark.json`` with settings, cameras and the artifact log.
+
+The village's textures come from the real photographs scikit-image ships
+(brick, gravel, grass), tinted per material.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import mi_plugins  # noqa: F401
+import mitsuba as mi
+
+from photoreal import imageio
+from photoreal.progress import progress_bar
+
+ASSETS = Path(__file__).resolve().parent.parent / "scenes" / "assets"
+
+
+@dataclass
+class MorphBenchmarkSettings:
+    n_views: int = 32
+    test_every: int = 4  #: every k-th view is held out
+    resolution: int = 128
+    spp: int = 64
+    hdri: str = "sunrise"
+    elevation_deg: tuple[float, float] = (25.0, 45.0)  #: drone altitude range
+    coarse_vertices: int = 3000  #: decimation target of the degraded mesh
+    bump_amplitude: float = 0.012  #: × scene size, on flat regions
+    wobble_amplitude: float = 0.008  #: × scene size, on sharp edges
+    misregistration: float = 0.01  #: × scene size, colour lookup offset
+    colour_blur: float = 0.02  #: × scene size, colour lookup blur radius
+    n_houses: int = 6
+    seed: int = 0
+
+
+# -- meshes ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class Part:
+    """A triangle soup with per-corner UVs and a material name."""
+
+    vertices: np.ndarray  #: (3F, 3)
+    uvs: np.ndarray  #: (3F, 2)
+    material: str
+    kind: str = "body"  #: "chimney" parts are the village's small, erodible pieces
+
+
+def _quad(p0, p1, p2, p3, tile: float) -> tuple[np.ndarray, np.ndarray]:
+    """Two triangles for a planar quad (counter-clockwise seen from outside); planar UVs in world units / tile."""
+    p = np.array([p0, p1, p2, p3], float)
+    u_axis = p[1] - p[0]
+    w = np.linalg.norm(u_axis)
+    u_axis /= max(w, 1e-12)
+    n = np.cross(p[1] - p[0], p[3] - p[0])
+    v_axis = np.cross(n, u_axis)
+    v_axis /= max(np.linalg.norm(v_axis), 1e-12)
+    uv = np.stack([(p - p[0]) @ u_axis, (p - p[0]) @ v_axis], axis=1) / tile
+    idx = [0, 1, 2, 0, 2, 3]
+    return p[idx], uv[idx]
+
+
+def _tri(p0, p1, p2, tile: float):
+    p = np.array([p0, p1, p2], float)
+    u_axis = (p[1] - p[0]) / max(np.linalg.norm(p[1] - p[0]), 1e-12)
+    n = np.cross(p[1] - p[0], p[2] - p[0])
+    v_axis = np.cross(n, u_axis)
+    v_axis /= max(np.linalg.norm(v_axis), 1e-12)
+    return p, np.stack([(p - p[0]) @ u_axis, (p - p[0]) @ v_axis], axis=1) / tile
+
+
+def _box(lo, hi, tile, top=True):
+    x0, y0, z0 = lo
+    x1, y1, z1 = hi
+    c = [(x0, y0, z0), (x1, y0, z0), (x1, y1, z0), (x0, y1, z0), (x0, y0, z1), (x1, y0, z1), (x1, y1, z1), (x0, y1, z1)]
+    # Side walls (outward normals), y up.
+    quads = [(4, 5, 6, 7), (1, 0, 3, 2), (0, 4, 7, 3), (5, 1, 2, 6)]
+    if top:
+        quads.append((7, 6, 2, 3))
+    vs, uvs = zip(*[_quad(c[a], c[b], c[cc], c[d], tile) for a, b, cc, d in quads])
+    return np.concatenate(vs), np.concatenate(uvs)
+
+
+def _rotate_y(v: np.ndarray, angle: float, centre: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    r = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    return (v - centre) @ r.T + centre
+
+
+def village_parts(n_houses: int, seed: int) -> list[Part]:
+    """Houses with gable roofs and chimneys on a ground plane (units: metres-ish, scene ~20 wide)."""
+    rng = np.random.default_rng(seed)
+    parts: list[Part] = []
+    g = 9.0
+    v, uv = _quad((-g, 0, g), (g, 0, g), (g, 0, -g), (-g, 0, -g), tile=4.0)
+    parts.append(Part(v, uv, "grass"))
+    grid = [(x, z) for x in (-6.0, 0.0, 6.0) for z in (-5.0, 3.0)]
+    rng.shuffle(grid)
+    for h in range(n_houses):
+        cx, cz = grid[h % len(grid)]
+        cx += rng.uniform(-1, 1)
+        cz += rng.uniform(-1, 1)
+        w, d, hw = rng.uniform(2.6, 3.8), rng.uniform(2.2, 3.2), rng.uniform(1.8, 2.8)
+        rh = rng.uniform(1.0, 1.8)
+        ang = rng.uniform(0, np.pi)
+        centre = np.array([cx, 0, cz])
+        lo, hi = np.array([cx - w / 2, 0, cz - d / 2]), np.array([cx + w / 2, hw, cz + d / 2])
+        wv, wuv = _box(lo, hi, tile=1.5, top=False)
+        # Gable ends (triangles above the front and back walls).
+        t1 = _tri((lo[0], hw, hi[2]), (hi[0], hw, hi[2]), (cx, hw + rh, hi[2]), 1.5)
+        t2 = _tri((hi[0], hw, lo[2]), (lo[0], hw, lo[2]), (cx, hw + rh, lo[2]), 1.5)
+        wv = np.concatenate([wv, t1[0], t2[0]])
+        wuv = np.concatenate([wuv, t1[1], t2[1]])
+        parts.append(Part(_rotate_y(wv, ang, centre), wuv, "brick"))
+        ov = 0.25  # roof overhang
+        r1 = _quad((lo[0] - ov, hw - 0.1, hi[2] + ov), (lo[0] - ov, hw - 0.1, lo[2] - ov),
+                   (cx, hw + rh, lo[2] - ov), (cx, hw + rh, hi[2] + ov), 1.0)
+        r2 = _quad((hi[0] + ov, hw - 0.1, lo[2] - ov), (hi[0] + ov, hw - 0.1, hi[2] + ov),
+                   (cx, hw + rh, hi[2] + ov), (cx, hw + rh, lo[2] - ov), 1.0)
+        parts.append(Part(_rotate_y(np.concatenate([r1[0], r2[0]]), ang, centre),
+                          np.concatenate([r1[1], r2[1]]), "roof"))
+        # Chimney on one roof side, poking out of the slope.
+        px = cx + rng.choice([-1, 1]) * w * 0.22
+        pz = cz + rng.uniform(-d / 4, d / 4)
+        cw = 0.35
+        base = hw + rh * (1 - abs(px - cx) / (w / 2 + ov)) - 0.3
+        cv, cuv = _box((px - cw, base, pz - cw), (px + cw, hw + rh + 0.6, pz + cw), tile=1.0)
+        parts.append(Part(_rotate_y(cv, ang, centre), cuv, "chimney", kind="chimney"))
+    return parts
+
+
+MATERIALS = {  # scikit-image photograph, linear RGB tint
+    "grass": ("grass", (0.20, 0.32, 0.10)),
+    "brick": ("brick", (0.60, 0.35, 0.25)),
+    "roof": ("gravel", (0.45, 0.20, 0.14)),
+    "chimney": ("brick", (0.35, 0.30, 0.28)),
+}
+
+
+def material_texture(name: str, size: int = 256) -> np.ndarray:
+    """Linear RGB texture: a real scikit-image photograph (grayscale), normalised and tinted."""
+    import skimage.data
+    from PIL import Image
+
+    photo, tint = MATERIALS[name]
+    g = np.asarray(getattr(skimage.data, photo)(), np.float32)
+    if g.ndim == 3:
+        g = g.mean(-1)
+    g = np.asarray(Image.fromarray(g).resize((size, size), Image.BILINEAR), np.float32)
+    g = (g - g.min()) / max(float(g.max() - g.min()), 1e-6)
+    return np.clip((0.55 + 0.9 * (g - 0.5))[..., None] * np.asarray(tint, np.float32)[None, None, :] * 1.6, 0, 1)
+
+
+def part_mesh(part: Part, name: str) -> mi.Mesh:
+    n = len(part.vertices)
+    mesh = mi.Mesh(name, n, n // 3, has_vertex_texcoords=True)
+    p = mi.traverse(mesh)
+    p["vertex_positions"] = mi.Float(part.vertices.astype(np.float32).ravel())
+    p["faces"] = mi.UInt32(np.arange(n, dtype=np.uint32))
+    p["vertex_texcoords"] = mi.Float(part.uvs.astype(np.float32).ravel())
+    p.update()
+    return mesh
+
+
+# -- generic meshes ---------------------------------------------------------------------------------
+
+
+def load_mesh_any(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of an OBJ/PLY/OFF file (pymeshlab reads all three)."""
+    import pymeshlab
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such mesh file")
+    ms = pymeshlab.MeshSet()
+    try:
+        ms.load_new_mesh(str(path))
+    except Exception as exc:  # pymeshlab raises its own PyMeshLabException
+        raise ValueError(f"{path}: cannot read mesh ({exc})") from exc
+    m = ms.current_mesh()
+    v, f = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+    if len(f) == 0 or not np.isfinite(v).all():
+        raise ValueError(f"{path}: mesh has no faces or non-finite vertices")
+    return v, f
+
+
+def normalise_mesh(v: np.ndarray) -> np.ndarray:
+    """Centre on the floor (min y = 0) and scale to a 2-unit bounding diagonal."""
+    lo, hi = v.min(0), v.max(0)
+    s = 2.0 / np.linalg.norm(hi - lo)
+    out = (v - 0.5 * (lo + hi)) * s
+    out[:, 1] -= out[:, 1].min()
+    return out
+
+
+def procedural_colours(v: np.ndarray, seed: int) -> np.ndarray:
+    """Smooth seeded per-vertex albedo for meshes without texture (bands + noise)."""
+    rng = np.random.default_rng(seed)
+    k = rng.normal(size=(6, 3)) * 3.0
+    phase = rng.uniform(0, 2 * np.pi, 6)
+    f = sum(np.sin(v @ k[i] + phase[i]) for i in range(6)) / 6.0
+    base = np.array([0.55, 0.42, 0.30])
+    alt = np.array([0.25, 0.35, 0.45])
+    t = (0.5 + 0.8 * f)[:, None].clip(0, 1)
+    return (base * (1 - t) + alt * t).astype(np.float32)
+
+
+# -- cameras -------------------------------------------------------------------------------------------
+
+
+def drone_orbit(n: int, centre: np.ndarray, radius: float, elevation: tuple[float, float], seed: int) -> list[dict]:
+    """``n`` cameras on a jittered orbit, altitude varying between the elevation bounds."""
+    rng = np.random.default_rng(seed + 5)
+    cams = []
+    for i in range(n):
+        az = 2 * np.pi * i / n + rng.uniform(-0.05, 0.05)
+        el = np.radians(elevation[0] + (elevation[1] - elevation[0]) * (0.5 + 0.5 * np.sin(3 * az)))
+        eye = centre + radius * np.array([np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)])
+        cams.append({"eye": eye.tolist(), "target": (centre + rng.normal(scale=0.02 * radius, size=3)).tolist()})
+    return cams
+
+
+def sensor_dict(cam: dict, res: int, fov: float) -> dict:
+    return {"type": "perspective", "fov": fov,
+            "to_world": mi.ScalarTransform4f().look_at(origin=cam["eye"], target=cam["target"], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent"}}
+
+
+# -- degradation (thesis §2.3) -----------------------------------------------------------------------------
+
+
+def _smooth_field(p: np.ndarray, scale: float, rng: np.random.Generator, n: int = 8) -> np.ndarray:
+    k = rng.normal(size=(n, 3)) / scale
+    ph = rng.uniform(0, 2 * np.pi, n)
+    return sum(np.sin(p @ k[i] + ph[i]) for i in range(n)) / np.sqrt(n)
+
+
+def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-20)
+
+
+def degrade(v: np.ndarray, f: np.ndarray, labels: np.ndarray, s: MorphBenchmarkSettings, size: float,
+            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Photogrammetry-like artifacts; returns the coarse mesh and a log of what was done."""
+    import fast_simplification
+    import pymeshlab
+
+    log: dict = {}
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(v, f))
+    ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(0.01))
+    # Uniform density first, so that flat walls have vertices to be bumpy with.
+    ms.meshing_isotropic_explicit_remeshing(targetlen=pymeshlab.PercentageValue(0.8), iterations=4)
+    m = ms.current_mesh()
+    v2, f2 = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+    # Part labels follow nearest original vertices.
+    from scipy.spatial import cKDTree
+
+    lab = labels[cKDTree(v).query(v2)[1]]
+    # Eroded / floating small parts: cut half of the chimneys, lift the others off the roof.
+    chim_ids = np.unique(lab[lab >= 100])
+    cut, lifted = [], []
+    for cid in chim_ids:
+        sel = lab == cid
+        if rng.random() < 0.5:
+            top = v2[sel, 1].max()
+            kill = sel & (v2[:, 1] > top - 0.75 * (top - v2[sel, 1].min()))
+            keep_face = ~np.any(kill[f2], axis=1)
+            f2 = f2[keep_face]
+            cut.append(int(cid))
+        else:
+            v2[sel, 1] += 0.15 * size / 10
+            lifted.append(int(cid))
+    log["chimneys_cut"], log["chimneys_floating"] = cut, lifted
+    n = vertex_normals(v2, f2)
+    # Flatness from normal variation among neighbours: bumps go on flat regions, wobble on edges.
+    nb = cKDTree(v2).query(v2, k=8)[1]
+    flat = np.clip(np.mean(np.sum(n[nb] * n[:, None, :], axis=-1), axis=1), 0, 1) ** 8
+    bump = _smooth_field(v2, 0.03 * size, rng) * s.bump_amplitude * size * flat
+    v2 += n * bump[:, None]
+    edge = 1.0 - flat
+    wob = np.stack([_smooth_field(v2, 0.02 * size, rng) for _ in range(3)], axis=1)
+    v2 += wob * (s.wobble_amplitude * size) * edge[:, None]
+    log["bump_rms"] = float(np.sqrt(np.mean(bump**2)))
+    # Decimation to the coarse target.
+    target = float(np.clip(1.0 - s.coarse_vertices / max(len(v2), 1), 0.0, 0.99))
+    v3, f3 = fast_simplification.simplify(v2.astype(np.float32), f2.astype(np.int32), target_reduction=target)
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(np.asarray(v3, np.float64), np.asarray(f3, np.int64)))
+    ms.meshing_remove_unreferenced_vertices()
+    ms.meshing_remove_null_faces()
+    m = ms.current_mesh()
+    log["coarse_vertices"] = int(m.vertex_number())
+    log["dense_vertices"] = int(len(v2))
+    return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64), log
+
+
+def misregistered_colours(vc: np.ndarray, gt_points: np.ndarray, gt_colours: np.ndarray, s: MorphBenchmarkSettings,
+                          size: float, rng: np.random.Generator) -> np.ndarray:
+    """Colour per coarse vertex from a blurred lookup at a shifted position (misregistered texture)."""
+    from scipy.spatial import cKDTree
+
+    shift = rng.normal(size=3)
+    shift *= s.misregistration * size / np.linalg.norm(shift)
+    tree = cKDTree(gt_points)
+    idx = tree.query_ball_point(vc + shift, r=s.colour_blur * size)
+    out = np.empty((len(vc), 3), np.float32)
+    near = tree.query(vc + shift)[1]
+    for i, ids in enumerate(idx):
+        out[i] = gt_colours[ids].mean(0) if ids else gt_colours[near[i]]
+    return out
+
+
+def sample_surface(v: np.ndarray, f: np.ndarray, n: int,
+                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Area-uniform points, their face ids and barycentric weights."""
+    a = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    fid = rng.choice(len(f), size=n, p=a / a.sum())
+    r1, r2 = rng.random(n), rng.random(n)
+    s1 = np.sqrt(r1)
+    w = np.stack([1 - s1, s1 * (1 - r2), s1 * r2], axis=1)
+    return np.einsum("nk,nkd->nd", w, v[f[fid]]), fid, w
+
+
+def write_ply(path: Path, v: np.ndarray, f: np.ndarray, colours: np.ndarray | None = None) -> Path:
+    """Binary PLY with optional per-vertex colours (float r, g, b in [0, 1]; Mitsuba reads them)."""
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(v)}",
+              "property float x", "property float y", "property float z"]
+    if colours is not None:
+        header += ["property float r", "property float g", "property float b"]
+    header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
+    vert = np.asarray(v, np.float32)
+    if colours is not None:
+        vert = np.concatenate([vert, np.asarray(colours, np.float32)], axis=1)
+    faces = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    faces["n"] = 3
+    faces["i"] = f
+    with imageio.atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(("\n".join(header) + "\n").encode())
+            fh.write(vert.astype("<f4").tobytes())
+            fh.write(faces.tobytes())
+    return path
+
+
+# -- the benchmark -----------------------------------------------------------------------------------------
+
+
+def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkSettings | None = None,
+                         show_progress: bool = True) -> Path:
+    """Build a benchmark folder from a mesh file or ``"village"``."""
+    s = s or MorphBenchmarkSettings()
+    out = Path(out)
+    rng = np.random.default_rng(s.seed)
+    hdr = ASSETS / "hdri" / f"{s.hdri}.exr"
+    if not hdr.is_file():
+        raise FileNotFoundError(f"{hdr}: no such HDRI")
+    tmp = out.with_name(f".{out.name}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    t0 = time.perf_counter()
+    try:
+        shapes: dict = {}
+        if str(source) == "village":
+            parts = village_parts(s.n_houses, s.seed)
+            textures = {m: material_texture(m) for m in {p.material for p in parts}}
+            for m, tex in textures.items():
+                imageio.write_png(tmp / f"tex_{m}.png", tex)
+            gt_v, gt_f, labels, gt_uv, gt_mat = [], [], [], [], []
+            off = 0
+            for i, part in enumerate(parts):
+                part_mesh(part, f"part{i}").write_ply(str(tmp / f"gt_part{i}.ply"))
+                shapes[f"part{i}"] = {
+                    "type": "ply", "filename": str(tmp / f"gt_part{i}.ply"),
+                    "bsdf": {"type": "twosided", "bsdf": {
+                        "type": "diffuse", "reflectance": {"type": "bitmap", "raw": True,
+                                                           "data": mi.TensorXf(textures[part.material])}}}}
+                nv = len(part.vertices)
+                gt_v.append(part.vertices)
+                gt_f.append(np.arange(nv).reshape(-1, 3) + off)
+                labels.append(np.full(nv, 100 + i if part.kind == "chimney" else i))
+                gt_uv.append(part.uvs)
+                gt_mat.append([part.material] * nv)
+                off += nv
+            gt_v, gt_f = np.concatenate(gt_v), np.concatenate(gt_f)
+            labels = np.concatenate(labels)
+            gt_uv, gt_mat = np.concatenate(gt_uv), np.concatenate(gt_mat)
+
+            def albedo_at(fid, w):
+                uv = np.einsum("nk,nkd->nd", w, gt_uv[gt_f[fid]])
+                out = np.zeros((len(fid), 3), np.float32)
+                mats = gt_mat[gt_f[fid, 0]]
+                for m, tex in textures.items():
+                    sel = mats == m
+                    r, c = tex.shape[:2]
+                    # Mitsuba's bitmap lookup: uv.y runs down the rows; repeat wrap.
+                    ij = np.stack([(uv[sel, 1] % 1.0) * r, (uv[sel, 0] % 1.0) * c], 1).astype(int)
+                    out[sel] = tex[np.minimum(ij[:, 0], r - 1), np.minimum(ij[:, 1], c - 1)]
+                return out
+            kind = "village"
+        else:
+            v, f = load_mesh_any(source)
+            gt_v, gt_f = normalise_mesh(v), f
+            col = procedural_colours(gt_v, s.seed)
+            write_ply(tmp / "gt_part0.ply", gt_v, gt_f, col)
+            shapes["part0"] = {"type": "ply", "filename": str(tmp / "gt_part0.ply"),
+                               "bsdf": {"type": "twosided", "bsdf": {
+                                   "type": "diffuse", "reflectance": {"type": "mesh_attribute",
+                                                                      "name": "vertex_color"}}}}
+            labels = np.zeros(len(gt_v), np.int64)
+
+            def albedo_at(fid, w):
+                return np.einsum("nk,nkd->nd", w, col[gt_f[fid]]).astype(np.float32)
+            kind = Path(source).stem
+        lo, hi = gt_v.min(0), gt_v.max(0)
+        size = float(np.linalg.norm(hi - lo))
+        centre = 0.5 * (lo + hi)
+        centre[1] = lo[1] + 0.25 * (hi[1] - lo[1])
+        write_ply(tmp / "ground_truth.ply", gt_v, gt_f)
+
+        # Photos.
+        fov = 40.0
+        # Frame the scene's central part (the orbit sees the whole ground only at the borders).
+        radius = 0.5 * size / np.tan(np.radians(fov / 2)) * 0.75
+        cams = drone_orbit(s.n_views, centre, radius, s.elevation_deg, s.seed)
+        scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 4},
+                              "env": {"type": "envmap", "filename": str(hdr)}, **shapes})
+        photos = {}
+        with progress_bar(total=len(cams), desc=f"photos {kind}", unit="view", disable=not show_progress) as bar:
+            for i, cam in enumerate(cams):
+                sensor = mi.load_dict(sensor_dict(cam, s.resolution, fov))
+                photos[f"view{i:02d}"] = np.array(mi.render(scene, sensor=sensor, spp=s.spp, seed=s.seed + i))[..., :3]
+                bar.update(1)
+        del scene
+        imageio.write_exr(tmp / "photos.exr", photos, half=True)
+
+        # Degraded reconstruction with vertex colours.
+        gt_pts, gt_fid, gt_w = sample_surface(gt_v, gt_f, 200_000, rng)
+        gt_col = albedo_at(gt_fid, gt_w)
+        cv, cf, log = degrade(gt_v, gt_f, labels, s, size, rng)
+        ccol = misregistered_colours(cv, gt_pts, gt_col, s, size, rng)
+        write_ply(tmp / "coarse.ply", cv, cf, ccol)
+        imageio.write_png(tmp / "preview_view00.png", photos["view00"])
+        test = [i for i in range(s.n_views) if i % s.test_every == s.test_every - 1]
+        meta = {
+            "format": "photoreal-morph-benchmark/1",
+            "source": str(source), "kind": kind, "settings": asdict(s),
+            "cameras": cams, "fov": fov, "train": [i for i in range(s.n_views) if i not in test], "test": test,
+            "scene_size": size, "centre": centre.tolist(), "hdri": s.hdri, "degradation": log,
+            "gt_parts": sorted(k for k in shapes), "seconds": time.perf_counter() - t0,
+        }
+        (tmp / "morph_benchmark.json").write_text(json.dumps(meta, indent=2) + "\n")
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if out.exists():
+        shutil.rmtree(out)
+    tmp.rename(out)
+    return out
+
+
+@dataclass
+class MorphBenchmark:
+    path: Path
+    meta: dict
+    photos: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def coarse(self) -> Path:
+        return self.path / "coarse.ply"
+
+    @property
+    def ground_truth(self) -> Path:
+        return self.path / "ground_truth.ply"
+
+
+def load_morph_benchmark(path: str | Path) -> MorphBenchmark:
+    path = Path(path)
+    mp = path / "morph_benchmark.json"
+    if not mp.is_file():
+        raise FileNotFoundError(f"{path}: not a morph benchmark folder (no morph_benchmark.json)")
+    meta = json.loads(mp.read_text())
+    ch = imageio.read_exr(path / "photos.exr")
+    names = sorted({k.rsplit(".", 1)[0] for k in ch})
+    return MorphBenchmark(path, meta, {n: imageio.exr_layer(ch, n) for n in names})
