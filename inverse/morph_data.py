@@ -239,10 +239,12 @@ def drone_orbit(n: int, centre: np.ndarray, radius: float, elevation: tuple[floa
     return cams
 
 
-def sensor_dict(cam: dict, res: int, fov: float) -> dict:
+def sensor_dict(cam: dict, res: int, fov: float, sample_border: bool = False) -> dict:
+    """Perspective camera; ``sample_border`` for shape optimisation (geometry entering the frame)."""
     return {"type": "perspective", "fov": fov,
             "to_world": mi.ScalarTransform4f().look_at(origin=cam["eye"], target=cam["target"], up=[0, 1, 0]),
-            "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
+            "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"},
+                     "sample_border": sample_border},
             "sampler": {"type": "independent"}}
 
 
@@ -445,7 +447,7 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
         # Photos.
         fov = 40.0
         # Frame the scene's central part (the orbit sees the whole ground only at the borders).
-        radius = 0.5 * size / np.tan(np.radians(fov / 2)) * 0.75
+        radius = 0.5 * size / np.tan(np.radians(fov / 2)) * (0.75 if kind == "village" else 1.25)
         cams = drone_orbit(s.n_views, centre, radius, s.elevation_deg, s.seed)
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 4},
                               "env": {"type": "envmap", "filename": str(hdr)}, **shapes})

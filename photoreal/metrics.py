@@ -68,3 +68,21 @@ def global_scale(test: np.ndarray, ref: np.ndarray) -> float:
     t, r = np.asarray(test, np.float64).ravel(), np.asarray(ref, np.float64).ravel()
     den = float(t @ t)
     return float(t @ r / den) if den > 0 else 1.0
+
+
+def image_metrics(test: np.ndarray, ref: np.ndarray) -> dict:
+    """The thesis' image metrics plus PSNR and ꟻLIP, on linear RGB clipped to [0, 1].
+
+    MSE, ME (mean absolute error), 1−SSIM, NRMSE (RMSE / (max − min of the
+    reference)), SAM (mean spectral angle between RGB vectors, degrees).
+    """
+    a = np.clip(np.asarray(test, np.float64)[..., :3], 0, 1)
+    b = np.clip(np.asarray(ref, np.float64)[..., :3], 0, 1)
+    rmse = float(np.sqrt(np.mean((a - b) ** 2)))
+    dot = np.sum(a * b, -1)
+    norm = np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1)
+    sam = np.degrees(np.arccos(np.clip(np.where(norm > 1e-8, dot / np.maximum(norm, 1e-8), 1.0), -1, 1)))
+    s = ssim(a, b)
+    return {"psnr": psnr(a, b), "mse": mse(a, b), "me": float(np.abs(a - b).mean()), "one_minus_ssim": 1.0 - s,
+            "nrmse": rmse / max(float(b.max() - b.min()), 1e-8), "sam_deg": float(sam.mean()),
+            "flip": flip(a, b)}
