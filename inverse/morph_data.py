@@ -447,7 +447,7 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
         # Photos.
         fov = 40.0
         # Frame the scene's central part (the orbit sees the whole ground only at the borders).
-        radius = 0.5 * size / np.tan(np.radians(fov / 2)) * (0.75 if kind == "village" else 1.25)
+        radius = 0.5 * size / np.tan(np.radians(fov / 2)) * (0.75 if kind == "village" else 0.8)
         cams = drone_orbit(s.n_views, centre, radius, s.elevation_deg, s.seed)
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 4},
                               "env": {"type": "envmap", "filename": str(hdr)}, **shapes})

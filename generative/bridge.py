@@ -1,0 +1,53 @@
+"""Every torch ↔ Dr.Jit crossing of photoreal lives here (``dr.wrap``).
+
+* :func:`torch_to_drjit_loss` exposes a Dr.Jit function (e.g. "render these
+  vertices and compare with photos") to torch: torch tensors in, a torch
+  scalar out, and ``loss.backward()`` runs Dr.Jit's reverse-mode AD through
+  Mitsuba into the torch inputs.
+* :func:`drjit_to_torch` exposes a torch module to Dr.Jit code: Dr.Jit
+  tensors in and out, with Dr.Jit's ``dr.backward`` reaching the module's
+  inputs (and its parameters' ``.grad`` through torch autograd).
+
+Notes measured on this machine (NOTES-mitsuba): the crossing is exact
+(gradients equal torch's own autograd), costs < 1 ms for an MSE, and a
+reduction comes back as a 0-d tensor.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import drjit as dr
+import mitsuba as mi
+import torch
+
+
+def torch_to_drjit_loss(fn: Callable[..., mi.Float]) -> Callable[..., torch.Tensor]:
+    """Wrap ``fn(*drjit_tensors) -> scalar`` so that torch can call it and differentiate through it.
+
+    Inputs arrive in ``fn`` as ``mi.TensorXf`` (float32, same shapes);
+    the returned torch scalar has a grad_fn that backpropagates through Dr.Jit.
+    """
+
+    @dr.wrap(source="torch", target="drjit")
+    def wrapped(*args):
+        return fn(*args)
+
+    def call(*tensors: torch.Tensor) -> torch.Tensor:
+        for t in tensors:
+            if t.dtype != torch.float32:
+                raise TypeError(f"torch_to_drjit_loss: expected float32 tensors, got {t.dtype}")
+        out = wrapped(*tensors)
+        return out.reshape(()) if out.numel() == 1 else out
+
+    return call
+
+
+def drjit_to_torch(module: Callable[[torch.Tensor], torch.Tensor]) -> Callable[[mi.TensorXf], mi.TensorXf]:
+    """Wrap a torch callable so that Dr.Jit code can call it on ``mi.TensorXf`` and differentiate through it."""
+
+    @dr.wrap(source="drjit", target="torch")
+    def wrapped(x):
+        return module(x)
+
+    return wrapped
