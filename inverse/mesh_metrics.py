@@ -51,10 +51,25 @@ def edge_lengths(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return s / np.maximum(c, 1)
 
 
-def spikes(v0: np.ndarray, v1: np.ndarray, f: np.ndarray, k: float = 3.0) -> dict:
-    """Vertices moved more than k× their local edge length, and triangles whose normal flipped."""
+def inverted_triangles(v: np.ndarray, f: np.ndarray, gv: np.ndarray, gf: np.ndarray) -> int:
+    """Triangles facing against the ground-truth surface at their nearest ground-truth triangle.
+
+    Orientation is judged against the truth, not against the starting mesh: a
+    morph that *unfolds* a fold of the coarse input must not count as flipping.
+    """
+    from scipy.spatial import cKDTree
+
+    gc = gv[gf].mean(axis=1)
+    idx = cKDTree(gc).query(v[f].mean(axis=1))[1]
+    return int((np.sum(face_normals(v, f) * face_normals(gv, gf)[idx], axis=1) < 0).sum())
+
+
+def spikes(v0: np.ndarray, v1: np.ndarray, f: np.ndarray, gv: np.ndarray, gf: np.ndarray, k: float = 3.0) -> dict:
+    """Spike vertices (moved more than k× their local edge length), triangles facing against the
+    truth, and triangles whose normal flipped relative to the start (folds the optimisation made or
+    unmade); ``spikes`` = spike vertices + flipped triangles."""
     moved = np.linalg.norm(v1 - v0, axis=1) > k * edge_lengths(v0, f)
-    n0, n1 = face_normals(v0, f), face_normals(v1, f)
-    inverted = np.sum(n0 * n1, axis=1) < 0
-    return {"spike_vertices": int(moved.sum()), "inverted_triangles": int(inverted.sum()),
-            "spikes": int(moved.sum() + inverted.sum())}
+    inv = inverted_triangles(v1, f, gv, gf)
+    flipped = int((np.sum(face_normals(v0, f) * face_normals(v1, f), axis=1) < 0).sum())
+    return {"spike_vertices": int(moved.sum()), "inverted_triangles": inv, "flipped_vs_start": flipped,
+            "spikes": int(moved.sum() + flipped)}

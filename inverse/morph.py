@@ -48,12 +48,14 @@ class MorphSettings:
     views_per_step: int = 3
     mode: Literal["unlit", "lit"] = "lit"
     parameterisation: Literal["large_steps", "plain"] = "large_steps"
-    lambda_: float = 10.0  #: large-steps λ
-    lr: float = 0.15  #: × scene size / 10, for positions (uniform Adam on u)
+    lambda_: float = 2.0  #: large-steps λ
+    lr: float = 0.05  #: × scene size / 10, for positions (uniform Adam on u)
     lr_colour: float = 0.01
     lr_final: float = 0.1  #: learning rates decay linearly to this fraction (fewer late flips)
     spp: int = 4
     resolution: int | None = None  #: None = the benchmark's photo resolution
+    remesh_input: bool = True  #: isotropic remesh of the input first (decimators leave slivers that flip)
+    target_vertices: int | None = None  #: remesh the input to about this many vertices (None: keep)
     remesh_at: tuple[int, ...] = ()  #: iterations after which to remesh isotropically (pymeshlab)
     checkpoint_every: int = 20
     seed: int = 0
@@ -162,10 +164,14 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
     photos = {i: _photo(bench, i, res) for i in range(len(cams))}
 
     v_in, f_in, c_in = _read_ply_colours(bench.coarse)
+    if s.remesh_input or s.target_vertices:
+        v_start, f_start, c_start = remesh(v_in, f_in, c_in, s.target_vertices)
+    else:
+        v_start, f_start, c_start = v_in, f_in, c_in
     ckpt_path = out / "checkpoint.npz"
     state = _load_checkpoint(ckpt_path, s)
     if state is None:
-        state = MorphState(v_in.copy(), f_in.copy(), c_in.copy(), 0, [], 0, {})
+        state = MorphState(v_start.copy(), f_start.copy(), c_start.copy(), 0, [], 0, {})
     # RNG stream position: one draw per finished iteration, so a resumed run picks the same views.
     for _ in range(state.iteration):
         rng.choice(meta["train"], size=min(s.views_per_step, len(meta["train"])), replace=False)
@@ -250,7 +256,8 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
     seconds = time.perf_counter() - t0
     del scene, params, opt
     work_ply.unlink(missing_ok=True)
-    metrics = evaluate_morph(bench, v_in, f_in, c_in, v_out, state.faces, c_out, s, out)
+    metrics = evaluate_morph(bench, v_in, f_in, c_in, v_out, state.faces, c_out, s, out,
+                             start=(v_start, f_start) if not s.remesh_at else None)
     metrics.update({"seconds": seconds, "iterations": s.iterations, "skipped_steps": state.skipped_steps,
                     "loss_first": state.loss_history[0] if state.loss_history else None,
                     "loss_last": state.loss_history[-1] if state.loss_history else None,
@@ -269,21 +276,37 @@ def _photo(bench: MorphBenchmark, i: int, res: int) -> mi.TensorXf:
     return mi.TensorXf(np.ascontiguousarray(img, np.float32))
 
 
-def remesh(v: np.ndarray, f: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Isotropic remeshing (pymeshlab) keeping the vertex count; colours follow nearest old vertices."""
+def remesh(v: np.ndarray, f: np.ndarray, c: np.ndarray,
+           target_vertices: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Isotropic remeshing (pymeshlab); colours follow the nearest old vertices.
+
+    The target edge length keeps the vertex count (or aims at ``target_vertices``:
+    edge length scales with 1/sqrt(count) on a surface).
+    """
     import pymeshlab
     from scipy.spatial import cKDTree
 
+    from .mesh_metrics import edge_lengths
+
+    edge = float(np.mean(edge_lengths(v, f)))
+    if target_vertices:
+        edge *= np.sqrt(len(v) / target_vertices)
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(v, f))
-    ms.meshing_isotropic_explicit_remeshing(iterations=3)
+    ms.meshing_isotropic_explicit_remeshing(iterations=4, targetlen=pymeshlab.PureValue(edge))
     m = ms.current_mesh()
     v2, f2 = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
     return v2, f2, c[cKDTree(v).query(v2)[1]]
 
 
-def evaluate_morph(bench, v_in, f_in, c_in, v_out, f_out, c_out, s: MorphSettings, out: Path) -> dict:
-    """Chamfer / normal consistency to the ground truth, spikes, and held-out image metrics."""
+def evaluate_morph(bench, v_in, f_in, c_in, v_out, f_out, c_out, s: MorphSettings, out: Path,
+                   start: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+    """Chamfer / normal consistency to the ground truth, spikes, and held-out image metrics.
+
+    Spikes and inverted triangles compare the result with the mesh the
+    optimisation started from (``start``, default the input), which has the
+    same topology unless remeshing happened during the run.
+    """
     from photoreal.metrics import image_metrics
 
     gv, gf = load_mesh_any(bench.ground_truth)
@@ -308,8 +331,15 @@ def evaluate_morph(bench, v_in, f_in, c_in, v_out, f_out, c_out, s: MorphSetting
         del scene
         ply.unlink(missing_ok=True)
     mean = {n: {k: float(np.mean([m[k] for m in ms])) for k in ms[0]} for n, ms in per.items()}
-    sp = spikes(v_in, v_out, f_out) if len(v_in) == len(v_out) and np.array_equal(f_in, f_out) else \
-        {"spike_vertices": -1, "inverted_triangles": -1, "spikes": -1}
+    from .mesh_metrics import inverted_triangles
+
+    v0, f0 = start if start is not None else (v_in, f_in)
+    if len(v0) == len(v_out) and np.array_equal(f0, f_out):
+        sp = spikes(v0, v_out, f_out, gv, gf)
+    else:  # remeshed during the run: no per-vertex displacement to judge
+        sp = {"spike_vertices": -1, "inverted_triangles": inverted_triangles(v_out, f_out, gv, gf)}
+        sp["spikes"] = sp["inverted_triangles"]
+    sp["inverted_triangles_input"] = inverted_triangles(v_in, f_in, gv, gf)
     return {
         "chamfer_input": ch_in["chamfer"], "chamfer_morphed": ch_out["chamfer"],
         "chamfer_reduction": 1.0 - ch_out["chamfer"] / ch_in["chamfer"],

@@ -42,6 +42,7 @@ class MorphBenchmarkSettings:
     resolution: int = 128
     spp: int = 64
     hdri: str = "sunrise"
+    photo_max_depth: int = 4  #: path length of the "photos" (2 = direct light only)
     elevation_deg: tuple[float, float] = (25.0, 45.0)  #: drone altitude range
     coarse_vertices: int = 3000  #: decimation target of the degraded mesh
     bump_amplitude: float = 0.012  #: × scene size, on flat regions
@@ -449,7 +450,7 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
         # Frame the scene's central part (the orbit sees the whole ground only at the borders).
         radius = 0.5 * size / np.tan(np.radians(fov / 2)) * (0.75 if kind == "village" else 0.8)
         cams = drone_orbit(s.n_views, centre, radius, s.elevation_deg, s.seed)
-        scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 4},
+        scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": s.photo_max_depth},
                               "env": {"type": "envmap", "filename": str(hdr)}, **shapes})
         photos = {}
         with progress_bar(total=len(cams), desc=f"photos {kind}", unit="view", disable=not show_progress) as bar:
