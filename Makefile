@@ -32,6 +32,7 @@ bench: $(STAMP)
 	mkdir -p out/bench
 	$(BIN)/photoreal bench plugins --json out/bench/plugins.json
 	$(BIN)/photoreal bench face --json out/bench/face.json
+	$(BIN)/photoreal bench morph --json out/bench/morph.json
 
 clean:
 	rm -rf out .pytest_cache

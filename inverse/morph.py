@@ -101,22 +101,30 @@ class MorphState:
     adam: dict  #: key -> (t, m, v) numpy arrays, for exact resume
 
 
-def _save_checkpoint(path: Path, st: MorphState, settings: MorphSettings) -> None:
+def _input_digest(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+
+
+def _save_checkpoint(path: Path, st: MorphState, settings: MorphSettings, digest: str) -> None:
     arrays = {"vertices": st.vertices, "faces": st.faces, "colours": st.colours,
               "loss_history": np.asarray(st.loss_history, np.float64)}
     for k, (t, m, v) in st.adam.items():
         arrays[f"adam_{k}_t"], arrays[f"adam_{k}_m"], arrays[f"adam_{k}_v"] = t, m, v
     meta = {"iteration": st.iteration, "skipped_steps": st.skipped_steps, "settings": asdict(settings),
-            "adam_keys": list(st.adam)}
+            "adam_keys": list(st.adam), "input": digest}
     with imageio.atomic_path(path, suffix=".npz") as tmp:
         np.savez(tmp, meta=json.dumps(meta), **arrays)
 
 
-def _load_checkpoint(path: Path, settings: MorphSettings) -> MorphState | None:
+def _load_checkpoint(path: Path, settings: MorphSettings, digest: str) -> MorphState | None:
     if not path.is_file():
         return None
     z = np.load(path, allow_pickle=False)
     meta = json.loads(str(z["meta"]))
+    if meta.get("input") != digest:
+        raise ValueError(f"{path}: checkpoint belongs to another input mesh; delete it or use another --out")
     if meta["settings"] != json.loads(json.dumps(asdict(settings))):
         raise ValueError(f"{path}: checkpoint was made with other settings; delete it or use the same ones")
     adam = {k: (z[f"adam_{k}_t"], z[f"adam_{k}_m"], z[f"adam_{k}_v"]) for k in meta["adam_keys"]}
@@ -169,7 +177,8 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
     else:
         v_start, f_start, c_start = v_in, f_in, c_in
     ckpt_path = out / "checkpoint.npz"
-    state = _load_checkpoint(ckpt_path, s)
+    digest = _input_digest(bench.coarse)
+    state = _load_checkpoint(ckpt_path, s, digest)
     if state is None:
         state = MorphState(v_start.copy(), f_start.copy(), c_start.copy(), 0, [], 0, {})
     # RNG stream position: one draw per finished iteration, so a resumed run picks the same views.
@@ -248,7 +257,7 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
                 state.vertices = np.array(dr.detach(positions()), np.float64).reshape(-1, 3)
                 state.colours = np.array(opt["c"], np.float32).reshape(-1, 3)
                 state.adam = _adam_export(opt)
-                _save_checkpoint(ckpt_path, state, s)
+                _save_checkpoint(ckpt_path, state, s, digest)
 
     v_out = np.array(dr.detach(positions()), np.float64).reshape(-1, 3)
     c_out = np.array(opt["c"], np.float32).reshape(-1, 3)
@@ -337,9 +346,9 @@ def evaluate_morph(bench, v_in, f_in, c_in, v_out, f_out, c_out, s: MorphSetting
     if len(v0) == len(v_out) and np.array_equal(f0, f_out):
         sp = spikes(v0, v_out, f_out, gv, gf)
     else:  # remeshed during the run: no per-vertex displacement to judge
-        sp = {"spike_vertices": -1, "inverted_triangles": inverted_triangles(v_out, f_out, gv, gf)}
-        sp["spikes"] = sp["inverted_triangles"]
-    sp["inverted_triangles_input"] = inverted_triangles(v_in, f_in, gv, gf)
+        sp = {"spike_vertices": -1, "inverted_triangles": -1, "spikes": -1,
+              "facing_against_truth": inverted_triangles(v_out, f_out, gv, gf)}
+    sp["facing_against_truth_input"] = inverted_triangles(v_in, f_in, gv, gf)
     return {
         "chamfer_input": ch_in["chamfer"], "chamfer_morphed": ch_out["chamfer"],
         "chamfer_reduction": 1.0 - ch_out["chamfer"] / ch_in["chamfer"],

@@ -133,10 +133,11 @@ def village_parts(n_houses: int, seed: int) -> list[Part]:
         wuv = np.concatenate([wuv, t1[1], t2[1]])
         parts.append(Part(_rotate_y(wv, ang, centre), wuv, "brick"))
         ov = 0.25  # roof overhang
-        r1 = _quad((lo[0] - ov, hw - 0.1, hi[2] + ov), (lo[0] - ov, hw - 0.1, lo[2] - ov),
-                   (cx, hw + rh, lo[2] - ov), (cx, hw + rh, hi[2] + ov), 1.0)
-        r2 = _quad((hi[0] + ov, hw - 0.1, lo[2] - ov), (hi[0] + ov, hw - 0.1, hi[2] + ov),
+        # Roof slopes, wound so that their normals point up and out.
+        r1 = _quad((lo[0] - ov, hw - 0.1, lo[2] - ov), (lo[0] - ov, hw - 0.1, hi[2] + ov),
                    (cx, hw + rh, hi[2] + ov), (cx, hw + rh, lo[2] - ov), 1.0)
+        r2 = _quad((hi[0] + ov, hw - 0.1, hi[2] + ov), (hi[0] + ov, hw - 0.1, lo[2] - ov),
+                   (cx, hw + rh, lo[2] - ov), (cx, hw + rh, hi[2] + ov), 1.0)
         parts.append(Part(_rotate_y(np.concatenate([r1[0], r2[0]]), ang, centre),
                           np.concatenate([r1[1], r2[1]]), "roof"))
         # Chimney on one roof side, poking out of the slope.
@@ -280,10 +281,12 @@ def degrade(v: np.ndarray, f: np.ndarray, labels: np.ndarray, s: MorphBenchmarkS
     ms.meshing_isotropic_explicit_remeshing(targetlen=pymeshlab.PercentageValue(0.8), iterations=4)
     m = ms.current_mesh()
     v2, f2 = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
-    # Part labels follow nearest original vertices.
+    # Part labels follow the nearest point of a dense surface sampling (the parts' own vertices are
+    # too sparse: a roof quad has four, a chimney box eight, right next to the roof).
     from scipy.spatial import cKDTree
 
-    lab = labels[cKDTree(v).query(v2)[1]]
+    pts, fid, _ = sample_surface(v, f, 200_000, rng)
+    lab = labels[f[fid, 0]][cKDTree(pts).query(v2)[1]]
     # Eroded / floating small parts: cut half of the chimneys, lift the others off the roof.
     chim_ids = np.unique(lab[lab >= 100])
     cut, lifted = [], []

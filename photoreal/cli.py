@@ -27,6 +27,18 @@ def _cmd_bench(a: argparse.Namespace) -> int:
         print(json.dumps({k: result[k] for k in ("ggx_uv_ms", "principled_ms", "ggx_uv_vs_principled",
                                                  "compile_s")}, indent=2))
         return 0
+    if a.what == "morph":
+        from pathlib import Path
+
+        from .morph_bench import MorphBenchSettings, bench_morph
+
+        result = bench_morph(MorphBenchSettings(), out_dir=Path(a.json).parent)
+        write_json(a.json, result)
+        print(json.dumps({k: result[k] for k in ("chamfer_input", "chamfer_morphed", "chamfer_reduction",
+                                                 "psnr_heldout_input", "psnr_heldout_morphed", "spikes",
+                                                 "s_per_iter_10k_4views_128", "s_per_iter_baseline",
+                                                 "chosen_vertices")}, indent=2))
+        return 0
     if a.what == "face":
         from pathlib import Path
 
@@ -75,6 +87,36 @@ def _cmd_face(a: argparse.Namespace) -> int:
     raise SystemExit(f"unknown face command {a.face_cmd!r}")
 
 
+def _cmd_morph(a: argparse.Namespace) -> int:
+    if a.morph_cmd == "make-benchmark":
+        from inverse.morph_data import MorphBenchmarkSettings, make_morph_benchmark
+
+        out = make_morph_benchmark(a.mesh, a.out, MorphBenchmarkSettings(n_views=a.views, resolution=a.resolution,
+                                                                        spp=a.spp, seed=a.seed))
+        print(f"benchmark: {out}")
+        return 0
+    if a.morph_cmd == "run":
+        from pathlib import Path
+
+        from inverse.morph import MorphSettings, run_gcn_morph, run_morph
+        from inverse.morph_data import load_morph_benchmark
+
+        from .bench import write_json
+
+        bench = load_morph_benchmark(a.benchmark)
+        s = MorphSettings(iterations=a.iterations, views_per_step=a.views_per_step, mode=a.mode,
+                          parameterisation="plain" if a.plain_adam else "large_steps", lambda_=a.lambda_,
+                          target_vertices=a.target_vertices, resolution=a.resolution, seed=a.seed)
+        out = Path(a.out) if a.out else Path(a.benchmark) / "morph"
+        m = run_gcn_morph(bench, out, s) if a.gcn else run_morph(bench, out, s)
+        if a.json:
+            write_json(a.json, m)
+        print(json.dumps({k: m[k] for k in ("chamfer_input", "chamfer_morphed", "psnr_heldout_input",
+                                            "psnr_heldout_morphed", "spikes", "seconds")}, indent=2))
+        return 0
+    raise SystemExit(f"unknown morph command {a.morph_cmd!r}")
+
+
 def _cmd_demo(a: argparse.Namespace) -> int:
     from .demo import DemoSettings, run_demo
 
@@ -100,7 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_render)
 
     b = sub.add_parser("bench", help="benchmarks writing JSON")
-    b.add_argument("what", choices=["plugins", "face"])
+    b.add_argument("what", choices=["plugins", "face", "morph"])
     b.add_argument("--scan", default="josie", help="face bench: josie, paul, or an OBJ path")
     b.add_argument("--json", required=True, help="output JSON path")
     b.add_argument("--resolution", type=int, default=256)
@@ -133,6 +175,30 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--uv-res", type=int, default=256)
     fp.add_argument("--seed", type=int, default=0)
     f.set_defaults(func=_cmd_face)
+
+    m = sub.add_parser("morph", help="geometry morphing of coarse meshes against photos (REAL-DIBS §4)")
+    msub = m.add_subparsers(dest="morph_cmd", required=True)
+    mm = msub.add_parser("make-benchmark", help="ground truth + photos + degraded reconstruction")
+    mm.add_argument("--mesh", required=True, help="OBJ/PLY/OFF mesh, or 'village'")
+    mm.add_argument("--out", required=True)
+    mm.add_argument("--views", type=int, default=32)
+    mm.add_argument("--resolution", type=int, default=128)
+    mm.add_argument("--spp", type=int, default=64)
+    mm.add_argument("--seed", type=int, default=0)
+    mr = msub.add_parser("run", help="morph the benchmark's coarse mesh (resumes from its checkpoint)")
+    mr.add_argument("benchmark")
+    mr.add_argument("--out", default=None, help="output folder (default BENCHMARK/morph)")
+    mr.add_argument("--json", default=None, help="metrics JSON")
+    mr.add_argument("--iterations", type=int, default=200)
+    mr.add_argument("--views-per-step", type=int, default=3)
+    mr.add_argument("--mode", choices=["lit", "unlit"], default="lit")
+    mr.add_argument("--lambda", dest="lambda_", type=float, default=2.0, help="large-steps λ")
+    mr.add_argument("--plain-adam", action="store_true", help="per-vertex Adam instead of large steps")
+    mr.add_argument("--target-vertices", type=int, default=None)
+    mr.add_argument("--resolution", type=int, default=None)
+    mr.add_argument("--gcn", action="store_true", help="shape-aware GCN trained through the renderer")
+    mr.add_argument("--seed", type=int, default=0)
+    m.set_defaults(func=_cmd_morph)
 
     d = sub.add_parser("demo", help="render the built-in scenes and write an HTML report")
     d.add_argument("--out", default="out/demo")

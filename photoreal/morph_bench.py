@@ -1,0 +1,153 @@
+"""`photoreal bench morph`: geometry morphing — accuracy vs time, speed vs the tutorial recipe, stability."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from inverse.morph import MorphSettings, run_gcn_morph, run_morph
+from inverse.morph_data import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
+
+from .progress import progress_bar
+
+ARMADILLO = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
+
+
+@dataclass
+class MorphBenchSettings:
+    cases: tuple[str, ...] = ("village", "armadillo")
+    iterations: int = 200
+    sweep_vertices: tuple[int, ...] = (2000, 4000, 8000)
+    sweep_iterations: int = 120
+    speed_vertices: int = 10_000
+    speed_iterations: int = 60
+    speed_views: int = 4
+    speed_resolution: int = 128
+    baseline_spp: int = 16  #: the tutorial recipe's samples per pixel
+    stability_iterations: int = 80
+    seed: int = 0
+
+
+def _source(case: str) -> str:
+    return "village" if case == "village" else str(ARMADILLO if case == "armadillo" else case)
+
+
+def _summary(m: dict) -> dict:
+    keys = ("chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input", "psnr_heldout_morphed",
+            "spikes", "inverted_triangles", "spike_vertices", "seconds", "vertices", "skipped_steps")
+    return {k: m.get(k) for k in keys}
+
+
+def bench_case(case: str, work: Path, s: MorphBenchSettings, bar) -> dict:
+    bench = load_morph_benchmark(make_morph_benchmark(_source(case), work / f"bench_{case}",
+                                                      MorphBenchmarkSettings(seed=s.seed), show_progress=False))
+    main = run_morph(bench, work / f"{case}_main", MorphSettings(iterations=s.iterations, seed=s.seed),
+                     show_progress=False)
+    bar.update(1)
+    sweep = []
+    for n in s.sweep_vertices:
+        m = run_morph(bench, work / f"{case}_v{n}", MorphSettings(iterations=s.sweep_iterations, target_vertices=n,
+                                                                  seed=s.seed), show_progress=False)
+        sweep.append({"mesh_vertices": m["vertices"], "target_vertices": n, "chamfer": m["chamfer_morphed"],
+                      "psnr": m["psnr_heldout_morphed"], "seconds": m["seconds"]})
+        bar.update(1)
+    best = min(r["chamfer"] for r in sweep)
+    chosen = min(r["mesh_vertices"] for r in sweep if r["chamfer"] <= 1.05 * best)
+
+    # Speed: our recipe vs the tutorial's, same mesh (~10k vertices), views, resolution.
+    base = MorphSettings(iterations=s.speed_iterations, views_per_step=s.speed_views,
+                         resolution=s.speed_resolution, target_vertices=s.speed_vertices, seed=s.seed)
+    ours = run_morph(bench, work / f"{case}_speed_ours", base, show_progress=False)
+    tutorial = run_morph(bench, work / f"{case}_speed_tutorial",
+                         replace(base, spp=s.baseline_spp, lambda_=25.0, lr=0.05 * 10 / 2, lr_final=1.0),
+                         show_progress=False)
+    bar.update(2)
+    # Stability (shorter runs): batch sizes, plain Adam vs large steps, few views, GCN image-only.
+    stab = {}
+    short = MorphSettings(iterations=s.stability_iterations, seed=s.seed)
+    for name, st in {"batch_1": replace(short, views_per_step=1), "batch_3": short,
+                     "batch_6": replace(short, views_per_step=6),
+                     "plain_adam": replace(short, parameterisation="plain", lr=0.05),
+                     "large_steps_lambda25": replace(short, lambda_=25.0)}.items():
+        stab[name] = _summary(run_morph(bench, work / f"{case}_stab_{name}", st, show_progress=False))
+        bar.update(1)
+    few = load_morph_benchmark(bench.path)
+    few.meta = dict(few.meta, train=few.meta["train"][:4])  # four neighbouring views only: border regions unseen
+    stab["few_views_4"] = _summary(run_morph(few, work / f"{case}_stab_few", short, show_progress=False))
+    bar.update(1)
+    stab["gcn_image_loss_only"] = _summary(run_gcn_morph(bench, work / f"{case}_stab_gcn",
+                                                         replace(short, iterations=min(60, short.iterations)),
+                                                         show_progress=False))
+    bar.update(1)
+    for row in stab.values():
+        row["converged"] = bool(row["chamfer_morphed"] < row["chamfer_input"]
+                                and row["psnr_heldout_morphed"] > row["psnr_heldout_input"])
+    return {
+        **_summary(main),
+        "s_per_iter_10k_4views_128": ours["seconds"] / s.speed_iterations,
+        "s_per_iter_baseline": tutorial["seconds"] / s.speed_iterations,
+        "speed_ratio": (ours["seconds"] / s.speed_iterations) / (tutorial["seconds"] / s.speed_iterations),
+        "chamfer_ours_speed_run": ours["chamfer_morphed"], "chamfer_baseline_speed_run": tutorial["chamfer_morphed"],
+        "speed_vertices": ours["vertices"],
+        "sweep": sweep, "chosen_vertices": chosen, "stability": stab,
+        "degradation": bench.meta["degradation"],
+    }
+
+
+def bench_morph(s: MorphBenchSettings, out_dir: Path | None = None, show_progress: bool = True) -> dict:
+    work = Path(tempfile.mkdtemp(prefix="photoreal_morph_bench_"))
+    per_case = 1 + len(s.sweep_vertices) + 2 + 7
+    t0 = time.perf_counter()
+    try:
+        with progress_bar(total=per_case * len(s.cases), desc="bench morph", unit="run",
+                          disable=not show_progress) as bar:
+            cases = {c: bench_case(c, work, s, bar) for c in s.cases}
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    first = cases[s.cases[0]]
+    result = {**{k: first[k] for k in ("chamfer_input", "chamfer_morphed", "psnr_heldout_input",
+                                        "psnr_heldout_morphed", "spikes", "s_per_iter_10k_4views_128",
+                                        "s_per_iter_baseline", "sweep", "chosen_vertices")},
+              "chamfer_reduction": first["chamfer_reduction"], "cases": cases, "settings": asdict(s),
+              "seconds": time.perf_counter() - t0}
+    if out_dir is not None:
+        result["chart"] = str(morph_chart(result, Path(out_dir) / "morph_speed_accuracy.png"))
+    return result
+
+
+def morph_chart(result: dict, path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .imageio import atomic_path
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    for case, r in result["cases"].items():
+        x = [p["seconds"] for p in r["sweep"]]
+        rel = [p["chamfer"] / r["chamfer_input"] for p in r["sweep"]]
+        ax[0].plot(x, rel, "o-", label=case)
+        ax[1].plot(x, [p["psnr"] for p in r["sweep"]], "o-", label=case)
+        for p, xi, yi in zip(r["sweep"], x, rel):
+            ax[0].annotate(f"{p['mesh_vertices']}", (xi, yi), textcoords="offset points", xytext=(3, 3), fontsize=7)
+    ax[0].axhline(0.5, color="gray", ls="--", lw=0.8)
+    ax[0].set_ylabel("Chamfer / input Chamfer")
+    ax[1].set_ylabel("held-out PSNR (dB)")
+    for a in ax:
+        a.set_xlabel("morph wall time (s, 2 CPU cores)")
+        a.grid(alpha=0.3)
+        a.legend()
+    fig.suptitle("geometry morphing: accuracy vs time over mesh resolution (labels: vertices)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
