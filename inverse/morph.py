@@ -158,8 +158,13 @@ def _render_views(scene, params, cams, ids, res, fov, spp, seed):
 
 
 def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = None,
-              show_progress: bool = True) -> dict:
-    """Morph the benchmark's coarse mesh; write morphed.ply, held-out renders, metrics.json; resumable."""
+              show_progress: bool = True, budget_iterations: int | None = None) -> dict | None:
+    """Morph the benchmark's coarse mesh; write morphed.ply, held-out renders, metrics.json; resumable.
+
+    ``budget_iterations`` stops after that many iterations *in this call*
+    (e.g. a cluster job's wall-time slice) with a checkpoint written, and
+    returns None; calling again with the same settings continues exactly.
+    """
     s = s or MorphSettings()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -194,9 +199,11 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
 
     lr_pos = s.lr * size / 10.0 if s.parameterisation == "large_steps" else s.lr * size / 100.0
 
-    def new_optimiser(v: np.ndarray):
+    def new_optimiser(v: np.ndarray, v_ref: np.ndarray):
+        # The large-steps operator is built from the stage's *starting* vertices (v_ref) so that a
+        # resumed run uses the very same operator as an uninterrupted one.
         if s.parameterisation == "large_steps":
-            ls = mi.ad.LargeSteps(mi.Float(np.ascontiguousarray(v, np.float32).ravel()), f_mi, s.lambda_)
+            ls = mi.ad.LargeSteps(mi.Float(np.ascontiguousarray(v_ref, np.float32).ravel()), f_mi, s.lambda_)
             opt = mi.ad.Adam(lr=lr_pos, uniform=True)
             opt["u"] = ls.to_differential(mi.Float(np.ascontiguousarray(v, np.float32).ravel()))
         else:
@@ -207,7 +214,7 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
         opt.set_learning_rate({"c": s.lr_colour})
         return ls, opt
 
-    ls, opt = new_optimiser(state.vertices)
+    ls, opt = new_optimiser(state.vertices, v_start if not s.remesh_at else state.vertices)
     if state.adam:
         _adam_import(opt, state.adam)
 
@@ -216,7 +223,8 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
 
     with progress_bar(total=s.iterations, desc=f"morph {meta['kind']}", unit="it", disable=not show_progress) as bar:
         bar.update(state.iteration)
-        while state.iteration < s.iterations:
+        stop_at = s.iterations if budget_iterations is None else min(s.iterations, state.iteration + budget_iterations)
+        while state.iteration < stop_at:
             it = state.iteration
             decay = 1.0 - (1.0 - s.lr_final) * it / max(s.iterations - 1, 1)
             opt.set_learning_rate({"u" if ls is not None else "v": lr_pos * decay, "c": s.lr_colour * decay})
@@ -252,13 +260,17 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
                 scene = morph_scene(work_ply, s.mode, hdri)
                 params = mi.traverse(scene)
                 f_mi = mi.UInt32(np.ascontiguousarray(state.faces, np.uint32).ravel())
-                ls, opt = new_optimiser(state.vertices)
-            if state.iteration % s.checkpoint_every == 0 or state.iteration == s.iterations:
+                ls, opt = new_optimiser(state.vertices, state.vertices)
+            if state.iteration % s.checkpoint_every == 0 or state.iteration in (s.iterations, stop_at):
                 state.vertices = np.array(dr.detach(positions()), np.float64).reshape(-1, 3)
                 state.colours = np.array(opt["c"], np.float32).reshape(-1, 3)
                 state.adam = _adam_export(opt)
                 _save_checkpoint(ckpt_path, state, s, digest)
 
+    if state.iteration < s.iterations:  # budget used up: the checkpoint holds the state
+        del scene, params, opt
+        work_ply.unlink(missing_ok=True)
+        return None
     v_out = np.array(dr.detach(positions()), np.float64).reshape(-1, 3)
     c_out = np.array(opt["c"], np.float32).reshape(-1, 3)
     write_ply(out / "morphed.ply", v_out, state.faces, np.clip(c_out, 0, 1))
