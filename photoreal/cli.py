@@ -121,7 +121,7 @@ def _cmd_demo(a: argparse.Namespace) -> int:
     from .demo import DemoSettings, run_demo
 
     index = run_demo(a.out, DemoSettings(resolution=a.resolution, spp=a.spp, seed=a.seed, face=not a.no_face,
-                                         face_uv_res=a.face_uv_res),
+                                         face_uv_res=a.face_uv_res, morph_iterations=a.morph_iterations),
                      with_bench=not a.no_bench)
     print(f"report: {index}")
     return 0
@@ -208,6 +208,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--no-bench", action="store_true", help="skip the plugin speed section")
     d.add_argument("--no-face", action="store_true", help="skip the face fitting section")
     d.add_argument("--face-uv-res", type=int, default=256)
+    d.add_argument("--morph-iterations", type=int, default=100, help="0 skips the morphing section")
     d.set_defaults(func=_cmd_demo)
     return p
 

@@ -108,7 +108,7 @@ def test_bench_plugins_writes_json(tmp_path, capsys):
 def test_demo_writes_report(tmp_path, capsys):
     out = tmp_path / "demo"
     code, stdout, err = _run(["demo", "--out", str(out), "--resolution", "24", "--spp", "4", "--no-bench",
-                              "--face-uv-res", "32"], capsys)
+                              "--face-uv-res", "32", "--morph-iterations", "0"], capsys)
     assert code == 0, err
     index = (out / "index.html").read_text()
     for scene in ("josie", "material_test", "armadillo"):
