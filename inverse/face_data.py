@@ -36,7 +36,6 @@ from pathlib import Path
 import numpy as np
 
 import mi_plugins  # noqa: F401
-import drjit as dr
 import mitsuba as mi
 
 from photoreal import imageio
@@ -307,12 +306,7 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
     scan, out = Path(scan), Path(out)
     mesh = load_obj(scan)
     t0 = time.perf_counter()
-    tmp = out.with_name(f".{out.name}.partial")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-
-    try:
+    with imageio.atomic_dir(out) as tmp:
         # The benchmark carries its own copy of the geometry (self-contained folder).
         shutil.copyfile(scan, tmp / "mesh.obj")
         geo = bake_geometry(mesh, s.uv_res)
@@ -370,12 +364,6 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
             "format": "photoreal-face-benchmark/1",
         }
         (tmp / "benchmark.json").write_text(json.dumps(meta, indent=2) + "\n")
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)  # no half-written benchmark
-        raise
-    if out.exists():
-        shutil.rmtree(out)
-    tmp.rename(out)
     return out
 
 

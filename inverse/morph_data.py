@@ -19,7 +19,6 @@ The village's textures come from the real photographs scikit-image ships
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -385,11 +384,8 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
     hdr = ASSETS / "hdri" / f"{s.hdri}.exr"
     if not hdr.is_file():
         raise FileNotFoundError(f"{hdr}: no such HDRI")
-    tmp = out.with_name(f".{out.name}.partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
     t0 = time.perf_counter()
-    try:
+    with imageio.atomic_dir(out) as tmp:
         shapes: dict = {}
         if str(source) == "village":
             parts = village_parts(s.n_houses, s.seed)
@@ -480,12 +476,6 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
             "gt_parts": sorted(k for k in shapes), "seconds": time.perf_counter() - t0,
         }
         (tmp / "morph_benchmark.json").write_text(json.dumps(meta, indent=2) + "\n")
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if out.exists():
-        shutil.rmtree(out)
-    tmp.rename(out)
     return out
 
 

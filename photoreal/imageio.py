@@ -35,6 +35,25 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None) -> Iterato
             os.unlink(tmp)
 
 
+@contextlib.contextmanager
+def atomic_dir(target: str | os.PathLike) -> Iterator[Path]:
+    """Yield a hidden sibling folder; on success it replaces ``target``, on any error it is removed."""
+    import shutil
+
+    target = Path(target)
+    tmp = target.with_name(f".{target.name}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)  # no half-written folder
+        raise
+    if target.exists():
+        shutil.rmtree(target)
+    tmp.rename(target)
+
+
 # -- colour transfer ----------------------------------------------------------------
 
 

@@ -8,8 +8,6 @@ import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
-import numpy as np
-
 from inverse.morph import MorphSettings, run_gcn_morph, run_morph
 from inverse.morph_data import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
 

@@ -6,7 +6,6 @@ import pytest
 import drjit as dr
 import mitsuba as mi
 
-from mi_plugins import shading as sh
 from conftest import local_si, random_dirs
 
 N_PAIRS = 20_000
