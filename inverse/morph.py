@@ -86,8 +86,16 @@ def morph_scene(mesh_ply: Path, mode: str, hdri: Path, integrator: dict | None =
     else:
         shape = {"type": "ply", "filename": str(mesh_ply),
                  "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": colour}}}
-    return mi.load_dict({"type": "scene", "integrator": integrator or {"type": "direct_projective", "sppi": 0},
-                         "env": {"type": "envmap", "filename": str(hdri)}, "mesh": shape})
+    # Remeshed/decimated reconstructions often have a few non-manifold vertices; Mitsuba warns about
+    # each load with a full mesh dump. They are expected here, so only errors are logged.
+    logger = mi.Thread.thread().logger()
+    level = logger.log_level()
+    logger.set_log_level(mi.LogLevel.Error)
+    try:
+        return mi.load_dict({"type": "scene", "integrator": integrator or {"type": "direct_projective", "sppi": 0},
+                             "env": {"type": "envmap", "filename": str(hdri)}, "mesh": shape})
+    finally:
+        logger.set_log_level(level)
 
 
 @dataclass
