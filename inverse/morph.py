@@ -179,11 +179,7 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
     t0 = time.perf_counter()
     rng = np.random.default_rng(s.seed)
     meta = bench.meta
-    cams, fov, size = meta["cameras"], meta["fov"], meta["scene_size"]
-    res = s.resolution or meta["settings"]["resolution"]
-    hdri = ASSETS / "hdri" / f"{meta['hdri']}.exr"
-    photos = {i: _photo(bench, i, res) for i in range(len(cams))}
-
+    cams, fov, size, res, hdri, photos = _views(bench, s)
     v_in, f_in, c_in = _read_ply_colours(bench.coarse)
     if s.remesh_input or s.target_vertices:
         v_start, f_start, c_start = remesh(v_in, f_in, c_in, s.target_vertices)
@@ -296,6 +292,14 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
     return metrics
 
 
+def _views(bench: MorphBenchmark, s: MorphSettings):
+    """Cameras, field of view, scene size, working resolution, HDRI path and photos (as tensors)."""
+    meta = bench.meta
+    res = s.resolution or meta["settings"]["resolution"]
+    photos = {i: _photo(bench, i, res) for i in range(len(meta["cameras"]))}
+    return meta["cameras"], meta["fov"], meta["scene_size"], res, ASSETS / "hdri" / f"{meta['hdri']}.exr", photos
+
+
 def _photo(bench: MorphBenchmark, i: int, res: int) -> mi.TensorXf:
     img = bench.photos[f"view{i:02d}"].astype(np.float32)
     if img.shape[0] != res:
@@ -405,10 +409,7 @@ def run_gcn_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | Non
     t0 = time.perf_counter()
     rng = np.random.default_rng(s.seed)
     meta = bench.meta
-    cams, fov, size = meta["cameras"], meta["fov"], meta["scene_size"]
-    res = s.resolution or meta["settings"]["resolution"]
-    hdri = ASSETS / "hdri" / f"{meta['hdri']}.exr"
-    photos = {i: _photo(bench, i, res) for i in range(len(cams))}
+    cams, fov, size, res, hdri, photos = _views(bench, s)
     v_in, f_in, c_in = _read_ply_colours(bench.coarse)
     work_ply = out / ".gcn_work.ply"
     write_ply(work_ply, v_in, f_in, c_in)

@@ -143,7 +143,7 @@ def face_chart(result: dict, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .imageio import atomic_path
+    from .imageio import save_figure
 
     sw = result["sweep"]
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.6))
@@ -159,9 +159,4 @@ def face_chart(result: dict, path: Path) -> Path:
     ax[0].axhline(35, color="gray", ls="--", lw=0.8)
     ax[1].axhline(5, color="gray", ls="--", lw=0.8)
     fig.suptitle(f"face fitting: accuracy vs time; chosen {result['chosen_uv_res']}²")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -181,3 +181,15 @@ def read_photo(path_or_name: str) -> np.ndarray:
         return np.asarray(Image.open(p).convert("RGB"))
     except Exception as exc:  # PIL raises several unrelated types for bad files
         raise ImageIOError(f"{p}: not a readable image ({exc})") from exc
+
+
+def save_figure(fig, path: str | os.PathLike) -> Path:
+    """Save a matplotlib figure as PNG atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path

@@ -124,7 +124,7 @@ def morph_chart(result: dict, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .imageio import atomic_path
+    from .imageio import save_figure
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
     for case, r in result["cases"].items():
@@ -142,10 +142,5 @@ def morph_chart(result: dict, path: Path) -> Path:
         a.grid(alpha=0.3)
         a.legend()
     fig.suptitle("geometry morphing: accuracy vs time over mesh resolution (labels: vertices)")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
