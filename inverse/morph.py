@@ -38,7 +38,7 @@ import mitsuba as mi
 from photoreal import imageio
 from photoreal.progress import progress_bar
 
-from .mesh_metrics import chamfer, spikes
+from .mesh_metrics import chamfer, face_normals, spikes
 from .morph_data import ASSETS, MorphBenchmark, load_mesh_any, sensor_dict, write_ply
 
 
@@ -58,6 +58,7 @@ class MorphSettings:
     target_vertices: int | None = None  #: remesh the input to about this many vertices (None: keep)
     remesh_at: tuple[int, ...] = ()  #: iterations after which to remesh isotropically (pymeshlab)
     checkpoint_every: int = 20
+    forbid_flips: bool = False  #: undo a step at vertices of triangles it flips w.r.t. the start
     seed: int = 0
 
     def __post_init__(self):
@@ -225,6 +226,8 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
     def positions():
         return ls.from_differential(opt["u"]) if ls is not None else opt["v"]
 
+    n_start = face_normals(state.vertices, state.faces) if s.forbid_flips else None
+
     with progress_bar(total=s.iterations, desc=f"morph {meta['kind']}", unit="it", disable=not show_progress) as bar:
         bar.update(state.iteration)
         stop_at = s.iterations if budget_iterations is None else min(s.iterations, state.iteration + budget_iterations)
@@ -245,8 +248,12 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
             value = float(loss.array[0])
             grads_ok = all(np.isfinite(np.array(dr.grad(opt[k]))).all() for k in opt.keys())
             if np.isfinite(value) and grads_ok:
+                v_before = np.array(dr.detach(positions()), np.float64).reshape(-1, 3) if s.forbid_flips else None
                 opt.step()
                 opt["c"] = dr.clip(opt["c"], 0.0, 1.0 if s.mode == "lit" else 10.0)
+                if v_before is not None:
+                    _undo_flips(opt, "u" if ls is not None else "v", v_before, positions,
+                                ls.to_differential if ls is not None else (lambda x: x), n_start, state.faces)
             else:  # guard: a NaN/Inf step is skipped, not applied
                 for k in opt.keys():
                     dr.set_grad(opt[k], 0)
@@ -290,6 +297,26 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
     with imageio.atomic_path(out / "metrics.json") as tmp:
         tmp.write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
+
+
+def _undo_flips(opt, key: str, v_before: np.ndarray, positions, to_param, n_start: np.ndarray,
+                faces: np.ndarray, rounds: int = 4) -> None:
+    """Keep a step everywhere except at triangles it flipped w.r.t. their starting orientation.
+
+    The vertices of flipped triangles go back to where they were before the
+    step (widening to neighbours if needed); other vertices keep their update.
+    """
+    v = np.array(dr.detach(positions()), np.float64).reshape(-1, 3)
+    changed = False
+    for _ in range(rounds):
+        bad = np.sum(face_normals(v, faces) * n_start, axis=1) < 0
+        if not bad.any():
+            break
+        idx = np.unique(faces[bad])
+        v[idx] = v_before[idx]
+        changed = True
+    if changed:
+        opt[key] = to_param(mi.Float(np.ascontiguousarray(v, np.float32).ravel()))
 
 
 def _views(bench: MorphBenchmark, s: MorphSettings):

@@ -106,7 +106,8 @@ def _cmd_morph(a: argparse.Namespace) -> int:
         bench = load_morph_benchmark(a.benchmark)
         s = MorphSettings(iterations=a.iterations, views_per_step=a.views_per_step, mode=a.mode,
                           parameterisation="plain" if a.plain_adam else "large_steps", lambda_=a.lambda_,
-                          target_vertices=a.target_vertices, resolution=a.resolution, seed=a.seed)
+                          target_vertices=a.target_vertices, resolution=a.resolution, seed=a.seed,
+                          forbid_flips=a.forbid_flips)
         out = Path(a.out) if a.out else Path(a.benchmark) / "morph"
         m = run_gcn_morph(bench, out, s) if a.gcn else run_morph(bench, out, s)
         if a.json:
@@ -197,6 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
     mr.add_argument("--target-vertices", type=int, default=None)
     mr.add_argument("--resolution", type=int, default=None)
     mr.add_argument("--gcn", action="store_true", help="shape-aware GCN trained through the renderer")
+    mr.add_argument("--forbid-flips", action="store_true",
+                    help="undo a step at vertices of triangles it would flip (0 inverted, less accurate)")
     mr.add_argument("--seed", type=int, default=0)
     m.set_defaults(func=_cmd_morph)
 

@@ -108,3 +108,10 @@ def test_gcn_morph_trains_through_the_renderer(small_armadillo, tmp_path):
     m = run_gcn_morph(small_armadillo, tmp_path, MorphSettings(iterations=4, resolution=32), show_progress=False)
     assert m["pretrain_loss_last"] < 1e-3  # identity pre-training reproduces the input
     assert np.isfinite(m["chamfer_morphed"]) and m["skipped_steps"] == 0
+
+
+def test_forbid_flips_leaves_no_inverted_triangles(small_armadillo, tmp_path):
+    m = run_morph(small_armadillo, tmp_path, MorphSettings(iterations=10, resolution=48, lr=0.3, forbid_flips=True),
+                  show_progress=False)
+    assert m["inverted_triangles"] == 0
+    assert m["psnr_heldout_morphed"] > m["psnr_heldout_input"]
