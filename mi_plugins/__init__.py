@@ -3,7 +3,7 @@
 ``import mi_plugins`` resolves libLLVM and, if no Mitsuba variant is set yet,
 sets one (``cuda_ad_rgb`` when a GPU works, else ``llvm_ad_rgb``;
 ``PHOTOREAL_VARIANT`` overrides), then registers the plugins for the active
-variant: BSDF ``ggx_uv`` and integrator ``intrinsic``. After switching
+variant: BSDFs ``ggx_uv`` and ``neural_btf``, integrator ``intrinsic``. After switching
 variants yourself, call :func:`register` again.
 """
 
@@ -18,10 +18,11 @@ def register() -> str:
     """Register every photoreal plugin for the active variant; returns it."""
     import mitsuba as mi
 
-    from .bsdfs import ggx_uv
+    from .bsdfs import ggx_uv, neural_btf
     from .integrators import intrinsic
 
     ggx_uv.register()
+    neural_btf.register()
     intrinsic.register()
     return mi.variant()
 

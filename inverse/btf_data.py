@@ -1,0 +1,799 @@
+"""BTF training data rendered with Mitsuba from SVBRDFs (seed 002 §4.1, CPU-sized).
+
+Seed 002 §4.1 renders each SVBRDF (base colour, normal, height, roughness,
+metallic) as a BTF: the height map becomes a densely tessellated, displaced
+plane instanced 3×3 (so texels near the tile border see their neighbours), and
+every texel gets N_s random (light, view) pairs, each path traced with a ray
+towards the texel footprint along −ω_o, lit by a 2°-wide sun of unit
+irradiance. Here the same recipe runs at CPU scale (64² texels × 64 slices by
+default) with:
+
+* **SVBRDFs** from seeded generators, one per family in :data:`FAMILIES`
+  (:func:`make_svbrdf`): procedural FFT-filtered noise, periodic Voronoi cells,
+  woven/tiled/board patterns, and scikit-image's shipped photographs (gravel,
+  grass, brick) made periodic. Every map tiles.
+* **Geometry**: one ``mi.Mesh`` covering [−1, 2]² (the 3×3 tiling of the unit
+  tile) at z = height − mean(height), with UV = world (x, y), so the texture
+  repeat and the geometry agree; vertex normals from periodic differences.
+* **Material**: :mod:`mi_plugins.bsdfs.ggx_uv` with raw (linear) bitmap
+  textures, bilinear, repeat-wrapped; constant ``specular`` (0.5 for every family).
+* **Light transport**: a small path tracer in Dr.Jit (:func:`render_btf`):
+  next-event estimation towards the sun at every vertex with a shadow ray,
+  continuation by BSDF sampling up to ``max_depth`` vertices, so self-shadowing
+  and interreflection are in the data. The sun is a uniform disk of angular
+  diameter ``sun_diameter_deg`` (2°, as in §4.1) around ω_i, normalised to unit
+  irradiance on a surface perpendicular to ω_i; ``sun_diameter_deg = 0`` is a
+  directional light. Rays that miss the surface return 0 (no environment).
+
+Conventions (the neural BTF plugin relies on these):
+
+* Texel (y, x) of a ``tex_res`` × ``tex_res`` BTF covers u ∈ [x/W, (x+1)/W],
+  v ∈ [y/H, (y+1)/H]; map row y of every SVBRDF map is v = (y + ½)/R (that is
+  how Mitsuba's bitmap texture reads a row-major array).
+* Tangent frame: x along +u, y along +v, z up; ω_i (towards the light) and
+  ω_o (towards the viewer) are unit vectors in it with θ ≤ ``max_theta_deg``.
+* Reference plane z = 0 = the mean height: camera rays aim at a jittered point
+  of the texel's footprint on that plane (anti-aliasing and parallax included).
+* :data:`CONVENTION`: a value is the outgoing radiance towards ω_o under a
+  distant light of unit perpendicular irradiance from ω_i — for a flat surface
+  exactly f(u, ω_i, ω_o)·cos θ_i, i.e. Mitsuba's
+  ``bsdf.eval(ctx, si(wi=ω_o), wo=ω_i)``. Values are stored as float16,
+  clipped to 65504 (float16's maximum; reached only by near-mirror peaks).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+import mi_plugins  # noqa: F401  (sets the variant and registers ggx_uv)
+import drjit as dr
+import mitsuba as mi
+
+from photoreal.imageio import atomic_path
+from photoreal.progress import progress_bar
+
+FAMILIES: tuple[str, ...] = ("fabric", "metal", "stone", "wood", "plaster", "leather", "ceramic", "ground")
+
+CONVENTION = (
+    "value = outgoing radiance towards wo under a distant light of unit perpendicular irradiance from wi "
+    "= f(u, wi, wo) * cos(theta_i) for a flat BRDF = mitsuba bsdf.eval(ctx, si(wi=wo), wo=wi); "
+    "tangent frame x=+u, y=+v, z=up; texel (y, x) spans u in [x/W, (x+1)/W], v in [y/H, (y+1)/H]; "
+    "camera rays aim at the texel footprint on the plane z = mean height"
+)
+FORMAT_VERSION = 1
+_F16_MAX = 65504.0
+_CHUNK_LANES = 1 << 20  # paths traced per kernel launch: bounds memory, amortises tracing
+
+
+class BTFDataError(ValueError):
+    """A BTF file is missing, unreadable or inconsistent (the message names the file)."""
+
+
+# =============================================================================================
+# SVBRDFs
+# =============================================================================================
+
+
+@dataclass
+class SVBRDF:
+    """Tileable material maps over the unit tile; row y of every map is v = (y + ½)/R."""
+
+    name: str
+    family: str
+    seed: int
+    base_color: np.ndarray  #: (R, R, 3) linear RGB in [0, 1]
+    normal: np.ndarray  #: (R, R, 3) unit tangent-space normals (z up): fine detail only
+    height: np.ndarray  #: (R, R) float32, tile units (the tile spans 1 × 1)
+    roughness: np.ndarray  #: (R, R) perceptual roughness in [0, 1] (generators: [0.05, 1])
+    metallic: np.ndarray  #: (R, R) in [0, 1]
+    specular: float = 0.5  #: ggx_uv's dielectric specular level (F0 = 0.08·specular); §4.1 maps have none
+
+    def __post_init__(self) -> None:
+        for k in ("base_color", "normal", "height", "roughness", "metallic"):
+            setattr(self, k, np.ascontiguousarray(getattr(self, k), dtype=np.float32))
+        r = self.height.shape[0] if self.height.ndim == 2 else -1
+        shapes = {"base_color": (r, r, 3), "normal": (r, r, 3), "height": (r, r), "roughness": (r, r),
+                  "metallic": (r, r)}
+        for k, shape in shapes.items():
+            a = getattr(self, k)
+            if a.shape != shape or r < 2:
+                raise ValueError(f"SVBRDF {self.name}: '{k}' has shape {a.shape}, expected {shape} (R >= 2)")
+            if not np.isfinite(a).all():
+                raise ValueError(f"SVBRDF {self.name}: '{k}' has non-finite values")
+        for k in ("base_color", "roughness", "metallic"):
+            a = getattr(self, k)
+            if a.min() < 0.0 or a.max() > 1.0:
+                raise ValueError(f"SVBRDF {self.name}: '{k}' leaves [0, 1] ({a.min():.3g}..{a.max():.3g})")
+        if not (0.0 <= float(self.specular) <= 1.0):
+            raise ValueError(f"SVBRDF {self.name}: 'specular' = {self.specular} must be in [0, 1]")
+        norm = np.linalg.norm(self.normal, axis=-1)
+        if np.abs(norm - 1.0).max() > 1e-3 or self.normal[..., 2].min() <= 0.0:
+            raise ValueError(f"SVBRDF {self.name}: 'normal' must hold unit vectors with z > 0")
+
+    @property
+    def res(self) -> int:
+        return int(self.height.shape[0])
+
+
+def constant_svbrdf(res: int = 16, albedo=(0.5, 0.5, 0.5), roughness: float = 0.5, metallic: float = 0.0,
+                    normal=(0.0, 0.0, 1.0), height: np.ndarray | None = None, specular: float = 0.5,
+                    name: str = "constant") -> SVBRDF:
+    """Spatially constant maps (optionally over a given height map): the oracle cases of the tests."""
+    n = np.asarray(normal, np.float64)
+    n = n / np.linalg.norm(n)
+    h = np.zeros((res, res), np.float32) if height is None else np.asarray(height, np.float32)
+    res = h.shape[0]
+    return SVBRDF(name, "constant", 0, np.broadcast_to(np.asarray(albedo, np.float32), (res, res, 3)),
+                  np.broadcast_to(n.astype(np.float32), (res, res, 3)), h,
+                  np.full((res, res), roughness, np.float32), np.full((res, res), metallic, np.float32), specular)
+
+
+# -- periodic building blocks -------------------------------------------------------------------
+
+
+def _grid(res: int) -> tuple[np.ndarray, np.ndarray]:
+    """Texel-centre (u, v) coordinates, each (R, R), indexed [y, x]."""
+    c = (np.arange(res) + 0.5) / res
+    v, u = np.meshgrid(c, c, indexing="ij")
+    return u, v
+
+
+def _fft_noise(rng: np.random.Generator, res: int, beta: float = 2.0, f_lo: float = 1.0,
+               f_hi: float | None = None, stretch: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
+    """Zero-mean, unit-std 1/f^β noise: white noise filtered in Fourier space, so periodic by construction.
+
+    Frequencies are in cycles per tile; ``stretch`` = (sx, sy) > 1 suppresses variation along that
+    axis (sx > 1 gives streaks along u: brushed metal, wood grain).
+    """
+    fy = np.fft.fftfreq(res)[:, None] * res
+    fx = np.fft.rfftfreq(res)[None, :] * res
+    f = np.hypot(fx * stretch[0], fy * stretch[1])
+    amp = np.where(f >= f_lo, np.maximum(f, 1e-9) ** (-beta / 2.0), 0.0)
+    if f_hi is not None:
+        amp = amp * np.exp(-((f / f_hi) ** 2))
+    n = np.fft.irfft2(np.fft.rfft2(rng.standard_normal((res, res))) * amp, s=(res, res))
+    return ((n - n.mean()) / max(float(n.std()), 1e-12)).astype(np.float32)
+
+
+def _voronoi(rng: np.random.Generator, res: int, cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Periodic jittered-grid Voronoi: (F1, F2, cell id) per texel, distances in grid-cell units."""
+    g = max(2, int(round(math.sqrt(cells))))
+    pts = rng.uniform(0.0, 1.0, (g, g, 2))  # one feature point per grid cell (wraps: index mod g)
+    u, v = _grid(res)
+    x, y = u * g, v * g
+    ix, iy = np.floor(x).astype(int), np.floor(y).astype(int)
+    f1 = np.full((res, res), np.inf)
+    f2 = np.full((res, res), np.inf)
+    cid = np.zeros((res, res), int)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            cx, cy = ix + dx, iy + dy
+            p = pts[cy % g, cx % g]
+            d = np.hypot(cx + p[..., 0] - x, cy + p[..., 1] - y)
+            closer = d < f1
+            f2 = np.where(closer, f1, np.minimum(f2, d))
+            cid = np.where(closer, (cy % g) * g + (cx % g), cid)
+            f1 = np.minimum(f1, d)
+    return f1.astype(np.float32), f2.astype(np.float32), cid
+
+
+def _smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
+    t = np.clip((x - e0) / (e1 - e0), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    """Rescale to [0, 1] (robust to outliers: 1st/99th percentiles)."""
+    lo, hi = np.percentile(x, [1.0, 99.0])
+    return np.clip((x - lo) / max(float(hi - lo), 1e-9), 0.0, 1.0).astype(np.float32)
+
+
+def make_periodic(img: np.ndarray) -> np.ndarray:
+    """Blend an image with its half-period rolled copies under sin² windows so that it tiles.
+
+    Four copies (I, I rolled in x, in y, in both) weighted wx·wy, (1−wx)·wy, wx·(1−wy),
+    (1−wx)·(1−wy) with wx = sin²(π(x+½)/R): each copy's seam lies where its weight is 0, and at
+    the tile border only copies that are continuous across the wrap remain. Deviations from
+    the mean are renormalised by 1/√Σw² so the blend keeps the photo's contrast.
+    """
+    r = img.shape[0]
+    w = np.sin(np.pi * (np.arange(r) + 0.5) / r) ** 2
+    wy, wx = w[:, None], w[None, :]
+    m = float(img.mean())
+    d = img - m
+    h = r // 2
+    copies = (d, np.roll(d, h, 1), np.roll(d, h, 0), np.roll(d, (h, h), (0, 1)))
+    weights = (wx * wy, (1 - wx) * wy, wx * (1 - wy), (1 - wx) * (1 - wy))
+    out = sum(wk * ck for wk, ck in zip(weights, copies))
+    return (m + out / np.sqrt(sum(wk * wk for wk in weights))).astype(np.float32)
+
+
+def _photo_crop(name: str, rng: np.random.Generator, res: int) -> np.ndarray:
+    """A random square crop (random 90° rotation/flip) of a scikit-image photograph, grey in [0, 1]."""
+    import skimage.data
+    from skimage.transform import resize
+
+    g = np.asarray(getattr(skimage.data, name)(), np.float32)
+    if g.ndim == 3:
+        g = g[..., :3].mean(-1)
+    g /= 255.0
+    c = int(rng.integers(min(g.shape) // 3, min(g.shape) * 2 // 3 + 1))
+    y0, x0 = (int(rng.integers(0, s - c + 1)) for s in g.shape)
+    crop = np.rot90(g[y0:y0 + c, x0:x0 + c], int(rng.integers(4)))
+    if rng.random() < 0.5:
+        crop = crop[:, ::-1]
+    return resize(crop, (res, res), anti_aliasing=True).astype(np.float32)
+
+
+def _photo(name: str, rng: np.random.Generator, res: int) -> np.ndarray:
+    """Tileable photo texture in [0, 1]: random crop made periodic (:func:`make_periodic`)."""
+    return _unit(make_periodic(_photo_crop(name, rng, res)))
+
+
+def _blur(x: np.ndarray, cycles: float) -> np.ndarray:
+    """Periodic Gaussian low-pass keeping frequencies up to ~``cycles`` per tile."""
+    r = x.shape[0]
+    fy = np.fft.fftfreq(r)[:, None] * r
+    fx = np.fft.rfftfreq(r)[None, :] * r
+    return np.fft.irfft2(np.fft.rfft2(x) * np.exp(-(fx**2 + fy**2) / (2 * cycles**2)), s=x.shape).astype(np.float32)
+
+
+def _detail_normal(d: np.ndarray, rms_slope: float) -> np.ndarray:
+    """Unit normals of a fine detail height d (periodic differences), scaled to an RMS slope."""
+    gx = 0.5 * (np.roll(d, -1, 1) - np.roll(d, 1, 1))
+    gy = 0.5 * (np.roll(d, -1, 0) - np.roll(d, 1, 0))
+    s = rms_slope / max(float(np.sqrt(np.mean(gx**2 + gy**2))), 1e-12)
+    n = np.stack([-gx * s, -gy * s, np.ones_like(d)], -1)
+    return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def _colour(rng: np.random.Generator, base: Sequence[float], jitter: float = 0.15) -> np.ndarray:
+    """A base linear-RGB colour with a random log-space tint."""
+    return np.clip(np.asarray(base, np.float32) * np.exp(rng.normal(0.0, jitter, 3)), 0.0, 1.0).astype(np.float32)
+
+
+def _ptp(h: np.ndarray, ptp: float) -> np.ndarray:
+    """Height rescaled to [0, ptp] (tile units)."""
+    return ((h - h.min()) * (ptp / max(float(np.ptp(h)), 1e-12))).astype(np.float32)
+
+
+# -- families -----------------------------------------------------------------------------------
+# Each returns (base_color, detail height for the normal map, RMS detail slope, height, roughness,
+# metallic); heights are rescaled by the caller's per-family ptp range.
+
+Maps = tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _fabric(rng: np.random.Generator, res: int) -> Maps:
+    n = 2 * int(rng.integers(5, 13))  # threads per tile; even so the over/under parity wraps
+    u, v = _grid(res)
+    x, y = n * u + rng.random(), n * v + rng.random()  # random phase: the seam is a typical column
+    ix, iy = np.floor(x), np.floor(y)
+    fx, fy = x - ix, y - iy
+    # Plain weave: the warp (along v) is on top where the weft (along u) is below, alternating per cell.
+    warp = np.sin(np.pi * fx) ** 0.6 * (0.35 + 0.65 * (0.5 + 0.5 * np.cos(np.pi * (y - 0.5 - ix))))
+    weft = np.sin(np.pi * fy) ** 0.6 * (0.35 + 0.65 * (0.5 - 0.5 * np.cos(np.pi * (x - 0.5 - iy))))
+    on_warp = warp >= weft
+    top = np.maximum(warp, weft)
+    jit = rng.normal(0.0, 0.08, (2, n))
+    c_warp = _colour(rng, rng.uniform(0.1, 0.8, 3), 0.1)
+    c_weft = c_warp if rng.random() < 0.5 else _colour(rng, rng.uniform(0.1, 0.8, 3), 0.1)
+    shade = 1.0 + np.where(on_warp, jit[0, ix.astype(int) % n], jit[1, iy.astype(int) % n])
+    base = np.where(on_warp[..., None], c_warp, c_weft) * ((0.6 + 0.4 * top) * shade)[..., None]
+    along_v, along_u = _fft_noise(rng, res, 1.0, 8, stretch=(1, 6)), _fft_noise(rng, res, 1.0, 8, stretch=(6, 1))
+    fibres = np.where(on_warp, along_v, along_u)
+    height = top + 0.08 * _fft_noise(rng, res, 2.0, 4)
+    rough = rng.uniform(0.65, 0.95) + 0.05 * _fft_noise(rng, res, 2.0)
+    return base, fibres, 0.25, height, rough, np.zeros((res, res))
+
+
+def _metal(rng: np.random.Generator, res: int) -> Maps:
+    tint = [(0.56, 0.57, 0.58), (0.91, 0.92, 0.92), (1.0, 0.78, 0.34), (0.95, 0.64, 0.54), (0.53, 0.51, 0.49),
+            (0.91, 0.78, 0.50)][int(rng.integers(6))]
+    stretch = (12.0, 1.0) if rng.random() < 0.5 else (1.0, 12.0)  # brushing along u or v
+    brushed = _fft_noise(rng, res, 1.0, 2, stretch=stretch)
+    u, v = _grid(res)
+    scratches = np.zeros((res, res), np.float32)
+    for _ in range(int(rng.integers(3, 12))):
+        a, b = (int(t) for t in rng.integers(-3, 4, 2))  # integer direction: straight periodic line
+        if a == 0 and b == 0:
+            continue
+        t = (a * u + b * v + rng.random()) % 1.0
+        line = np.exp(-(((np.minimum(t, 1 - t)) * res / rng.uniform(0.5, 1.5)) ** 2))
+        seg = _smoothstep(0.3, 0.8, _fft_noise(rng, res, 3.0))  # only parts of each line are scratched
+        scratches = np.maximum(scratches, line * seg)
+    grime = _smoothstep(0.5, 1.5, _fft_noise(rng, res, 3.0)) * rng.uniform(0.0, 1.0)
+    base = _colour(rng, tint, 0.04) * (1.0 + 0.03 * brushed)[..., None]
+    base = base * (1 - grime[..., None]) + grime[..., None] * _colour(rng, (0.12, 0.08, 0.05), 0.2)
+    height = _fft_noise(rng, res, 3.5) + 0.1 * brushed - 0.3 * scratches
+    rough = rng.uniform(0.08, 0.35) + 0.03 * brushed + 0.15 * scratches + 0.6 * grime
+    return base, brushed - 2.0 * scratches, 0.06, height, rough, 1.0 - grime
+
+
+def _stone(rng: np.random.Generator, res: int) -> Maps:
+    f1, f2, cid = _voronoi(rng, res, int(rng.integers(9, 40)))
+    gravel = _photo("gravel", rng, res)
+    dome = np.sqrt(_smoothstep(0.0, rng.uniform(0.15, 0.4), f2 - f1))  # rounded stones, mortar between
+    cell_h = rng.uniform(0.6, 1.0, cid.max() + 1)[cid]
+    height = dome * cell_h + 0.35 * gravel
+    cell_tone = rng.normal(1.0, 0.12, cid.max() + 1)[cid]
+    stone = _colour(rng, (0.35, 0.32, 0.28), 0.15)
+    base = stone * (cell_tone * (0.55 + 0.7 * gravel))[..., None]
+    mortar = _colour(rng, (0.25, 0.24, 0.22), 0.1) * (0.8 + 0.3 * gravel)[..., None]
+    base = np.where((dome < 0.3)[..., None], mortar, base)
+    rough = rng.uniform(0.55, 0.85) + 0.15 * (1 - dome)
+    return base, _fft_noise(rng, res, 0.5, 16), 0.15, height, rough, np.zeros((res, res))
+
+
+def _wood(rng: np.random.Generator, res: int) -> Maps:
+    nb = int(rng.integers(2, 6))  # boards along v, grain along u
+    u, v = _grid(res)
+    y = nb * v + rng.random()
+    b = np.floor(y).astype(int) % nb
+    fb = y - np.floor(y)
+    gap = rng.uniform(0.01, 0.03)
+    groove = _smoothstep(0.0, gap, fb) * _smoothstep(0.0, gap, 1.0 - fb)
+    warp = _fft_noise(rng, res, 3.0, 1, stretch=(4.0, 1.0))
+    rings = (rng.uniform(4, 12) * fb + 0.6 * warp + rng.random(nb)[b] * 10.0) % 1.0
+    late = rings**4  # dark latewood at the end of each ring
+    grain = _fft_noise(rng, res, 1.0, 4, stretch=(16.0, 1.0))
+    light = _colour(rng, (0.55, 0.33, 0.16), 0.2)
+    dark = light * rng.uniform(0.35, 0.6)
+    tone = rng.normal(1.0, 0.1, nb)[b] * (1.0 + 0.05 * grain)
+    base = (light * (1 - late[..., None]) + dark * late[..., None]) * tone[..., None] * (0.3 + 0.7 * groove)[..., None]
+    height = groove + 0.05 * late + 0.02 * grain
+    rough = rng.uniform(0.25, 0.7) + 0.1 * late + 0.3 * (1 - groove)
+    return base, grain, 0.08, height, rough, np.zeros((res, res))
+
+
+def _plaster(rng: np.random.Generator, res: int) -> Maps:
+    brick = _blur(_photo("brick", rng, res), rng.uniform(6, 16))  # plaster over a brick wall
+    bumps = _fft_noise(rng, res, 3.5)
+    height = bumps + rng.uniform(0.5, 2.0) * (brick - brick.mean()) / max(float(brick.std()), 1e-6)
+    colour = _colour(rng, (0.8, 0.78, 0.72) if rng.random() < 0.6 else rng.uniform(0.4, 0.85, 3), 0.08)
+    mottle = 0.05 * _fft_noise(rng, res, 2.5) + 0.05 * (brick - brick.mean()) / max(float(brick.std()), 1e-6)
+    base = colour * (1.0 + mottle)[..., None]
+    rough = rng.uniform(0.8, 0.95) + 0.05 * _fft_noise(rng, res, 2.0)
+    return base, _fft_noise(rng, res, 0.0, 32), 0.2, height, rough, np.zeros((res, res))
+
+
+def _leather(rng: np.random.Generator, res: int) -> Maps:
+    f1, f2, cid = _voronoi(rng, res, int(rng.integers(60, 200)))
+    crease = 1.0 - _smoothstep(0.0, rng.uniform(0.08, 0.2), f2 - f1)
+    folds = _fft_noise(rng, res, 3.0)
+    height = -crease + 0.5 * folds + 0.3 * np.sqrt(np.clip(f2 - f1, 0, None))
+    hides = [(0.25, 0.12, 0.05), (0.04, 0.035, 0.03), (0.35, 0.08, 0.05), (0.5, 0.35, 0.2)]  # brown, black, red, tan
+    colour = _colour(rng, hides[int(rng.integers(4))], 0.1)
+    base = colour * (1.0 - 0.35 * crease + 0.06 * _fft_noise(rng, res, 2.0))[..., None]
+    rough = rng.uniform(0.35, 0.65) + 0.2 * crease
+    return base, _fft_noise(rng, res, 0.0, 24), 0.12, height, rough, np.zeros((res, res))
+
+
+def _ceramic(rng: np.random.Generator, res: int) -> Maps:
+    nt = int(rng.integers(2, 6))  # tiles per side
+    u, v = _grid(res)
+    x, y = nt * u + rng.random(), nt * v + rng.random()
+    ix, iy = np.floor(x).astype(int) % nt, np.floor(y).astype(int) % nt
+    edge = np.minimum.reduce([x % 1.0, 1 - x % 1.0, y % 1.0, 1 - y % 1.0])  # distance to the tile edge
+    gw = rng.uniform(0.02, 0.05)
+    tile = _smoothstep(gw, gw + rng.uniform(0.02, 0.06), edge)  # bevelled tile, grout groove between
+    brick = _photo("brick", rng, res)  # glaze mottling from a real photograph
+    glaze = _colour(rng, rng.uniform(0.1, 0.9, 3), 0.1)
+    per_tile = rng.normal(1.0, 0.04, (nt, nt))[iy, ix]
+    base = glaze * (per_tile * (0.94 + 0.12 * brick))[..., None]
+    base = base * tile[..., None] + _colour(rng, (0.45, 0.44, 0.42), 0.1) * (1 - tile)[..., None]
+    height = tile + 0.03 * _fft_noise(rng, res, 3.0)
+    rough = tile * rng.uniform(0.05, 0.2) + (1 - tile) * 0.9
+    return base, _fft_noise(rng, res, 1.5, 8), 0.02, height, rough, np.zeros((res, res))
+
+
+def _ground(rng: np.random.Generator, res: int) -> Maps:
+    gravel = _photo("gravel", rng, res)
+    grass = _photo("grass", rng, res)
+    mask = _smoothstep(-0.3, 0.3, _fft_noise(rng, res, 3.0) + rng.uniform(-1.0, 1.0))  # grass patches
+    height = 0.7 * gravel + 0.6 * grass * mask
+    soil = _colour(rng, (0.3, 0.22, 0.14), 0.12) * (0.5 + 0.8 * gravel)[..., None]
+    green = _colour(rng, (0.12, 0.2, 0.05), 0.2) * (0.4 + 1.0 * grass)[..., None]
+    base = soil * (1 - mask[..., None]) + green * mask[..., None]
+    rough = rng.uniform(0.8, 0.95) + 0.05 * _fft_noise(rng, res, 2.0)
+    return base, _fft_noise(rng, res, 0.5, 16), 0.2, height, rough, np.zeros((res, res))
+
+
+_GENERATORS: dict[str, tuple[Callable[[np.random.Generator, int], Maps], tuple[float, float]]] = {
+    # family: (generator, peak-to-peak height range in tile units)
+    "fabric": (_fabric, (0.015, 0.03)),
+    "metal": (_metal, (0.01, 0.025)),
+    "stone": (_stone, (0.06, 0.12)),
+    "wood": (_wood, (0.02, 0.05)),
+    "plaster": (_plaster, (0.02, 0.05)),
+    "leather": (_leather, (0.02, 0.04)),
+    "ceramic": (_ceramic, (0.03, 0.06)),
+    "ground": (_ground, (0.06, 0.12)),
+}
+
+
+def make_svbrdf(family: str, seed: int, res: int = 256) -> SVBRDF:
+    """A tileable SVBRDF of a family (seed 002 §4.1's material maps), deterministic in (family, seed, res)."""
+    if family not in _GENERATORS:
+        raise ValueError(f"unknown SVBRDF family '{family}'; valid: {', '.join(FAMILIES)}")
+    if int(res) < 16:
+        raise ValueError(f"make_svbrdf: res = {res} must be >= 16")
+    if int(seed) < 0:
+        raise ValueError(f"make_svbrdf: seed = {seed} must be >= 0")
+    gen, (lo, hi) = _GENERATORS[family]
+    rng = np.random.default_rng([int(seed), FAMILIES.index(family)])
+    base, detail, slope, height, rough, metal = gen(rng, int(res))
+    return SVBRDF(
+        name=f"{family}_{seed}", family=family, seed=int(seed),
+        base_color=np.clip(base, 0.0, 1.0),
+        normal=_detail_normal(detail, slope * rng.uniform(0.7, 1.3)),
+        height=_ptp(height, rng.uniform(lo, hi)),
+        roughness=np.clip(rough, 0.05, 1.0),
+        metallic=np.clip(metal, 0.0, 1.0),
+    )
+
+
+# =============================================================================================
+# Rendering
+# =============================================================================================
+
+
+@dataclass
+class BTFRenderSettings:
+    """BTF rendering parameters (seed 002 §4.1 uses 512² texels, 400 slices, 128 spp; CPU-sized here)."""
+
+    tex_res: int = 64  #: BTF texels per side
+    slices: int = 64  #: random (light, view) pairs per texel, N_s
+    spp: int = 16  #: paths per texel and slice
+    max_depth: int = 3  #: path vertices (1 = direct light only)
+    mesh_res: int = 128  #: quads per side of one tile of displaced geometry
+    max_theta_deg: float = 80.0  #: directions are uniform on the hemisphere cap θ ≤ this
+    seed: int = 0
+    sun_diameter_deg: float = 2.0  #: angular diameter of the sun (0 = directional light)
+
+    def __post_init__(self) -> None:
+        ints = {"tex_res": 1, "slices": 1, "spp": 1, "max_depth": 1, "mesh_res": 2, "seed": 0}
+        for name, lo in ints.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
+                raise ValueError(f"BTFRenderSettings: '{name}' = {value!r} must be an integer >= {lo}")
+        if not (0.0 < float(self.max_theta_deg) < 90.0):
+            raise ValueError(f"BTFRenderSettings: 'max_theta_deg' = {self.max_theta_deg} must be in (0, 90)")
+        if not (0.0 <= float(self.sun_diameter_deg) <= 10.0):
+            raise ValueError(f"BTFRenderSettings: 'sun_diameter_deg' = {self.sun_diameter_deg} must be in [0, 10]")
+
+
+@dataclass
+class BTFData:
+    """Rendered BTF: ``values[s, y, x]`` for directions ``wi[s, y, x]`` (light), ``wo[s, y, x]`` (view)."""
+
+    values: np.ndarray  #: (S, H, W, 3) float16, see CONVENTION
+    wi: np.ndarray  #: (S, H, W, 3) float32 unit, towards the light, tangent frame
+    wo: np.ndarray  #: (S, H, W, 3) float32 unit, towards the viewer, tangent frame
+    meta: dict = field(default_factory=dict)
+
+
+def sample_directions(n: tuple[int, ...], max_theta_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """Unit vectors uniform (in solid angle) on the cap θ ≤ max_theta_deg, shape n + (3,)."""
+    cos_t = rng.uniform(math.cos(math.radians(max_theta_deg)), 1.0, n)
+    phi = rng.uniform(0.0, 2.0 * math.pi, n)
+    sin_t = np.sqrt(np.maximum(1.0 - cos_t**2, 0.0))
+    return np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], -1).astype(np.float32)
+
+
+def _slice_directions(svbrdf: SVBRDF, s: BTFRenderSettings, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(wi, wo) of slice k, (H, W, 3) each: seeded per slice, so chunking never changes the data."""
+    rng = np.random.default_rng([s.seed, svbrdf.seed, k])
+    shape = (s.tex_res, s.tex_res)
+    return sample_directions(shape, s.max_theta_deg, rng), sample_directions(shape, s.max_theta_deg, rng)
+
+
+def _bitmap(a: np.ndarray) -> mi.Texture:
+    # raw: the maps are linear data (no sRGB decoding); repeat: the tile is periodic.
+    return mi.load_dict({"type": "bitmap", "data": mi.TensorXf(np.ascontiguousarray(a, np.float32)), "raw": True,
+                         "filter_type": "bilinear", "wrap_mode": "repeat"})
+
+
+def make_bsdf(svbrdf: SVBRDF) -> mi.BSDF:
+    """``ggx_uv`` with the SVBRDF's maps as raw, bilinear, repeat-wrapped bitmap textures (constant specular)."""
+    return mi.load_dict({
+        "type": "ggx_uv",
+        "albedo": _bitmap(svbrdf.base_color),
+        "normal": _bitmap(svbrdf.normal * 0.5 + 0.5),  # ggx_uv decodes n = 2·rgb − 1
+        "roughness": _bitmap(svbrdf.roughness[..., None]),
+        "metallic": _bitmap(svbrdf.metallic[..., None]),
+        "specular": float(svbrdf.specular),
+    })
+
+
+def _periodic_bilinear(h: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of a periodic map (texel centres at (i + ½)/R) at (u, v)."""
+    r = h.shape[0]
+    x, y = u * r - 0.5, v * r - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    tx, ty = x - x0, y - y0
+    x0, y0, x1, y1 = x0 % r, y0 % r, (x0 + 1) % r, (y0 + 1) % r
+    return (h[y0, x0] * (1 - tx) * (1 - ty) + h[y0, x1] * tx * (1 - ty)
+            + h[y1, x0] * (1 - tx) * ty + h[y1, x1] * tx * ty)
+
+
+def height_mesh(height: np.ndarray, mesh_res: int, bsdf: mi.BSDF | None = None, tiles: int = 3) -> mi.Mesh:
+    """The displaced tile repeated tiles×tiles (3×3: [−1, 2]²) as one mesh, z = height − mean, UV = (x, y).
+
+    One mesh with continuous UVs instead of nine instances: same geometry, no seams between copies,
+    and the textures' repeat wrap maps every copy onto the same texels.
+    """
+    if tiles < 1 or tiles % 2 == 0:
+        raise ValueError(f"height_mesh: 'tiles' = {tiles} must be odd and >= 1 (the unit tile sits in the middle)")
+    m = mesh_res
+    c = np.arange(m) / m
+    vv, uu = np.meshgrid(c, c, indexing="ij")
+    z = _periodic_bilinear(height.astype(np.float64), uu, vv) - float(height.mean())  # reference plane z = 0
+    # Vertex normals from periodic central differences: no seam at the tile (or 3×3) borders.
+    dzdu = (np.roll(z, -1, 1) - np.roll(z, 1, 1)) * (m / 2.0)
+    dzdv = (np.roll(z, -1, 0) - np.roll(z, 1, 0)) * (m / 2.0)
+    nrm = np.stack([-dzdu, -dzdv, np.ones_like(z)], -1)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    n = tiles * m + 1
+    idx = np.arange(n) % m
+    g = np.arange(n) / m - (tiles - 1) // 2
+    gy, gx = np.meshgrid(g, g, indexing="ij")
+    pos = np.stack([gx, gy, z[np.ix_(idx, idx)]], -1).reshape(-1, 3)
+    nor = nrm[np.ix_(idx, idx)].reshape(-1, 3)
+    a = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    # Counter-clockwise seen from +z, so geometric normals point up.
+    faces = np.concatenate([np.stack([a, a + 1, a + n + 1], 1), np.stack([a, a + n + 1, a + n], 1)])
+    props = mi.Properties()
+    if bsdf is not None:
+        props["bsdf"] = bsdf
+    mesh = mi.Mesh("btf_tile", len(pos), len(faces), props, has_vertex_normals=True, has_vertex_texcoords=True)
+    p = mi.traverse(mesh)
+    p["vertex_positions"] = mi.Float(pos.astype(np.float32).ravel())
+    p["vertex_normals"] = mi.Float(nor.astype(np.float32).ravel())
+    p["vertex_texcoords"] = mi.Float(pos[:, :2].astype(np.float32).ravel())
+    p["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
+    p.update()
+    return mesh
+
+
+def _trace_chunk(scene: mi.Scene, bsdf: mi.BSDF, wi_np: np.ndarray, wo_np: np.ndarray, s: BTFRenderSettings,
+                 seed: int, lane0: int, z_top: float) -> tuple[np.ndarray, int]:
+    """Mean radiance of ``spp`` paths per texel for a chunk of slices; (values (k, H, W, 3), #non-finite paths).
+
+    The kernel depends only on the settings (constants) — the chunk's data and seeds are opaque
+    inputs — so Dr.Jit compiles it once per material shape and reuses it for every chunk.
+    """
+    k, h, w = wi_np.shape[:3]
+    n_tex = k * h * w
+    lanes = n_tex * s.spp
+    idx = dr.arange(mi.UInt32, lanes)
+    tex = idx // s.spp
+    pix = tex % (h * w)
+    # Per-lane PCG streams keyed by the global lane index: results do not depend on chunking.
+    off = dr.opaque(mi.UInt64, lane0)
+    rng = mi.PCG32(lanes, dr.opaque(mi.UInt64, seed) + off, off)
+    wi = dr.gather(mi.Vector3f, mi.Vector3f(wi_np.reshape(-1, 3).T), tex)
+    wo = dr.gather(mi.Vector3f, mi.Vector3f(wo_np.reshape(-1, 3).T), tex)
+
+    # Camera ray: towards a jittered point of the texel footprint on z = 0, along −ω_o, from above the relief.
+    def u2() -> mi.Point2f:
+        return mi.Point2f(rng.next_float32(), rng.next_float32())
+
+    jitter = u2()
+    target = mi.Point3f((mi.Float(pix % w) + jitter.x) / w, (mi.Float(pix // w) + jitter.y) / h, 0.0)
+    ray = mi.Ray3f(target + wo * (z_top / wo.z), -wo)
+
+    cos_half = math.cos(math.radians(0.5 * s.sun_diameter_deg))
+    # Unit irradiance: L·Ω·E[cos] = 1 with E[cos] = (1 + cosδ)/2 over the uniform cone; MC weight 1/E[cos].
+    sun_norm = 2.0 / (1.0 + cos_half)
+    sun_frame = mi.Frame3f(wi)
+    ctx = mi.BSDFContext()
+    beta = mi.Spectrum(1.0)
+    result = mi.Spectrum(0.0)
+    active = mi.Bool(True)
+    for depth in range(s.max_depth):  # unrolled: max_depth is small and fixed per kernel
+        si = scene.ray_intersect(ray, active)
+        active &= si.is_valid()
+        # Next-event estimation towards the sun (a delta-like light: never hit by BSDF-sampled rays).
+        if s.sun_diameter_deg > 0.0:
+            wl = sun_frame.to_world(mi.warp.square_to_uniform_cone(u2(), cos_half))
+        else:
+            wl = wi
+        occluded = scene.ray_test(si.spawn_ray(wl), active)
+        f = bsdf.eval(ctx, si, si.to_local(wl), active & ~occluded)
+        result += dr.select(active & ~occluded, beta * f * sun_norm, 0.0)
+        if depth + 1 == s.max_depth:
+            break
+        bs, weight = bsdf.sample(ctx, si, rng.next_float32(), u2(), active)
+        beta *= weight
+        active &= bs.pdf > 0.0
+        ray = si.spawn_ray(si.to_world(bs.wo))
+
+    finite = dr.isfinite(result[0]) & dr.isfinite(result[1]) & dr.isfinite(result[2])
+    result = dr.select(finite, result, 0.0)  # a rare float edge case must not poison a texel
+    out = mi.Color3f(*(dr.block_sum(result[c], s.spp) / s.spp for c in range(3)))
+    bad = dr.count(~finite)
+    dr.eval(out, bad)
+    return np.asarray(out).T.reshape(k, h, w, 3), int(bad[0])
+
+
+def render_btf(svbrdf: SVBRDF, settings: BTFRenderSettings | None = None, progress: bool = True,
+               directions: tuple[np.ndarray, np.ndarray] | None = None) -> BTFData:
+    """Path trace the BTF of an SVBRDF (seed 002 §4.1): displaced 3×3 geometry, sun NEE, interreflections.
+
+    ``directions`` = (wi, wo), arrays broadcastable to (slices, tex_res, tex_res, 3), replaces the
+    seeded random pairs (a testing hook: e.g. one fixed pair for every texel). See the module
+    docstring for the value convention, frames and texel layout.
+    """
+    s = settings or BTFRenderSettings()
+    t0 = time.perf_counter()
+    shape = (s.slices, s.tex_res, s.tex_res, 3)
+    wi_all, wo_all = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    if directions is not None:
+        for name, d, out in zip(("wi", "wo"), directions, (wi_all, wo_all)):
+            d = np.broadcast_to(np.asarray(d, np.float64), shape)
+            out[:] = d / np.linalg.norm(d, axis=-1, keepdims=True)
+            if not np.isfinite(out).all() or out[..., 2].min() <= 0.0:
+                raise ValueError(f"render_btf: directions '{name}' must be finite with z > 0")
+    bsdf = make_bsdf(svbrdf)
+    scene = mi.load_dict({"type": "scene", "tile": height_mesh(svbrdf.height, s.mesh_res, bsdf)})
+    h = svbrdf.height
+    z_top = float(h.max() - h.mean()) + 1e-3  # camera rays start just above the highest point
+    seed = int(np.random.SeedSequence([s.seed, svbrdf.seed, 0xB7F]).generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+    texels = s.tex_res * s.tex_res
+    per_chunk = max(1, min(s.slices, _CHUNK_LANES // (texels * s.spp)))
+    values = np.zeros(shape, np.float32)
+    bad = 0
+    with progress_bar(s.slices, desc=f"BTF {svbrdf.name}", unit="slice", disable=not progress) as bar:
+        for k0 in range(0, s.slices, per_chunk):
+            k1 = min(k0 + per_chunk, s.slices)
+            if directions is None:
+                for k in range(k0, k1):
+                    wi_all[k], wo_all[k] = _slice_directions(svbrdf, s, k)
+            values[k0:k1], nb = _trace_chunk(scene, bsdf, wi_all[k0:k1], wo_all[k0:k1], s, seed, k0 * texels * s.spp,
+                                             z_top)
+            bad += nb
+            bar.update(k1 - k0)
+    meta = {
+        "format_version": FORMAT_VERSION, "name": svbrdf.name, "family": svbrdf.family, "seed": svbrdf.seed,
+        "settings": asdict(s), "convention": CONVENTION, "render_seconds": time.perf_counter() - t0,
+        "height_ptp": float(np.ptp(h)), "svbrdf_res": svbrdf.res, "nonfinite_paths": bad,
+        "light": f"sun, uniform disk of {s.sun_diameter_deg} deg diameter" if s.sun_diameter_deg > 0 else "directional",
+        "fixed_directions": directions is not None,
+    }
+    return BTFData(np.minimum(values, _F16_MAX).astype(np.float16), wi_all, wo_all, meta)
+
+
+# =============================================================================================
+# Files
+# =============================================================================================
+
+_KEYS = ("values", "wi", "wo", "meta")
+
+
+def save_btf(path: str | Path, data: BTFData) -> Path:
+    """Write a BTF as .npz (values float16, directions float32, meta as JSON), atomically."""
+    path = Path(path)
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez_compressed(tmp, values=data.values.astype(np.float16), wi=data.wi.astype(np.float32),
+                            wo=data.wo.astype(np.float32), meta=np.array(json.dumps(data.meta)))
+    return path
+
+
+def load_btf(path: str | Path) -> BTFData:
+    """Read and validate a BTF file; any problem raises :class:`BTFDataError` naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise BTFDataError(f"{path}: no such BTF file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in _KEYS if k not in z.files]
+            if missing:
+                raise BTFDataError(f"{path}: missing arrays {missing} (has {sorted(z.files)})")
+            arrays = {k: z[k] for k in _KEYS}
+    except BTFDataError:
+        raise
+    except Exception as exc:  # zipfile/pickle/OS errors of a corrupt or foreign file
+        raise BTFDataError(f"{path}: not a readable BTF .npz file ({type(exc).__name__}: {exc})") from exc
+    try:
+        meta = json.loads(str(arrays["meta"]))
+        assert isinstance(meta, dict)
+    except Exception as exc:
+        raise BTFDataError(f"{path}: 'meta' is not a JSON object") from exc
+    values, wi, wo = arrays["values"], arrays["wi"], arrays["wo"]
+    if values.ndim != 4 or values.shape[-1] != 3:
+        raise BTFDataError(f"{path}: 'values' has shape {values.shape}, expected (S, H, W, 3)")
+    for name, a in (("wi", wi), ("wo", wo)):
+        if a.shape != values.shape:
+            raise BTFDataError(f"{path}: '{name}' has shape {a.shape}, 'values' has {values.shape}")
+    for name, a in (("values", values), ("wi", wi), ("wo", wo)):
+        if not np.issubdtype(a.dtype, np.floating):
+            raise BTFDataError(f"{path}: '{name}' has dtype {a.dtype}, expected floating point")
+        bad = int(np.size(a) - np.count_nonzero(np.isfinite(a)))
+        if bad:
+            raise BTFDataError(f"{path}: '{name}' has {bad} NaN/Inf entries")
+    for name, a in (("wi", wi), ("wo", wo)):
+        if a.size and np.abs(np.linalg.norm(a, axis=-1) - 1.0).max() > 1e-3:
+            raise BTFDataError(f"{path}: '{name}' holds non-unit directions")
+    return BTFData(values.astype(np.float16), wi.astype(np.float32), wo.astype(np.float32), meta)
+
+
+def material_seed(base_seed: int, family: str, k: int) -> int:
+    """Deterministic material seed from the dataset seed, the family's index in FAMILIES and k."""
+    return int(np.random.SeedSequence([int(base_seed), FAMILIES.index(family), int(k)]).generate_state(1)[0] >> 1)
+
+
+def render_dataset(out_dir: str | Path, families: Sequence[str] = FAMILIES, per_family: int = 1,
+                   settings: BTFRenderSettings | None = None, base_seed: int = 0, progress: bool = True,
+                   svbrdf_res: int = 256) -> list[Path]:
+    """Render ``{family}_{k:03d}.npz`` for every family and k < per_family into out_dir, plus index.json.
+
+    Checkpoint/resume: a file that already exists and loads is skipped, so a killed run continues
+    where it stopped; one rendered with other settings raises (mixing would corrupt the dataset).
+    """
+    s = settings or BTFRenderSettings()
+    out = Path(out_dir)
+    bad = [f for f in families if f not in FAMILIES]
+    if bad:
+        raise ValueError(f"render_dataset: unknown families {bad}; valid: {', '.join(FAMILIES)}")
+    if int(per_family) < 1:
+        raise ValueError(f"render_dataset: 'per_family' = {per_family} must be >= 1")
+    jobs = [(f, k) for f in families for k in range(int(per_family))]
+    paths: list[Path] = []
+    index: list[dict] = []
+    with progress_bar(len(jobs), desc="BTF dataset", unit="material", disable=not progress) as bar:
+        for family, k in jobs:
+            path = out / f"{family}_{k:03d}.npz"
+            seed = material_seed(base_seed, family, k)
+            meta = None
+            if path.exists():
+                try:
+                    meta = load_btf(path).meta
+                except BTFDataError:
+                    meta = None  # half-written or corrupt: render it again
+                if meta is not None and (meta.get("settings") != asdict(s) or meta.get("seed") != seed):
+                    raise ValueError(f"{path}: rendered with other settings or seed; use a fresh out_dir")
+            if meta is None:
+                sv = dataclasses.replace(make_svbrdf(family, seed, svbrdf_res), name=path.stem)
+                data = render_btf(sv, s, progress=progress)
+                save_btf(path, data)
+                meta = data.meta
+            paths.append(path)
+            index.append({"file": path.name, "name": meta["name"], "family": family, "seed": seed,
+                          "render_seconds": meta["render_seconds"]})
+            _write_index(out, s, base_seed, index)  # after every material: progress is visible
+            bar.update(1)
+    return paths
+
+
+def _write_index(out: Path, s: BTFRenderSettings, base_seed: int, materials: list[dict]) -> None:
+    with atomic_path(out / "index.json") as tmp:
+        tmp.write_text(json.dumps({"format_version": FORMAT_VERSION, "convention": CONVENTION, "base_seed": base_seed,
+                                   "settings": asdict(s), "materials": materials}, indent=1))
+
+
+def load_dataset(directory: str | Path) -> list[BTFData]:
+    """All BTFs of a dataset folder, in index.json order (or sorted file names without an index)."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise BTFDataError(f"{d}: no such BTF dataset folder")
+    index = d / "index.json"
+    if index.is_file():
+        try:
+            files = [d / m["file"] for m in json.loads(index.read_text())["materials"]]
+        except Exception as exc:
+            raise BTFDataError(f"{index}: not a valid dataset index ({exc})") from exc
+    else:
+        files = sorted(d.glob("*.npz"))
+    if not files:
+        raise BTFDataError(f"{d}: no BTF files")
+    return [load_btf(f) for f in files]

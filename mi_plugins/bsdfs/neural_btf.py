@@ -1,0 +1,170 @@
+"""``neural_btf``: a universal neural BTF (seed 002 §3.1) as a Mitsuba BSDF.
+
+.. list-table::
+   :header-rows: 1
+
+   * - Parameter
+     - Type
+     - Meaning
+     - Default
+     - Differentiable
+   * - basis
+     - string
+     - ``.npz`` with the universal MLPs M_off, M_rgb (``photoreal btf train-basis``);
+       resolved like every Mitsuba file path (relative to the scene)
+     - required
+     - no
+   * - material
+     - string
+     - ``.npz`` with the material's feature textures T_off, T_rgb (``photoreal btf fit``)
+     - required
+     - —
+   * - t_off, t_rgb
+     - tensor (scene parameters)
+     - the feature textures [R, R, C], exposed by ``traverse``
+     - from ``material``
+     - yes
+   * - tiling
+     - float
+     - texture repeats per unit of the mesh's UV (the material tile spans 1/tiling)
+     - 1.0
+     - no
+   * - gain
+     - float
+     - multiplies the BTF value (exposure of a captured material)
+     - 1.0
+     - no
+
+Cosine convention: the network is trained on f(u, ω_i, ω_o)·cosθ_i — radiance towards ω_o under a
+distant light of unit perpendicular irradiance from ω_i (``inverse/btf_data.py``). Mitsuba's
+``eval(ctx, si, wo)`` returns f·cosθ_wo with ``si.wi`` pointing to the viewer and ``wo`` to the
+light, so ``eval`` is exactly the network with ω_o = ``si.wi`` and ω_i = ``wo``, clamped at 0;
+no cosine is added or removed. Like measured BTFs, the value is not reciprocal: paths must be
+traced from the camera (``path``, ``prb``; not light tracing).
+
+Sampling is cosine-weighted on the upper hemisphere, ``pdf`` = cosθ/π, reflection only, front side
+only. Gradients flow into ``t_off`` and ``t_rgb`` (fit a material through full renders); the MLP
+weights are constants of the kernel (cooperative vectors, the only network form that traces inside
+a symbolic render on Dr.Jit 1.5).
+
+XML::
+
+    <bsdf type="neural_btf">
+        <string name="basis" value="basis.npz"/>
+        <string name="material" value="leather.npz"/>
+        <float name="tiling" value="4"/>
+    </bsdf>
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .. import neural_basis as nb
+
+
+def _resolve(props: mi.Properties, name: str) -> str:
+    if name not in props:
+        raise ValueError(f"neural_btf: parameter '{name}' (a .npz file) is required")
+    path = str(props.get(name))
+    return str(mi.file_resolver().resolve(path))
+
+
+class NeuralBTF(mi.BSDF):
+    def __init__(self, props: mi.Properties) -> None:
+        mi.BSDF.__init__(self, props)
+        basis = nb.load_basis(_resolve(props, "basis"))
+        mat = nb.load_material(_resolve(props, "material"), basis.config.channels)
+        self.tiling = float(props.get("tiling", 1.0))
+        self.gain = float(props.get("gain", 1.0))
+        for name, v in (("tiling", self.tiling), ("gain", self.gain)):
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"neural_btf: parameter '{name}' = {v} must be a positive number")
+        self.cfg = basis.config
+        self.res = mat.res
+        self.t_off = mi.TensorXf(mat.t_off)
+        self.t_rgb = mi.TensorXf(mat.t_rgb)
+        # The training layout is what Dr.Jit needs to backpropagate through matvec (into the textures).
+        self.m_off = nb.CoopNet(basis.m_off, training=True)
+        self.m_rgb = nb.CoopNet(basis.m_rgb, training=True)
+        flags = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide | mi.BSDFFlags.SpatiallyVarying
+        self.m_components = [int(flags)]
+        self.m_flags = int(flags)
+        self.files = (props.get("basis"), props.get("material"))
+
+    # -- eqs. 2–3 in cooperative-vector form ----------------------------------------------------
+
+    def network(self, uv: mi.Point2f, wi_light: mi.Vector3f, wo_view: mi.Vector3f) -> mi.Color3f:
+        """The BTF value f·cosθ_i at texture coordinate ``uv`` (tangent-space directions)."""
+        u, v = uv.x * self.tiling, uv.y * self.tiling
+        c, r = self.cfg.channels, self.res
+        f_off = nb.bilinear(self.t_off.array, r, c, u, v)
+        d = self.m_off(f_off + [wo_view.x, wo_view.y, wo_view.z])               # eq. 2
+        du, dv = self.cfg.offset_range * dr.tanh(d[0]), self.cfg.offset_range * dr.tanh(d[1])
+        f_rgb = nb.bilinear(self.t_rgb.array, r, c, u + du, v + dv)
+        rgb = self.m_rgb(f_rgb + [wi_light.x, wi_light.y, wi_light.z, wo_view.x, wo_view.y, wo_view.z])  # eq. 3
+        return mi.Color3f(*[dr.maximum(x, 0.0) * self.gain for x in rgb])
+
+    def _active(self, ctx, si, wo, active):
+        enabled = ctx.is_enabled(mi.BSDFFlags.GlossyReflection, 0)
+        return enabled, active & (mi.Frame3f.cos_theta(si.wi) > 0) & (mi.Frame3f.cos_theta(wo) > 0)
+
+    def eval(self, ctx, si, wo, active=True):
+        enabled, active = self._active(ctx, si, wo, active)
+        if not enabled:
+            return mi.Color3f(0.0)
+        return dr.select(active, self.network(si.uv, wo, si.wi), 0.0)
+
+    def pdf(self, ctx, si, wo, active=True):
+        enabled, active = self._active(ctx, si, wo, active)
+        if not enabled:
+            return mi.Float(0.0)
+        return dr.select(active, mi.warp.square_to_cosine_hemisphere_pdf(wo), 0.0)
+
+    def eval_pdf(self, ctx, si, wo, active=True):
+        enabled, active = self._active(ctx, si, wo, active)
+        if not enabled:
+            return mi.Color3f(0.0), mi.Float(0.0)
+        value = dr.select(active, self.network(si.uv, wo, si.wi), 0.0)
+        return value, dr.select(active, mi.warp.square_to_cosine_hemisphere_pdf(wo), 0.0)
+
+    def sample(self, ctx, si, sample1, sample2, active=True):
+        bs = dr.zeros(mi.BSDFSample3f)
+        if not ctx.is_enabled(mi.BSDFFlags.GlossyReflection, 0):
+            return bs, mi.Color3f(0.0)
+        wo = mi.warp.square_to_cosine_hemisphere(sample2)
+        pdf = mi.warp.square_to_cosine_hemisphere_pdf(wo)
+        active = active & (mi.Frame3f.cos_theta(si.wi) > 0) & (pdf > 0)
+        bs.wo = wo
+        bs.pdf = dr.select(active, pdf, 0.0)
+        bs.eta = 1.0
+        bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyReflection)
+        bs.sampled_component = mi.UInt32(0)
+        value = self.network(si.uv, wo, si.wi)
+        return bs, dr.select(active, value / dr.maximum(pdf, 1e-20), 0.0)
+
+    def eval_diffuse_reflectance(self, si, active=True):
+        # Albedo estimate for AOVs: π·f at normal incidence and view (f·cos = f there).
+        n = mi.Vector3f(0, 0, 1)
+        return self.network(si.uv, n, n) * dr.pi
+
+    def traverse(self, callback):
+        callback.put("t_off", self.t_off, mi.ParamFlags.Differentiable)
+        callback.put("t_rgb", self.t_rgb, mi.ParamFlags.Differentiable)
+
+    def parameters_changed(self, keys=[]):
+        for name in ("t_off", "t_rgb"):
+            t = getattr(self, name)
+            if t.shape != (self.res, self.res, self.cfg.channels):
+                raise ValueError(f"neural_btf: parameter '{name}' must keep shape "
+                                 f"{(self.res, self.res, self.cfg.channels)}, got {t.shape}")
+
+    def to_string(self):
+        return (f"NeuralBTF[basis={self.files[0]!r}, material={self.files[1]!r}, res={self.res}, "
+                f"channels={self.cfg.channels}, width={self.cfg.width}, depth={self.cfg.depth}, tiling={self.tiling}]")
+
+
+def register() -> None:
+    mi.register_bsdf("neural_btf", lambda props: NeuralBTF(props))

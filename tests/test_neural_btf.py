@@ -1,0 +1,214 @@
+"""neural_btf plugin and the basis training code: oracles are the training code path (tensor mode),
+Mitsuba's chi² harness, finite differences, closed-form blurs and a learnable closed-form BTF."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import mi_plugins  # noqa: F401
+import drjit as dr
+import mitsuba as mi
+
+from inverse import btf_fit as bf
+from mi_plugins import neural_basis as nb
+from tests.conftest import local_si, random_dirs
+
+
+def _files(tmp_path, res=16, seed=0, scale=0.5):
+    rng = np.random.default_rng(seed)
+    basis = nb.Basis.init(nb.BasisConfig(), seed)
+    mat = nb.NeuralMaterial((rng.standard_normal((res, res, 8)) * scale).astype(np.float32),
+                            (rng.standard_normal((res, res, 8)) * scale).astype(np.float32))
+    b, m = tmp_path / "basis.npz", tmp_path / "mat.npz"
+    nb.save_basis(b, basis)
+    nb.save_material(m, mat)
+    return basis, mat, str(b), str(m)
+
+
+def _hemi(rng, n):
+    v = rng.standard_normal((n, 3))
+    v[:, 2] = np.abs(v[:, 2]) + 0.05
+    return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+
+def test_plugin_eval_equals_training_code_path(tmp_path, ctx):
+    """CoopVec (plugin) and tensor mode (training) evaluate the same eqs. 2–3; wrap included."""
+    basis, mat, b, m = _files(tmp_path)
+    bsdf = mi.load_dict({"type": "neural_btf", "basis": b, "material": m})
+    rng = np.random.default_rng(1)
+    n = 4000
+    wi, wo = _hemi(rng, n), _hemi(rng, n)
+    uv = rng.uniform(-1.5, 2.5, (n, 2)).astype(np.float32)  # outside [0, 1): repeat wrap
+    si = local_si(mi.Vector3f(wo.T))
+    si.uv = mi.Point2f(uv[:, 0], uv[:, 1])
+    got = bsdf.eval(ctx, si, mi.Vector3f(wi.T)).numpy().T
+    pred, _, _ = bf._forward(basis.config, basis.arrays(), mi.Float(mat.t_off.ravel()), mi.Float(mat.t_rgb.ravel()),
+                             mat.res, np.zeros(n, np.int64), uv, wi, wo, False)
+    want = np.maximum(np.stack([p.numpy() for p in pred], 1), 0)
+    assert want.max() > 0.05  # a non-trivial network
+    # f32 matvec vs f32 matmul: same maths, different summation order at worst
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+
+
+def test_below_horizon_and_disabled_lobe_are_zero(tmp_path, ctx):
+    _, _, b, m = _files(tmp_path)
+    bsdf = mi.load_dict({"type": "neural_btf", "basis": b, "material": m})
+    wi = random_dirs(1000, 2)
+    si = local_si(wi)
+    below = mi.Vector3f(random_dirs(1000, 3, upper=True).x, random_dirs(1000, 3).y, -random_dirs(1000, 3).z)
+    assert dr.all(bsdf.eval(ctx, si, below) == 0, axis=None)
+    assert dr.all(bsdf.pdf(ctx, si, below) == 0)
+    off = mi.BSDFContext()
+    off.type_mask = int(mi.BSDFFlags.DiffuseReflection)
+    assert dr.all(bsdf.eval(off, si, wi) == 0, axis=None)
+
+
+@pytest.mark.parametrize("theta_deg", [0.0, 40.0, 75.0])
+def test_chi2_sampling_matches_pdf(tmp_path, theta_deg):
+    _, _, b, m = _files(tmp_path)
+    t = np.radians(theta_deg)
+    wi = [float(np.sin(t)), 0.0, float(np.cos(t))]
+    sample_func, pdf_func = mi.chi2.BSDFAdapter("neural_btf", {"type": "neural_btf", "basis": b, "material": m}, wi=wi)
+    chi2 = mi.chi2.ChiSquareTest(domain=mi.chi2.SphericalDomain(), sample_func=sample_func, pdf_func=pdf_func,
+                                 sample_dim=3, sample_count=1_000_000, res=201, ires=16)
+    assert chi2.run(), chi2.messages
+
+
+def test_sample_weight_equals_eval_over_pdf(tmp_path, ctx):
+    _, _, b, m = _files(tmp_path)
+    bsdf = mi.load_dict({"type": "neural_btf", "basis": b, "material": m})
+    n = 5000
+    si = local_si(random_dirs(n, 4))
+    rng = np.random.default_rng(5)
+    si.uv = mi.Point2f(rng.random(n).astype(np.float32), rng.random(n).astype(np.float32))
+    bs, w = bsdf.sample(ctx, si, mi.Float(rng.random(n).astype(np.float32)),
+                        mi.Point2f(rng.random((2, n)).astype(np.float32)))
+    value, pdf = bsdf.eval_pdf(ctx, si, bs.wo)
+    ok = (bs.pdf > 0).numpy()
+    np.testing.assert_allclose(bs.pdf.numpy()[ok], pdf.numpy()[ok], rtol=1e-5)
+    np.testing.assert_allclose(w.numpy()[:, ok], (value.numpy() / pdf.numpy())[:, ok], rtol=1e-4, atol=1e-6)
+
+
+def test_gradients_wrt_feature_textures_match_finite_differences(tmp_path, ctx):
+    """d(sum of eval)/d texel through the plugin (CoopVec backward) vs central differences."""
+    _, mat, b, m = _files(tmp_path, res=8)
+    bsdf = mi.load_dict({"type": "neural_btf", "basis": b, "material": m})
+    params = mi.traverse(bsdf)
+    n = 2000
+    rng = np.random.default_rng(6)
+    wi, wo = _hemi(rng, n), _hemi(rng, n)
+    uv = rng.random((n, 2)).astype(np.float32)
+
+    def loss(key):
+        si = local_si(mi.Vector3f(wo.T))
+        si.uv = mi.Point2f(uv[:, 0], uv[:, 1])
+        return dr.sum(bsdf.eval(ctx, si, mi.Vector3f(wi.T)), axis=None)
+
+    for key in ("t_rgb", "t_off"):
+        dr.enable_grad(params[key])
+        params.update()
+        dr.backward(loss(key))
+        g = dr.grad(params[key]).numpy()
+        dr.disable_grad(params[key])
+        base = params[key].numpy().copy()
+        for idx in [(1, 2, 0), (5, 3, 4), (7, 7, 7)]:
+            eps = 1e-2
+            vals = []
+            for sgn in (1, -1):
+                t = base.copy()
+                t[idx] += sgn * eps
+                params[key] = mi.TensorXf(t)
+                params.update()
+                vals.append(float(loss(key).numpy()[0]))
+            params[key] = mi.TensorXf(base)
+            params.update()
+            fd = (vals[0] - vals[1]) / (2 * eps)
+            # f32 sums of 2000 terms: FD noise ~1e-3 relative; ReLU kinks inside ±eps are rare
+            assert abs(g[idx] - fd) <= 0.03 * abs(fd) + 2e-2, (key, idx, g[idx], fd)
+
+
+def test_gaussian_periodic_closed_forms():
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((2, 32, 32, 3)).astype(np.float32)
+    y = rng.standard_normal((2, 32, 32, 3)).astype(np.float32)
+    # self-adjoint: <Gx, y> = <x, Gy> (used to pull gradients through the prefilter)
+    a = np.sum(bf.gaussian_periodic(x, 2.0) * y)
+    b = np.sum(x * bf.gaussian_periodic(y, 2.0))
+    assert abs(a - b) < 1e-3 * abs(a) + 1e-3
+    # constant preserved; a delta becomes the normalised periodic Gaussian with std tau
+    np.testing.assert_allclose(bf.gaussian_periodic(np.ones((32, 32, 1), np.float32), 3.0), 1.0, atol=1e-5)
+    d = np.zeros((64, 64, 1), np.float32)
+    d[0, 0] = 1.0
+    g = bf.gaussian_periodic(d, 2.0)[:, 0, 0]
+    k = np.minimum(np.arange(64), 64 - np.arange(64))
+    ref = np.exp(-k**2 / (2 * 2.0**2))
+    np.testing.assert_allclose(g / g.sum(), ref / ref.sum(), atol=1e-5)
+
+
+def _lambert_btf(seed: int, slices=16, res=16):
+    """Closed-form BTF: a smooth albedo pattern, value = ρ(u)/π·cosθ_i."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.meshgrid(np.arange(res), np.arange(res), indexing="ij")
+    alb = np.stack([0.5 + 0.3 * np.sin(2 * np.pi * (xx + c * 3) / res) * np.cos(2 * np.pi * yy / res)
+                    for c in range(3)], -1) * rng.uniform(0.6, 1.0, 3)
+    wi = np.stack([_hemi(rng, res * res).reshape(res, res, 3) for _ in range(slices)])
+    wo = np.stack([_hemi(rng, res * res).reshape(res, res, 3) for _ in range(slices)])
+    vals = alb[None] / np.pi * wi[..., 2:3]
+    return SimpleNamespace(values=vals.astype(np.float16), wi=wi, wo=wo, meta={"name": f"lambert{seed}"})
+
+
+@pytest.mark.slow
+def test_basis_learns_a_closed_form_btf_and_resume_is_exact(tmp_path):
+    """Train on 2 closed-form materials; a held-out one is fitted (textures only) to ≥ 30 dB on held-out
+    slices. Then kill-and-resume: a run interrupted at 60 iterations continues to the same weights."""
+    mats = [_lambert_btf(s) for s in range(2)]
+    tr, ho = bf.split_slices(16)
+    s = bf.OptimSettings(iterations=400, batch=1 << 13, tau_rgb=bf.Prefilter(2, 0.5, 40), tau_off=bf.Prefilter(2, 1, 40))
+    basis, hist = bf.train_basis(mats, s=s, slices=tr, progress=False)
+    assert hist[-1]["l1"] < 0.5 * hist[0]["l1"]
+    new = _lambert_btf(7)
+    fs = bf.OptimSettings(iterations=300, batch=1 << 13, lr_tex=2e-2, tau_rgb=bf.Prefilter(2, 0.5, 30),
+                          tau_off=bf.Prefilter(2, 1, 30))
+    mat, _ = bf.fit_material(basis, new, tr, fs, progress=False)
+    p = bf.heldout_psnr(basis, mat, new, ho)
+    assert p >= 30.0, p
+
+    ck = tmp_path / "ck.npz"
+    short = bf.OptimSettings(iterations=80, batch=1 << 12, checkpoint_every=40)
+    full, h_full = bf.train_basis(mats[:1], s=short, slices=tr, progress=False)
+    half = bf.OptimSettings(**{**short.__dict__, "iterations": 40})
+    bf.train_basis(mats[:1], s=half, slices=tr, checkpoint=ck, progress=False)   # "killed" at 40
+    resumed, h_res = bf.train_basis(mats[:1], s=short, slices=tr, checkpoint=ck, progress=False)
+    assert h_res[0]["iteration"] == 0 and h_res[-1]["iteration"] == 79  # history continued, not restarted
+    # Batches, schedule and Adam state are restored exactly; Dr.Jit's multi-threaded kernels still
+    # differ from run to run in the last float bit (~1e-8 after 40 steps), which Adam can amplify to
+    # O(lr) on near-zero gradients. So: same loss within 2%, weights within a few learning-rate steps.
+    assert abs(h_res[-1]["l1"] - h_full[-1]["l1"]) <= 0.02 * h_full[-1]["l1"]
+    for k, a in full.arrays().items():
+        np.testing.assert_allclose(resumed.arrays()[k], a, atol=20 * short.lr_net, err_msg=k)
+    other = bf.OptimSettings(**{**short.__dict__, "seed": 1})
+    with pytest.raises(nb.NeuralBTFError, match="different settings"):
+        bf.train_basis(mats[:1], s=other, slices=tr, checkpoint=ck, progress=False)
+
+
+def test_bad_files_and_parameters_are_named(tmp_path):
+    _, _, b, m = _files(tmp_path)
+    with pytest.raises(RuntimeError, match="'basis'"):
+        mi.load_dict({"type": "neural_btf", "material": m})
+    with pytest.raises(RuntimeError, match="nope.npz"):
+        mi.load_dict({"type": "neural_btf", "basis": b, "material": str(tmp_path / "nope.npz")})
+    bad = tmp_path / "corrupt.npz"
+    bad.write_bytes(b"not a zip file")
+    with pytest.raises(nb.NeuralBTFError, match="corrupt.npz"):
+        nb.load_basis(bad)
+    with pytest.raises(RuntimeError, match="tiling"):
+        mi.load_dict({"type": "neural_btf", "basis": b, "material": m, "tiling": -1.0})
+    t = np.zeros((8, 8, 4), np.float32)
+    nb.save_material(tmp_path / "four.npz", nb.NeuralMaterial(t, t))
+    with pytest.raises(nb.NeuralBTFError, match="4 channels"):
+        nb.load_material(tmp_path / "four.npz", channels=8)
+    with pytest.raises(nb.NeuralBTFError, match="NaN"):
+        nb.NeuralMaterial(t * np.nan, t)
