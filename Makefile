@@ -33,6 +33,7 @@ bench: $(STAMP)
 	$(BIN)/photoreal bench plugins --json out/bench/plugins.json
 	$(BIN)/photoreal bench face --json out/bench/face.json
 	$(BIN)/photoreal bench morph --json out/bench/morph.json
+	$(BIN)/photoreal bench btf --json out/bench/btf.json
 
 clean:
 	rm -rf out .pytest_cache

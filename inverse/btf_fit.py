@@ -29,7 +29,7 @@ import numpy as np
 from mi_plugins.neural_basis import (Basis, BasisConfig, NeuralBTFError, NeuralMaterial, _atomic_savez,
                                      _to_tensor_layers, bilinear, evaluate_tensor, mlp_tensor, offset, rows)
 
-__all__ = ["Prefilter", "OptimSettings", "train_basis", "fit_material", "train_per_material", "predict",
+__all__ = ["Prefilter", "OptimSettings", "train_basis", "fit_material", "fit_settings", "fit_prefilter", "train_per_material", "predict",
            "heldout_psnr", "psnr", "split_slices", "gaussian_periodic"]
 
 
@@ -197,15 +197,12 @@ def _forward(cfg: BasisConfig, params, t_off, t_rgb, res, m, uv, wi, wo, grad_ne
 
 
 def _scatter_taps(leaves, tp, n_texels: int, channels: int) -> np.ndarray:
-    """dL/dT from per-sample dL/df and the bilinear taps (np.bincount: fixed summation order)."""
+    """dL/dT from per-sample dL/df and the bilinear taps (one np.bincount: fixed summation order)."""
     g = np.stack([dr.grad(x).numpy() for x in leaves], 1)  # [B, C]
-    out = np.zeros(n_texels * channels, np.float64)
-    for idx, w in tp:
-        idx_np = dr.detach(idx).numpy().astype(np.int64)
-        w_np = dr.detach(w).numpy().astype(np.float64)
-        for c in range(channels):
-            out += np.bincount(idx_np * channels + c, weights=w_np * g[:, c], minlength=n_texels * channels)
-    return out.astype(np.float32)
+    ch = np.arange(channels)
+    ids = np.concatenate([(dr.detach(i).numpy().astype(np.int64)[:, None] * channels + ch).ravel() for i, _ in tp])
+    wts = np.concatenate([(dr.detach(w).numpy()[:, None] * g).ravel() for _, w in tp])
+    return np.bincount(ids, weights=wts, minlength=n_texels * channels).astype(np.float32)
 
 
 def _optimise(cfg: BasisConfig, state: _State, vals, wi, wo, slices: np.ndarray, s: OptimSettings,
@@ -336,11 +333,21 @@ def train_basis(materials: Sequence, cfg: BasisConfig | None = None, s: OptimSet
     return basis, hist
 
 
+def fit_prefilter(which: str, iterations: int) -> Prefilter:
+    """Default §4.3 schedule scaled to the run: τ reaches FINAL after ~40% of the iterations."""
+    final = 0.5 if which == "rgb" else 1.0
+    return Prefilter(4.0, final, max(iterations * 0.4 / np.log2(4.0 / final), 1.0))
+
+
+def fit_settings(iterations: int = 600, **kw) -> OptimSettings:
+    return OptimSettings(iterations=iterations, lr_tex=kw.pop("lr_tex", 2e-2), tau_rgb=fit_prefilter("rgb", iterations),
+                         tau_off=fit_prefilter("off", iterations), **kw)
+
+
 def fit_material(basis: Basis, data, slices: np.ndarray, s: OptimSettings | None = None, checkpoint=None,
                  progress: bool = True) -> tuple[NeuralMaterial, list]:
     """§4.3: optimise only T_off and T_rgb of one material, universal MLPs frozen."""
-    s = s or OptimSettings(iterations=600, lr_tex=2e-2, tau_rgb=Prefilter(4.0, 0.5, 100.0),
-                           tau_off=Prefilter(4.0, 1.0, 100.0))
+    s = s or fit_settings()
     _, t_off, t_rgb, hist = _run(basis.config, basis, [data], np.asarray(slices), s, False, checkpoint,
                                  f"fit {data.meta.get('name', '')}", progress)
     meta = {"btf": data.meta.get("name", ""), "family": data.meta.get("family", ""),

@@ -39,6 +39,17 @@ def _cmd_bench(a: argparse.Namespace) -> int:
                                                  "s_per_iter_10k_4views_128", "s_per_iter_baseline",
                                                  "chosen_vertices")}, indent=2))
         return 0
+    if a.what == "btf":
+        from pathlib import Path
+
+        from .btf_bench import BTFBenchSettings, bench_btf
+
+        result = bench_btf(BTFBenchSettings(), out_dir=Path(a.json).parent)
+        write_json(a.json, result)
+        print(json.dumps({k: result[k] for k in ("psnr_universal_mean", "psnr_per_material_mean", "neural_btf_ms",
+                                                 "principled_ms", "neural_btf_vs_principled", "mlp_evals_per_s_drjit",
+                                                 "mlp_evals_per_s_torch", "chosen")}, indent=2))
+        return 0
     if a.what == "face":
         from pathlib import Path
 
@@ -118,11 +129,57 @@ def _cmd_morph(a: argparse.Namespace) -> int:
     raise SystemExit(f"unknown morph command {a.morph_cmd!r}")
 
 
+def _cmd_btf(a: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from .bench import write_json
+
+    if a.btf_cmd == "render-data":
+        from inverse.btf_data import FAMILIES, BTFRenderSettings, render_dataset
+
+        fams = tuple(a.families) if a.families else FAMILIES
+        s = BTFRenderSettings(tex_res=a.tex_res, slices=a.slices, spp=a.spp, max_depth=a.max_depth, seed=a.seed)
+        paths = render_dataset(a.out, families=fams, per_family=a.per_family, settings=s, base_seed=a.seed)
+        print(json.dumps({"materials": len(paths), "out": str(a.out)}))
+        return 0
+    from inverse.btf_data import load_btf, load_dataset
+    from inverse.btf_fit import OptimSettings, fit_material, fit_settings, heldout_psnr, split_slices, train_basis
+    from mi_plugins.neural_basis import BasisConfig, load_basis, save_basis, save_material
+
+    if a.btf_cmd == "train-basis":
+        mats = load_dataset(a.data)
+        cfg = BasisConfig(channels=a.channels, width=a.width, depth=a.depth)
+        s = OptimSettings(iterations=a.iterations, batch=a.batch, seed=a.seed)
+        ck = a.checkpoint or str(Path(a.out).with_suffix(".ckpt.npz"))
+        basis, hist = train_basis(mats, cfg, s, checkpoint=ck)
+        save_basis(a.out, basis)
+        print(json.dumps({"basis": str(a.out), "materials": len(mats), "final_l1": hist[-1]["l1"],
+                          "seconds": hist[-1]["seconds"], "checkpoint": ck}))
+        return 0
+    if a.btf_cmd == "fit":
+        basis = load_basis(a.basis)
+        data = load_btf(a.btf)
+        fit, held = split_slices(data.values.shape[0], a.heldout_fraction)
+        s = fit_settings(a.iterations, batch=a.batch, seed=a.seed, tex_res=a.tex_res)
+        ck = a.checkpoint or str(Path(a.out).with_suffix(".ckpt.npz"))
+        mat, hist = fit_material(basis, data, fit, s, checkpoint=ck)
+        mat.meta["psnr_heldout"] = heldout_psnr(basis, mat, data, held)
+        save_material(a.out, mat)
+        m = {"material": str(a.out), "btf": str(a.btf), "psnr_heldout": mat.meta["psnr_heldout"],
+             "heldout_slices": len(held), "final_l1": hist[-1]["l1"], "seconds": hist[-1]["seconds"]}
+        if a.json:
+            write_json(a.json, m)
+        print(json.dumps(m))
+        return 0
+    raise SystemExit(f"unknown btf command {a.btf_cmd!r}")
+
+
 def _cmd_demo(a: argparse.Namespace) -> int:
     from .demo import DemoSettings, run_demo
 
     index = run_demo(a.out, DemoSettings(resolution=a.resolution, spp=a.spp, seed=a.seed, face=not a.no_face,
-                                         face_uv_res=a.face_uv_res, morph_iterations=a.morph_iterations),
+                                         face_uv_res=a.face_uv_res, morph_iterations=a.morph_iterations,
+                                         btf=not a.no_btf),
                      with_bench=not a.no_bench)
     print(f"report: {index}")
     return 0
@@ -143,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_render)
 
     b = sub.add_parser("bench", help="benchmarks writing JSON")
-    b.add_argument("what", choices=["plugins", "face", "morph"])
+    b.add_argument("what", choices=["plugins", "face", "morph", "btf"])
     b.add_argument("--scan", default="josie", help="face bench: josie, paul, or an OBJ path")
     b.add_argument("--json", required=True, help="output JSON path")
     b.add_argument("--resolution", type=int, default=256)
@@ -203,6 +260,40 @@ def build_parser() -> argparse.ArgumentParser:
     mr.add_argument("--seed", type=int, default=0)
     m.set_defaults(func=_cmd_morph)
 
+    t = sub.add_parser("btf", help="universal neural BTF: data, basis training, per-material fitting (seed 002)")
+    tsub = t.add_subparsers(dest="btf_cmd", required=True)
+    tr = tsub.add_parser("render-data", help="render BTFs from procedural/photo SVBRDFs (resumes: skips finished files)")
+    tr.add_argument("--out", required=True, help="dataset folder")
+    tr.add_argument("--families", nargs="+", default=None, help="subset of the material families")
+    tr.add_argument("--per-family", type=int, default=4)
+    tr.add_argument("--tex-res", type=int, default=64)
+    tr.add_argument("--slices", type=int, default=64)
+    tr.add_argument("--spp", type=int, default=16)
+    tr.add_argument("--max-depth", type=int, default=3)
+    tr.add_argument("--seed", type=int, default=0)
+    tb = tsub.add_parser("train-basis", help="train the universal MLPs on a dataset (resumes from --checkpoint)")
+    tb.add_argument("data", help="folder made by render-data")
+    tb.add_argument("--out", required=True, help="basis .npz")
+    tb.add_argument("--iterations", type=int, default=2000)
+    tb.add_argument("--batch", type=int, default=1 << 15)
+    tb.add_argument("--width", type=int, default=64)
+    tb.add_argument("--depth", type=int, default=4)
+    tb.add_argument("--channels", type=int, default=8)
+    tb.add_argument("--checkpoint", default=None, help="default: OUT with .ckpt.npz")
+    tb.add_argument("--seed", type=int, default=0)
+    tf = tsub.add_parser("fit", help="fit one material's feature textures with the basis frozen (resumes)")
+    tf.add_argument("btf", help="a BTF .npz from render-data")
+    tf.add_argument("--basis", required=True)
+    tf.add_argument("--out", required=True, help="material .npz for the neural_btf plugin")
+    tf.add_argument("--iterations", type=int, default=600)
+    tf.add_argument("--batch", type=int, default=1 << 15)
+    tf.add_argument("--tex-res", type=int, default=0, help="feature texture resolution (0 = the BTF's)")
+    tf.add_argument("--heldout-fraction", type=float, default=0.25, help="slices held out for the PSNR")
+    tf.add_argument("--checkpoint", default=None)
+    tf.add_argument("--json", default=None)
+    tf.add_argument("--seed", type=int, default=0)
+    t.set_defaults(func=_cmd_btf)
+
     d = sub.add_parser("demo", help="render the built-in scenes and write an HTML report")
     d.add_argument("--out", default="out/demo")
     d.add_argument("--resolution", type=int, default=256)
@@ -212,6 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--no-face", action="store_true", help="skip the face fitting section")
     d.add_argument("--face-uv-res", type=int, default=256)
     d.add_argument("--morph-iterations", type=int, default=100, help="0 skips the morphing section")
+    d.add_argument("--no-btf", action="store_true", help="skip the neural materials section")
     d.set_defaults(func=_cmd_demo)
     return p
 
