@@ -120,6 +120,10 @@ def test_demo_writes_report(tmp_path, capsys):
     assert all(v["psnr_recomposed_vs_full_db"] > 80 for v in summary["scenes"].values())
     assert np.isfinite(summary["face"]["relit_psnr"])
     assert "photo/relit_studio.png" in index and summary["photo"]["landmark_reprojection_px"] < 3.0
+    # neural materials among classic ones (vendored basis + fitted materials, scenes/assets/neural)
+    assert "neural_materials.png" in index
+    img = imageio.read_exr(out / "neural_materials.exr")
+    assert np.isfinite(imageio.exr_layer(img, "")).all() and imageio.exr_layer(img, "").mean() > 0.01
 
 
 def test_face_from_photo_cli(tmp_path, capsys):

@@ -47,6 +47,11 @@ only. Gradients flow into ``t_off`` and ``t_rgb`` (fit a material through full r
 weights are constants of the kernel (cooperative vectors, the only network form that traces inside
 a symbolic render on Dr.Jit 1.5).
 
+Speed (LLVM, measured by ``photoreal bench btf``): traced symbolically inside Mitsuba's megakernel,
+the MLPs run ~15× slower than in a kernel of their own. Render scenes holding ``neural_btf`` in
+Dr.Jit's *evaluated* (wavefront) mode — ``with neural_btf.evaluated_mode(): mi.render(...)`` —
+which ``photoreal render``, the demo and the bench do automatically (:func:`uses_neural_btf`).
+
 XML::
 
     <bsdf type="neural_btf">
@@ -57,6 +62,8 @@ XML::
 """
 
 from __future__ import annotations
+
+import contextlib
 
 import drjit as dr
 import mitsuba as mi
@@ -164,6 +171,26 @@ class NeuralBTF(mi.BSDF):
     def to_string(self):
         return (f"NeuralBTF[basis={self.files[0]!r}, material={self.files[1]!r}, res={self.res}, "
                 f"channels={self.cfg.channels}, width={self.cfg.width}, depth={self.cfg.depth}, tiling={self.tiling}]")
+
+
+@contextlib.contextmanager
+def evaluated_mode(enabled: bool = True):
+    """Render with symbolic loops and calls off (wavefront): each bounce is its own set of kernels."""
+    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
+    old = [dr.flag(f) for f in flags]
+    try:
+        if enabled:
+            for f in flags:
+                dr.set_flag(f, False)
+        yield
+    finally:
+        for f, v in zip(flags, old):
+            dr.set_flag(f, v)
+
+
+def uses_neural_btf(scene: mi.Scene) -> bool:
+    """Whether any shape of ``scene`` has a ``neural_btf`` BSDF."""
+    return any(isinstance(sh.bsdf(), NeuralBTF) for sh in scene.shapes() if sh.bsdf() is not None)
 
 
 def register() -> None:
