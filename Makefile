@@ -34,6 +34,7 @@ bench: $(STAMP)
 	$(BIN)/photoreal bench face --json out/bench/face.json
 	$(BIN)/photoreal bench morph --json out/bench/morph.json
 	$(BIN)/photoreal bench btf --json out/bench/btf.json
+	$(BIN)/photoreal bench gan --json out/bench/gan.json
 
 clean:
 	rm -rf out .pytest_cache

@@ -51,3 +51,29 @@ def drjit_to_torch(module: Callable[[torch.Tensor], torch.Tensor]) -> Callable[[
         return module(x)
 
     return wrapped
+
+
+def drjit_images_to_torch(fn: Callable[..., torch.Tensor]) -> Callable[..., mi.Float]:
+    """Let Dr.Jit images flow through a torch image function (e.g. a GAN generator and its loss).
+
+    ``fn`` receives each Dr.Jit ``(H, W, C)`` image as a torch ``(1, C, H, W)``
+    tensor (the layout torch convolutions expect) and returns a torch scalar;
+    the wrapper returns it to Dr.Jit as a differentiable scalar. ``dr.backward``
+    on anything built from it propagates into the Dr.Jit images (hence into a
+    Mitsuba render and the scene parameters behind it) *and*, through torch
+    autograd, into the ``.grad`` of every torch parameter ``fn`` used — one
+    loss, both optimisers (joint geometry + GAN training, thesis §6).
+    """
+
+    @dr.wrap(source="drjit", target="torch")
+    def wrapped(*images):
+        return fn(*[im.permute(2, 0, 1).unsqueeze(0) for im in images]).reshape(())
+
+    def call(*images: mi.TensorXf) -> mi.Float:
+        for im in images:
+            if len(im.shape) != 3:
+                raise ValueError(f"drjit_images_to_torch: expected (H, W, C) images, got shape {im.shape}")
+        out = wrapped(*images)
+        return out.array if isinstance(out, mi.TensorXf) else out
+
+    return call

@@ -61,6 +61,8 @@ def _cmd_bench(a: argparse.Namespace) -> int:
                                                  "relit_psnr", "relit_flip", "fit_seconds_256", "chosen_uv_res")},
                          indent=2))
         return 0
+    if a.what == "gan":
+        return _cmd_bench_gan(a)
     raise SystemExit(f"unknown benchmark {a.what!r}")
 
 
@@ -174,6 +176,82 @@ def _cmd_btf(a: argparse.Namespace) -> int:
     raise SystemExit(f"unknown btf command {a.btf_cmd!r}")
 
 
+def _cmd_bench_gan(a: argparse.Namespace) -> int:
+    from dataclasses import replace
+    from pathlib import Path
+
+    from .bench import write_json
+    from .gan_bench import GanBenchSettings, bench_gan
+
+    s = GanBenchSettings()
+    if a.seconds_per_model is not None:
+        s = replace(s, seconds_per_model=a.seconds_per_model, joint_seconds=1.5 * a.seconds_per_model)
+    result = bench_gan(s, out_dir=Path(a.json).parent)
+    write_json(a.json, result)
+    print(json.dumps({k: result[k] for k in ("heldout", "train_seconds", "infer_ms_per_image", "ordering")}, indent=2))
+    return 0
+
+
+def _cmd_gan(a: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from generative.gan_data import load_paired_views
+    from generative.gan_train import (GanTrainSettings, JointSettings, evaluate_model, load_trained, train_gan,
+                                      train_joint)
+    from inverse.morph_data import load_morph_benchmark
+
+    from .bench import write_json
+
+    bench = load_morph_benchmark(a.benchmark)
+    morph = Path(a.morph) if a.morph else Path(a.benchmark) / "morph"
+    data = load_paired_views(bench, morph)
+    if a.gan_cmd == "train":
+        gs = GanTrainSettings(model="morph_gan" if a.model == "joint" else a.model, steps=a.steps,
+                              max_seconds=a.seconds, batch=a.batch, crop=a.crop, ngf=a.ngf, ndf=a.ngf, seed=a.seed)
+        if a.model == "joint":
+            m = train_joint(bench, data, a.out, JointSettings(steps=a.steps, max_seconds=a.seconds, gan=gs,
+                                                              seed=a.seed))
+        else:
+            m = train_gan(data, a.out, gs)
+        keys = ("mse", "one_minus_ssim", "flip", "psnr", "train_seconds", "steps", "infer_ms_per_image")
+        if a.json:
+            write_json(a.json, m)
+        print(json.dumps({k: m[k] for k in keys}, indent=2))
+        return 0
+    if a.gan_cmd == "eval":
+        model, _ = load_trained(a.run)
+        m = evaluate_model(model, data)
+        if a.json:
+            write_json(a.json, m)
+        print(json.dumps(m, indent=2))
+        return 0
+    raise SystemExit(f"unknown gan command {a.gan_cmd!r}")
+
+
+def _add_gan_parser(sub) -> None:
+    g = sub.add_parser("gan", help="GAN refinement of renders: pix2pix, CycleGAN, Morph-GAN, joint (REAL-DIBS §3, §5)")
+    gsub = g.add_subparsers(dest="gan_cmd", required=True)
+    gt = gsub.add_parser("train", help="train one model on a morph benchmark + morph run (resumes from OUT)")
+    gt.add_argument("benchmark", help="folder made by `photoreal morph make-benchmark`")
+    gt.add_argument("--morph", default=None, help="morph run folder with morphed.ply (default BENCHMARK/morph)")
+    gt.add_argument("--model", choices=["pix2pix", "cyclegan", "morph_gan_partial", "morph_gan", "joint"],
+                    default="morph_gan")
+    gt.add_argument("--out", required=True, help="training folder (checkpoint.pt, metrics.json)")
+    gt.add_argument("--steps", type=int, default=5000)
+    gt.add_argument("--seconds", type=float, default=120.0, help="wall-time budget (summed over resumes)")
+    gt.add_argument("--batch", type=int, default=4)
+    gt.add_argument("--crop", type=int, default=64)
+    gt.add_argument("--ngf", type=int, default=16, help="generator and discriminator width")
+    gt.add_argument("--json", default=None)
+    gt.add_argument("--seed", type=int, default=0)
+    ge = gsub.add_parser("eval", help="held-out metrics of a trained model")
+    ge.add_argument("benchmark")
+    ge.add_argument("--morph", default=None, help="morph run folder (default BENCHMARK/morph)")
+    ge.add_argument("--run", required=True, help="training folder of `gan train`")
+    ge.add_argument("--json", default=None)
+    g.set_defaults(func=_cmd_gan)
+
+
 def _cmd_demo(a: argparse.Namespace) -> int:
     from .demo import DemoSettings, run_demo
 
@@ -200,13 +278,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_render)
 
     b = sub.add_parser("bench", help="benchmarks writing JSON")
-    b.add_argument("what", choices=["plugins", "face", "morph", "btf"])
+    b.add_argument("what", choices=["plugins", "face", "morph", "btf", "gan"])
     b.add_argument("--scan", default="josie", help="face bench: josie, paul, or an OBJ path")
     b.add_argument("--json", required=True, help="output JSON path")
     b.add_argument("--resolution", type=int, default=256)
     b.add_argument("--spp", type=int, default=64)
     b.add_argument("--repetitions", type=int, default=5)
     b.add_argument("--rounds", type=int, default=2)
+    b.add_argument("--seconds-per-model", type=float, default=None, help="gan bench: training budget per GAN")
     b.set_defaults(func=_cmd_bench)
 
     f = sub.add_parser("face", help="face material fitting in UV space (seed 003)")
@@ -293,6 +372,8 @@ def build_parser() -> argparse.ArgumentParser:
     tf.add_argument("--json", default=None)
     tf.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=_cmd_btf)
+
+    _add_gan_parser(sub)
 
     d = sub.add_parser("demo", help="render the built-in scenes and write an HTML report")
     d.add_argument("--out", default="out/demo")

@@ -320,6 +320,7 @@ def run_demo(out_dir: str | Path, s: DemoSettings, with_bench: bool = True) -> P
         results["morph"] = demo_morph(out_dir, iterations=s.morph_iterations, seed=s.seed)
     if s.btf:
         results["btf"] = demo_btf(out_dir, s)
+    results["gan"] = demo_gan(out_dir)  # reads out/bench/gan.json when present; trains nothing
     if with_bench:
         bench = bench_plugins(PluginBenchSettings(resolution=128, spp=32, repetitions=3, rounds=2))
         write_json(out_dir / "bench_plugins.json", bench)
@@ -329,3 +330,34 @@ def run_demo(out_dir: str | Path, s: DemoSettings, with_bench: bool = True) -> P
     with imageio.atomic_path(imageio_path) as tmp:
         tmp.write_text(json.dumps(results, indent=2) + "\n")
     return write_index(out_dir)
+
+
+def demo_gan(out_dir: Path, bench_json: Path = Path("out/bench/gan.json")) -> dict | None:
+    """The `photoreal bench gan` table and chart (held-out views), when that JSON exists; no training here."""
+    import shutil
+
+    if not Path(bench_json).is_file():
+        return None
+    b = json.loads(Path(bench_json).read_text())
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    cols = ["model", "mse", "me", "one_minus_ssim", "nrmse", "sam_deg", "flip", "psnr", "train_s", "infer_ms"]
+
+    def rows(r: dict) -> list[dict]:
+        return [{"model": name, **m, "train_s": r["train_seconds"].get("morph" if name == "morphed" else name, ""),
+                 "infer_ms": r["infer_ms_per_image"].get(name, "")} for name, m in r["heldout"].items()]
+
+    s = b["settings"]
+    body = (f"<p>Held-out views ({', '.join(s['cases'])}), mean over cases; input = coarse mesh render, morphed = "
+            f"morph run ({s['morph_iterations']} iterations), GANs trained {s['seconds_per_model']:.0f} s each on "
+            f"{s['crop']}² crops, joint {s['joint_seconds']:.0f} s. Lower is better except PSNR. "
+            f"{html.escape(b.get('artifact_regions_note', ''))}.</p>" + _table(rows(b), cols))
+    body += "<p>Thesis ordering on held-out views: " + ", ".join(
+        f"{html.escape(k)} = {v}" for k, v in b.get("ordering", {}).items()) + "</p>"
+    for case, r in b.get("cases", {}).items():
+        body += f"<h4>{html.escape(case)}</h4>" + _table(rows(r), cols)
+    if b.get("chart") and Path(b["chart"]).is_file():
+        shutil.copyfile(b["chart"], Path(out_dir) / "gan_speed_accuracy.png")
+        body += "<img src='gan_speed_accuracy.png'>"
+    add_section(out_dir, "45_gan", "GAN refinement: pix2pix, CycleGAN, Morph-GAN, joint training (REAL-DIBS §3, §5, §6)",
+                body)
+    return {k: v.get("mse") for k, v in b["heldout"].items()}

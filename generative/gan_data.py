@@ -1,0 +1,136 @@
+"""Paired image data for the GAN stages (REAL-DIBS §3.3, §5.1) from a morph benchmark and a morph run.
+
+For every camera of the benchmark (train and held-out):
+
+* ``photos``   i_j — the benchmark's photos (target images);
+* ``rendered`` r_j — the coarse input mesh rendered by Mitsuba (I_render);
+* ``morphed``  m_j — the morphed mesh rendered the same way (I_morphed, eq. 5.1).
+
+Both renders use the scene of :func:`inverse.morph.evaluate_morph` (lit vertex
+colours under the benchmark's HDRI, ``path`` with max depth 3, 32 spp, seed = view
+index), so the "input" and "morphed" rows of the GAN bench equal that evaluation.
+Renders are cached in the morph run folder (``gan_renders.npz``), keyed by the
+meshes' digests and the settings. Batches are seeded random crops with random
+horizontal flips (the thesis' augmentation).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import mi_plugins  # noqa: F401
+import mitsuba as mi
+
+from inverse.morph import morph_scene
+from inverse.morph_data import ASSETS, MorphBenchmark, sensor_dict
+from photoreal import imageio
+from photoreal.progress import progress_bar
+
+
+@dataclass
+class GanDataSettings:
+    spp: int = 32
+    max_depth: int = 3
+    mode: str = "lit"  #: appearance mode of inverse/morph.py's scene
+
+
+@dataclass
+class PairedViews:
+    """All views of one case as float32 (V, H, W, 3) linear RGB arrays, with the split."""
+
+    photos: np.ndarray
+    rendered: np.ndarray
+    morphed: np.ndarray
+    train: list[int]
+    test: list[int]
+    case: str = ""
+
+    @property
+    def resolution(self) -> int:
+        return int(self.photos.shape[1])
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def render_mesh_views(mesh_ply: Path, bench: MorphBenchmark, ids: list[int], s: GanDataSettings,
+                      desc: str = "render", show_progress: bool = True) -> np.ndarray:
+    """Render a coloured PLY at the benchmark's cameras ``ids`` → (len(ids), H, W, 3) float32."""
+    meta = bench.meta
+    res = meta["settings"]["resolution"]
+    scene = morph_scene(Path(mesh_ply), s.mode, ASSETS / "hdri" / f"{meta['hdri']}.exr",
+                        integrator={"type": "path", "max_depth": s.max_depth})
+    out = np.empty((len(ids), res, res, 3), np.float32)
+    with progress_bar(total=len(ids), desc=desc, unit="view", disable=not show_progress) as bar:
+        for k, i in enumerate(ids):
+            sensor = mi.load_dict(sensor_dict(meta["cameras"][i], res, meta["fov"]))
+            out[k] = np.array(mi.render(scene, sensor=sensor, spp=s.spp, seed=int(i)))[..., :3]
+            bar.update(1)
+    del scene
+    return out
+
+
+def load_paired_views(bench: MorphBenchmark, morph_dir: str | Path, s: GanDataSettings | None = None,
+                      show_progress: bool = True) -> PairedViews:
+    """Photos, coarse renders and morphed renders of every view; renders cached in ``morph_dir``."""
+    s = s or GanDataSettings()
+    morph_dir = Path(morph_dir)
+    morphed_ply = morph_dir / "morphed.ply"
+    if not morphed_ply.is_file():
+        raise FileNotFoundError(f"{morphed_ply}: no morphed mesh (run `photoreal morph run` first)")
+    meta = bench.meta
+    n = len(meta["cameras"])
+    key = json.dumps({"coarse": _digest(bench.coarse), "morphed": _digest(morphed_ply), **asdict(s)}, sort_keys=True)
+    cache = morph_dir / "gan_renders.npz"
+    rendered = morphed = None
+    if cache.is_file():
+        z = np.load(cache, allow_pickle=False)
+        if str(z["key"]) == key:
+            rendered, morphed = z["rendered"], z["morphed"]
+    if rendered is None:
+        ids = list(range(n))
+        rendered = render_mesh_views(bench.coarse, bench, ids, s, "render coarse", show_progress)
+        morphed = render_mesh_views(morphed_ply, bench, ids, s, "render morphed", show_progress)
+        with imageio.atomic_path(cache, suffix=".npz") as tmp:
+            np.savez(tmp, key=key, rendered=rendered, morphed=morphed)
+    photos = np.stack([bench.photos[f"view{i:02d}"][..., :3].astype(np.float32) for i in range(n)])
+    if photos.shape != rendered.shape:
+        raise ValueError(f"{bench.path}: photos {photos.shape} and renders {rendered.shape} differ in shape")
+    return PairedViews(photos, rendered, morphed, list(meta["train"]), list(meta["test"]), meta.get("kind", ""))
+
+
+def to_nchw(images: np.ndarray) -> torch.Tensor:
+    """(N, H, W, 3) or (H, W, 3) numpy → (N, 3, H, W) float32 torch tensor."""
+    a = np.asarray(images, np.float32)
+    if a.ndim == 3:
+        a = a[None]
+    return torch.from_numpy(np.ascontiguousarray(a.transpose(0, 3, 1, 2)))
+
+
+def random_crops(stacks: list[np.ndarray], ids: np.ndarray, crop: int, rng: np.random.Generator,
+                 flip: bool = True) -> list[torch.Tensor]:
+    """The same random ``crop``² window (and flip) of view ``ids[k]`` from every stack → [(B, 3, crop, crop)].
+
+    Whole images when ``crop`` ≥ the image side.
+    """
+    h, w = stacks[0].shape[1:3]
+    out = [[] for _ in stacks]
+    for i in ids:
+        if crop >= min(h, w):
+            y0 = x0 = 0
+            ch, cw = h, w
+        else:
+            y0, x0 = int(rng.integers(0, h - crop + 1)), int(rng.integers(0, w - crop + 1))
+            ch = cw = crop
+        f = flip and bool(rng.random() < 0.5)
+        for k, st in enumerate(stacks):
+            patch = st[int(i), y0:y0 + ch, x0:x0 + cw]
+            out[k].append(patch[:, ::-1] if f else patch)
+    return [to_nchw(np.stack(p)) for p in out]
