@@ -30,7 +30,7 @@ from mi_plugins.neural_basis import (Basis, BasisConfig, NeuralBTFError, NeuralM
                                      _to_tensor_layers, bilinear, evaluate_tensor, mlp_tensor, offset, rows)
 
 __all__ = ["Prefilter", "OptimSettings", "train_basis", "fit_material", "fit_settings", "fit_prefilter", "train_per_material", "predict",
-           "heldout_psnr", "psnr", "split_slices", "gaussian_periodic"]
+           "heldout_psnr", "psnr", "psnr_pair", "split_slices", "gaussian_periodic"]
 
 
 @dataclass
@@ -130,6 +130,12 @@ def psnr(pred: np.ndarray, ref: np.ndarray, peak: float = 1.0) -> float:
     """PSNR of linear BTF values (radiance under unit irradiance), peak 1, no clipping."""
     mse = float(np.mean((np.asarray(pred, np.float64) - np.asarray(ref, np.float64)) ** 2))
     return float("inf") if mse == 0 else 10.0 * np.log10(peak**2 / mse)
+
+
+def psnr_pair(pred: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
+    """(PSNR on values clipped to [0, 1], PSNR on raw values), peak 1; predictions clamped at 0 like the plugin."""
+    pred = np.maximum(pred, 0)
+    return psnr(np.clip(pred, 0, 1), np.clip(ref, 0, 1)), psnr(pred, ref)
 
 
 # -- Adam ----------------------------------------------------------------------------------------
@@ -295,8 +301,12 @@ def _load_state(path: Path | None, key: str, lrs: dict) -> _State | None:
     """Resume from ``path`` if it exists and was written by a run with identical settings."""
     if path is None or not Path(path).is_file():
         return None
-    with np.load(path, allow_pickle=False) as z:
-        d = {k: z[k] for k in z.files}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            d = {k: z[k] for k in z.files}
+    except Exception as e:  # truncated or foreign file: name it instead of numpy's internals
+        raise NeuralBTFError(f"checkpoint {path} is not a readable .npz ({type(e).__name__}: {e}); "
+                             "delete it to start over") from None
     if str(d.get("key", "")) != key:
         raise NeuralBTFError(f"checkpoint {path} was written with different settings or data; "
                              "delete it or choose another --checkpoint path")
@@ -403,5 +413,5 @@ def predict(basis: Basis, mat: NeuralMaterial, data, slices: np.ndarray, chunk: 
 
 
 def heldout_psnr(basis: Basis, mat: NeuralMaterial, data, slices: np.ndarray) -> float:
-    pred = np.maximum(predict(basis, mat, data, slices), 0.0)  # the plugin clamps to ≥ 0 too
-    return psnr(pred, np.asarray(data.values, np.float32)[slices])
+    """Unclipped held-out PSNR (the second of :func:`psnr_pair`)."""
+    return psnr_pair(predict(basis, mat, data, slices), np.asarray(data.values, np.float32)[slices])[1]

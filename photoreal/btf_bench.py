@@ -35,7 +35,7 @@ import drjit as dr
 import mitsuba as mi
 
 from inverse.btf_data import FAMILIES, BTFRenderSettings, load_dataset, render_dataset
-from inverse.btf_fit import (OptimSettings, fit_material, fit_settings, predict, split_slices, train_basis,
+from inverse.btf_fit import (OptimSettings, fit_material, fit_settings, predict, psnr_pair, split_slices, train_basis,
                              train_per_material)
 from mi_plugins.neural_basis import Basis, BasisConfig, CoopNet, NeuralMaterial, save_basis, save_material
 
@@ -63,15 +63,6 @@ class BTFBenchSettings:
     render_reps: int = 3
     mlp_evals: int = 1 << 20
     seed: int = 0
-
-
-def psnr_pair(pred: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
-    """(PSNR on values clipped to [0, 1], PSNR on raw values), peak 1."""
-    def p(a, b):
-        mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-        return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
-    pred = np.maximum(pred, 0)
-    return p(np.clip(pred, 0, 1), np.clip(ref, 0, 1)), p(pred, ref)
 
 
 def _score(basis: Basis, mat: NeuralMaterial, data, held) -> dict:

@@ -255,3 +255,10 @@ def test_material_can_be_fitted_through_full_renders(tmp_path):
     err0 = np.abs(start.t_rgb - mat.t_rgb).mean()
     err1 = np.abs(params[key].numpy() - mat.t_rgb).mean()
     assert err1 < err0, (err0, err1)
+
+
+def test_corrupt_checkpoint_is_named(tmp_path):
+    ck = tmp_path / "ck.npz"
+    ck.write_bytes(b"truncated")
+    with pytest.raises(nb.NeuralBTFError, match="ck.npz"):
+        bf.train_basis([_lambert_btf(0)], s=bf.OptimSettings(iterations=2, batch=256), checkpoint=ck, progress=False)
