@@ -56,6 +56,7 @@ class GanTrainSettings:
     eval_every: int = 50  #: steps between held-out MSE curve points
     threads: int = 1  #: torch intra-op threads while training (see :func:`torch_threads`)
     val_every: int = 6  #: every k-th train view is a validation view (not trained on); 0 = no selection
+    init_from: str | None = None  #: a finished run folder of the same model: start from its selected G and D
     seed: int = 0
 
     def __post_init__(self):
@@ -183,7 +184,11 @@ def _load(path: Path, settings: dict) -> dict | None:
     if not path.is_file():
         return None
     blob = torch.load(path, weights_only=False)
-    if blob.get("settings") != settings:
+    stored = dict(blob.get("settings") or {})
+    for k, v in settings.items():  # options added later with a None default mean the old behaviour
+        if k not in stored and v is None:
+            stored[k] = None
+    if stored != settings:
         raise ValueError(f"{path}: checkpoint was made with other settings; delete it or use the same ones")
     return blob
 
@@ -233,6 +238,8 @@ def _train_gan(data: PairedViews, out: Path, s: GanTrainSettings, show_progress:
         step, seconds, history, curve, done = (blob["step"], blob["seconds"], blob["history"], blob["curve"],
                                                blob.get("done", False))
         best = blob["best"]
+    elif s.init_from:
+        model.load_state_dict(initial_state(s.init_from, s.model))
     model.train()
     train, val = split_validation(data.train, s.val_every)
     x_stack = {"pix2pix": data.rendered, "cyclegan": data.rendered, "morph_gan_partial": data.morphed}.get(s.model)
@@ -292,6 +299,7 @@ def _train_gan(data: PairedViews, out: Path, s: GanTrainSettings, show_progress:
     last = evaluate_model(model, data)
     if best["state"] is not None:  # the validation-selected generator is the result; the last one is reported too
         model.load_state_dict(best["state"])
+    save_heldout_predictions(out, model, data)
     metrics = {**evaluate_model(model, data), "last": last, "best_step": best["step"] if len(val) else step,
                "train_seconds": seconds, "steps": step, "settings": sdict,
                "train_views": len(train), "val_views": len(val),
@@ -300,6 +308,42 @@ def _train_gan(data: PairedViews, out: Path, s: GanTrainSettings, show_progress:
     with imageio.atomic_path(out / "metrics.json") as tmp:
         tmp.write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
+
+
+def initial_state(run: str | Path, model: str) -> dict:
+    """State dict (G and D) a fine-tuning run starts from: the selected weights of a finished run of ``model``."""
+    ckpt = Path(run) / "checkpoint.pt"
+    if not ckpt.is_file():
+        raise FileNotFoundError(f"{ckpt}: no GAN checkpoint to start from (init_from)")
+    blob = torch.load(ckpt, weights_only=False)
+    got = blob.get("settings", {}).get("model", "joint" if "gan" in blob.get("settings", {}) else None)
+    if got != model:
+        raise ValueError(f"{ckpt}: init_from holds a {got!r} run, not {model!r}")
+    if not blob.get("done", False):
+        raise ValueError(f"{ckpt}: init_from run is unfinished; finish it first")
+    best = blob.get("best", {}).get("state")
+    return best if best is not None else blob["model"]
+
+
+def save_heldout_predictions(out: Path, model: torch.nn.Module, data: PairedViews,
+                             morphed: np.ndarray | None = None) -> Path:
+    """G's held-out outputs as ``heldout_pred.npz`` (float16, with the view ids) for per-region errors."""
+    ids = data.test
+    pred, _ = predict(model, data.rendered[ids], data.morphed[ids] if morphed is None else morphed)
+    path = Path(out) / "heldout_pred.npz"
+    with imageio.atomic_path(path, suffix=".npz") as tmp:
+        np.savez_compressed(tmp, pred=pred.astype(np.float16), ids=np.asarray(ids))
+    return path
+
+
+def load_heldout_predictions(out: str | Path, ids: list[int]) -> np.ndarray:
+    path = Path(out) / "heldout_pred.npz"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no saved held-out predictions (train the model to the end first)")
+    z = np.load(path, allow_pickle=False)
+    if list(z["ids"]) != list(ids):
+        raise ValueError(f"{path}: predictions are for views {list(z['ids'])}, not {list(ids)}")
+    return z["pred"].astype(np.float32)
 
 
 def load_trained(out: str | Path) -> tuple[torch.nn.Module, GanTrainSettings]:
@@ -330,13 +374,17 @@ class JointSettings:
     lr: float = 0.05  #: × scene size / 10 (positions; uniform Adam on u), as MorphSettings
     lr_colour: float = 0.01
     spp: int = 4
+    max_depth: int = 3  #: path length of m_j while training and testing (3 = the paired data's renders);
+    #: 2 = direct light only (``direct_projective``), larger = ``prb_projective``
+    init_from: str | None = None  #: a finished Morph-GAN run folder: G and D start from its selected weights
+    init_mesh: str | None = None  #: a coloured PLY to start from (e.g. a morph run's morphed.ply), not remeshed
     checkpoint_every: int = 25
     eval_every: int = 50
     seed: int = 0
 
     def __post_init__(self):
         self.gan = replace(self.gan or GanTrainSettings(), model="morph_gan", seed=self.seed)
-        if self.steps < 0 or self.spp < 1 or self.morph_weight < 0:
+        if self.steps < 0 or self.spp < 1 or self.morph_weight < 0 or self.max_depth < 2:
             raise ValueError(f"joint settings out of range: {self}")
 
 
@@ -345,7 +393,7 @@ def train_joint(bench, data: PairedViews, out: str | Path, s: JointSettings | No
     """Jointly optimise the coarse mesh (V, C) and a Morph-GAN G through one loss (see the module docstring).
 
     Starts from the benchmark's coarse mesh (isotropically remeshed, as ``run_morph``)
-    and a fresh G; writes ``joint.ply``, ``checkpoint.pt`` and ``metrics.json``.
+    and a fresh G, or — fine-tuning — from ``init_mesh`` and the G and D of ``init_from``; writes ``joint.ply``, ``checkpoint.pt`` and ``metrics.json``.
     """
     s = s or JointSettings()
     with torch_threads(s.gan.threads):
@@ -369,7 +417,12 @@ def _train_joint(bench, data: PairedViews, out: Path, s: JointSettings, show_pro
     rng = np.random.default_rng(s.seed)
     meta = bench.meta
     res, size, fov = meta["settings"]["resolution"], meta["scene_size"], meta["fov"]
-    v0, f0, c0 = remesh(*_read_ply_colours(bench.coarse))
+    if s.init_mesh:
+        if not Path(s.init_mesh).is_file():
+            raise FileNotFoundError(f"{s.init_mesh}: no such mesh (init_mesh)")
+        v0, f0, c0 = _read_ply_colours(Path(s.init_mesh))
+    else:
+        v0, f0, c0 = remesh(*_read_ply_colours(bench.coarse))
     model = build_model(s.gan)
     opt_g, opt_d = _optimisers(model, s.gan)
     ckpt = out / "checkpoint.pt"
@@ -384,12 +437,16 @@ def _train_joint(bench, data: PairedViews, out: Path, s: JointSettings, show_pro
         _set_rng_state(rng, blob["rng"])
         v, c, adam = blob["vertices"], blob["colours"], blob["adam"]
         step, seconds, history, curve, done = blob["step"], blob["seconds"], blob["history"], blob["curve"], blob["done"]
+    elif s.init_from:
+        model.load_state_dict(initial_state(s.init_from, "morph_gan"))
     model.train()
 
     hdri = ASSETS / "hdri" / f"{meta['hdri']}.exr"
     work_ply = out / ".joint_work.ply"
     write_ply(work_ply, v, f0, c)
-    scene = morph_scene(work_ply, "lit", hdri)
+    integrator = ({"type": "direct_projective", "sppi": 0} if s.max_depth == 2
+                  else {"type": "prb_projective", "max_depth": s.max_depth, "sppi": 0})
+    scene = morph_scene(work_ply, "lit", hdri, integrator=integrator)
     params = mi.traverse(scene)
     f_mi = mi.UInt32(np.ascontiguousarray(f0, np.uint32).ravel())
     ls = mi.ad.LargeSteps(mi.Float(np.ascontiguousarray(v0, np.float32).ravel()), f_mi, s.lambda_)
@@ -473,14 +530,14 @@ def _train_joint(bench, data: PairedViews, out: Path, s: JointSettings, show_pro
         return None
     vv, cc = mesh_state()
     write_ply(out / "joint.ply", vv, f0, np.clip(cc, 0, 1))
-    # G was trained on m_j from the projective integrator (direct light only): at test time it gets the same
-    # light transport (path, max depth 2 = direct light), noise-free-ish at 32 spp. The mesh-only row uses the
-    # data's renderer (max depth 3), comparable with the "morphed" row of the two-stage pipeline.
-    m_direct = render_mesh_views(out / "joint.ply", bench, data.test, GanDataSettings(max_depth=2), "render joint",
-                                 show_progress)
+    # At test time G gets m_j from the light transport it was trained on (path, the same max depth), at 32 spp.
+    # The mesh-only row uses the paired data's renderer (max depth 3), comparable with the "morphed" row.
     mesh_render = render_mesh_views(out / "joint.ply", bench, data.test, GanDataSettings(), "render joint",
                                     show_progress)
+    m_direct = mesh_render if s.max_depth == GanDataSettings().max_depth else render_mesh_views(
+        out / "joint.ply", bench, data.test, GanDataSettings(max_depth=s.max_depth), "render joint", show_progress)
     pred, ms = predict(model, data.rendered[data.test], m_direct)
+    save_heldout_predictions(out, model, data, morphed=m_direct)
     metrics = {**mean_metrics(pred, data.photos[data.test]), "infer_ms_per_image": ms, "train_seconds": seconds,
                "steps": step, "mesh_only": mean_metrics(mesh_render, data.photos[data.test]), "settings": sdict,
                "curve": curve, "loss_first": history[0] if history else None,

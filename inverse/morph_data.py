@@ -503,3 +503,93 @@ def load_morph_benchmark(path: str | Path) -> MorphBenchmark:
     ch = imageio.read_exr(path / "photos.exr")
     names = sorted({k.rsplit(".", 1)[0] for k in ch})
     return MorphBenchmark(path, meta, {n: imageio.exr_layer(ch, n) for n in names})
+
+
+# -- artifact regions in image space (for per-region errors of the refinement stages) ---------------------------
+
+ARTIFACT_REGIONS = ("eroded_parts", "floating_parts", "edges", "flat")
+
+
+def artifact_masks(bench: MorphBenchmark, ids: list[int], spp: int = 16,
+                   edge_deg: float = 30.0, dilate: int = 1) -> dict[str, np.ndarray]:
+    """Per-pixel masks (len(ids), H, W) bool of where each degradation of :func:`degrade` shows.
+
+    From ground-truth renders at the benchmark's cameras:
+
+    * ``eroded_parts``   — pixels any sample of which sees a ground-truth chimney that was cut;
+    * ``floating_parts`` — pixels of the chimneys that were lifted, dilated by the
+      lift's image-space size (the coarse copy floats just above them);
+    * ``edges``          — pixels within ``dilate`` px of a geometric discontinuity of
+      the truth (normal turning by > ``edge_deg`` or a silhouette): where wobble and
+      decimation act;
+    * ``flat``           — the rest of the truth's surface: the bumpy walls, roofs,
+      ground (or body of a scanned mesh).
+
+    Regions may overlap (a chimney's edge is in two); background pixels are in none.
+    """
+    from scipy import ndimage
+
+    meta = bench.meta
+    res, fov = meta["settings"]["resolution"], meta["fov"]
+    deg = meta.get("degradation", {})
+    parts = {int(p[4:]): bench.path / f"gt_{p}.ply" for p in meta.get("gt_parts", [])}
+    if not parts:
+        raise ValueError(f"{bench.path}: benchmark lists no ground-truth parts (gt_parts)")
+    for i, p in parts.items():
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: ground-truth part missing from the benchmark")
+
+    def coverage(selected: set[int]) -> np.ndarray:
+        # Selected parts emit 1, the others are black occluders: path depth 1 = coverage of visible pixels.
+        shapes = {}
+        for i, p in parts.items():
+            sh = {"type": "ply", "filename": str(p), "bsdf": {"type": "diffuse", "reflectance": 0.0}}
+            if i in selected:
+                sh["emitter"] = {"type": "area", "radiance": 1.0}
+            shapes[f"part{i}"] = sh
+        scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 1}, **shapes})
+        out = np.empty((len(ids), res, res), np.float32)
+        for k, i in enumerate(ids):
+            sensor = mi.load_dict(sensor_dict(meta["cameras"][i], res, fov))
+            out[k] = np.array(mi.render(scene, sensor=sensor, spp=spp, seed=int(i)))[..., 0]
+        return out
+
+    cut = {c - 100 for c in deg.get("chimneys_cut", [])}
+    lifted = {c - 100 for c in deg.get("chimneys_floating", [])}
+    masks = {"eroded_parts": coverage(cut) > 0 if cut else np.zeros((len(ids), res, res), bool)}
+    if lifted:
+        # Lift in pixels: 0.15·size/10 world units seen from the orbit radius (small-angle projection).
+        radius = float(np.mean([np.linalg.norm(np.subtract(c["eye"], c["target"])) for c in meta["cameras"]]))
+        lift_px = 0.015 * meta["scene_size"] / (2 * radius * np.tan(np.radians(fov / 2))) * res
+        grow = max(1, int(np.ceil(lift_px)))
+        masks["floating_parts"] = np.stack([ndimage.binary_dilation(m, iterations=grow)
+                                            for m in coverage(lifted) > 0])
+    else:
+        masks["floating_parts"] = np.zeros((len(ids), res, res), bool)
+
+    # Geometric discontinuities from an AOV render of the truth (normals averaged over the pixel's samples).
+    gt = {"type": "ply", "filename": str(bench.ground_truth)}
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "nn:geo_normal"}, "gt": gt})
+    cos_t = np.cos(np.radians(edge_deg))
+    edges, surface = [], []
+    for i in ids:
+        sensor = mi.load_dict(sensor_dict(meta["cameras"][i], res, fov))
+        n = np.array(mi.render(scene, sensor=sensor, spp=spp, seed=int(i)))[..., :3]
+        ln = np.linalg.norm(n, axis=-1)
+        hit = ln > 1e-3
+        nu = n / np.maximum(ln, 1e-6)[..., None]
+        # A pixel mixing directions (|mean normal| < cos) or differing from a 4-neighbour by > edge_deg is an edge;
+        # normals are compared up to sign (the truth's parts are two-sided sheets).
+        e = hit & (ln < cos_t)
+        for ax in (0, 1):
+            d = np.abs(np.sum(nu * np.roll(nu, 1, axis=ax), -1))
+            h2 = hit & np.roll(hit, 1, axis=ax)
+            jump = (d < cos_t) & h2
+            sil = hit ^ np.roll(hit, 1, axis=ax)
+            e |= jump | sil | np.roll(jump | sil, -1, axis=ax)
+        e &= hit | ndimage.binary_dilation(hit)
+        edges.append(ndimage.binary_dilation(e, iterations=dilate) if dilate else e)
+        surface.append(hit)
+    masks["edges"] = np.stack(edges)
+    masks["flat"] = np.stack(surface) & ~masks["edges"] & ~masks["eroded_parts"] & ~masks["floating_parts"]
+    return masks

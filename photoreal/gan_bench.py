@@ -6,9 +6,15 @@ Morph-GAN (each with the same wall-time budget) and joint geometry + Morph-GAN
 training; held-out MSE, ME, 1−SSIM, NRMSE, SAM, ꟻLIP per model, training seconds,
 inference ms per image, and a chart of held-out MSE against training time.
 
-Artifact regions: the morph benchmark logs which chimneys were cut or lifted but
-has no per-pixel masks of bumpy walls / eroded parts / wobbly edges, so errors are
-per whole held-out view only (``"artifact_regions": null``).
+Joint vs two-stage, two ways: joint training from scratch (mesh and G together, its own
+budget) against the two-stage pipeline's total time, and — at equal extra wall time —
+fine-tuning the finished two-stage Morph-GAN jointly (``joint_finetune``: gradients also
+reach the morphed mesh) against fine-tuning it with the mesh fixed (``morph_gan_finetune``).
+Both fine-tunes start from the same selected G and D, train on all train views and keep
+their last weights (no validation selection), so the only difference is the mesh's gradient.
+
+Artifact regions (:func:`inverse.morph_data.artifact_masks`): errors restricted to the
+held-out pixels of cut chimneys, lifted chimneys, geometric edges and flat surfaces.
 """
 
 from __future__ import annotations
@@ -21,9 +27,11 @@ from pathlib import Path
 import numpy as np
 
 from generative.gan_data import load_paired_views
-from generative.gan_train import MODELS, GanTrainSettings, JointSettings, mean_metrics, train_gan, train_joint
+from generative.gan_train import (MODELS, GanTrainSettings, JointSettings, load_heldout_predictions, load_trained,
+                                  mean_metrics, save_heldout_predictions, train_gan, train_joint)
 from inverse.morph import MorphSettings, run_morph
-from inverse.morph_data import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
+from inverse.morph_data import (ARTIFACT_REGIONS, MorphBenchmarkSettings, artifact_masks, load_morph_benchmark,
+                                make_morph_benchmark)
 
 from .morph_bench import _source
 from .progress import progress_bar
@@ -36,6 +44,7 @@ class GanBenchSettings:
     cases: tuple[str, ...] = ("village", "armadillo")
     seconds_per_model: float = 120.0  #: training wall-time budget of each two-stage GAN
     joint_seconds: float = 180.0  #: budget of joint training (it also morphs the mesh)
+    finetune_seconds: float = 90.0  #: extra budget of each fine-tune of the two-stage Morph-GAN (joint / mesh fixed)
     morph_iterations: int = 100
     crop: int = 64
     batch: int = 4
@@ -58,12 +67,13 @@ def bench_case(case: str, work: Path, s: GanBenchSettings, bar, show_progress: b
     t = data.test
     heldout = {"input": mean_metrics(data.rendered[t], data.photos[t]),
                "morphed": mean_metrics(data.morphed[t], data.photos[t])}
-    train_s, infer, curves = {"morph": morph["seconds"]}, {}, {}
+    train_s, infer, curves, steps = {"morph": morph["seconds"]}, {}, {}, {}
     base = GanTrainSettings(max_seconds=s.seconds_per_model, crop=s.crop, batch=s.batch, seed=s.seed)
     for name in MODELS:
         m = train_gan(data, work / case / name, replace(base, model=name), show_progress=show_progress)
         heldout[name] = {k: m[k] for k in METRICS}
         train_s[name], infer[name], curves[name] = m["train_seconds"], m["infer_ms_per_image"], m["curve"]
+        steps[name] = m["steps"]
         bar.update(1)
     j = train_joint(bench, data, work / case / "joint", JointSettings(max_seconds=s.joint_seconds, gan=base,
                                                                       seed=s.seed), show_progress=show_progress)
@@ -72,9 +82,61 @@ def bench_case(case: str, work: Path, s: GanBenchSettings, bar, show_progress: b
     train_s["joint"], infer["joint"] = j["train_seconds"], j["infer_ms_per_image"]
     train_s["two_stage_morph_gan"] = morph["seconds"] + train_s["morph_gan"]
     bar.update(1)
+    # Equal extra time on top of the finished two-stage Morph-GAN: mesh fixed vs mesh optimised jointly.
+    ft = replace(base, val_every=0)
+    init = str(work / case / "morph_gan")
+    c = train_gan(data, work / case / "morph_gan_finetune",
+                  replace(ft, model="morph_gan", max_seconds=s.finetune_seconds, init_from=init),
+                  show_progress=show_progress)
+    jf = train_joint(bench, data, work / case / "joint_finetune",
+                     JointSettings(max_seconds=s.finetune_seconds, gan=ft, init_from=init,
+                                   init_mesh=str(mdir / "morphed.ply"), seed=s.seed), show_progress=show_progress)
+    for name, m in (("morph_gan_finetune", c), ("joint_finetune", jf)):
+        heldout[name] = {k: m[k] for k in METRICS}
+        train_s[name], infer[name] = m["train_seconds"], m["infer_ms_per_image"]
+    heldout["joint_finetune_mesh_only"] = {k: jf["mesh_only"][k] for k in METRICS}
+    steps.update(joint=j["steps"], morph_gan_finetune=c["steps"], joint_finetune=jf["steps"])
+    bar.update(1)
+    regions = region_table(bench, data, work / case, mdir)
     return {"heldout": heldout, "train_seconds": train_s, "infer_ms_per_image": infer, "curves": curves,
+            "steps": steps, "artifact_regions": regions,
             "morph_chamfer_input": morph.get("chamfer_input"), "morph_chamfer_morphed": morph.get("chamfer_morphed"),
             "views": {"train": len(data.train), "test": len(data.test), "resolution": data.resolution}}
+
+
+REGION_ROWS = ("input", "morphed", *MODELS, "joint", "morph_gan_finetune", "joint_finetune")
+
+
+def region_table(bench, data, case_dir: Path, morph_dir: Path) -> dict:
+    """{region: {row: {mse, me, one_minus_ssim, flip, pixels}}} over the held-out views (pixel-weighted means)."""
+    from photoreal.metrics import region_metrics
+
+    t = data.test
+    masks = artifact_masks(bench, t)
+    images = {"input": data.rendered[t], "morphed": data.morphed[t]}
+    for name in REGION_ROWS[2:]:
+        d = case_dir / name
+        try:
+            images[name] = load_heldout_predictions(d, t)
+        except FileNotFoundError:  # a run finished before predictions were saved: re-predict from its checkpoint
+            if name.startswith("joint"):
+                raise
+            model, _ = load_trained(d)
+            save_heldout_predictions(d, model, data)
+            images[name] = load_heldout_predictions(d, t)
+    out = {}
+    for region in ARTIFACT_REGIONS:
+        out[region] = {}
+        for row, imgs in images.items():
+            per = [region_metrics(im, data.photos[i], m) for im, i, m in zip(imgs, t, masks[region])]
+            w = np.array([p["pixels"] for p in per], float)
+            if w.sum() == 0:
+                out[region][row] = None
+                continue
+            out[region][row] = {k: float(np.nansum([p[k] * wi for p, wi in zip(per, w)]) / w.sum())
+                                for k in ("mse", "me", "one_minus_ssim", "flip")}
+            out[region][row]["pixels"] = int(w.sum())
+    return out
 
 
 def _mean_over(cases: dict, key: str) -> dict:
@@ -93,17 +155,34 @@ def bench_gan(s: GanBenchSettings, out_dir: Path, show_progress: bool = True) ->
     out_dir = Path(out_dir)
     work = out_dir / "gan_work"
     t0 = time.perf_counter()
-    with progress_bar(total=(len(MODELS) + 1) * len(s.cases), desc="bench gan", unit="model",
+    with progress_bar(total=(len(MODELS) + 2) * len(s.cases), desc="bench gan", unit="model",
                       disable=not show_progress) as bar:
         cases = {c: bench_case(c, work, s, bar) for c in s.cases}
     heldout = _mean_over(cases, "heldout")
     result = {"heldout": heldout, "train_seconds": _mean_over(cases, "train_seconds"),
               "infer_ms_per_image": _mean_over(cases, "infer_ms_per_image"), "cases": cases,
-              "ordering": ordering(heldout), "artifact_regions": None,
-              "artifact_regions_note": "the morph benchmark has no per-pixel artifact masks; whole views only",
+              "ordering": ordering(heldout), "artifact_regions": _mean_regions(cases),
               "settings": asdict(s), "seconds": time.perf_counter() - t0}
     result["chart"] = str(gan_chart(result, out_dir / "gan_speed_accuracy.png"))
     return result
+
+
+def _mean_regions(cases: dict) -> dict:
+    """Per region and row, the pixel-weighted mean over the cases that have that region."""
+    out: dict = {}
+    for region in ARTIFACT_REGIONS:
+        out[region] = {}
+        for row in REGION_ROWS:
+            vals = [c["artifact_regions"][region].get(row) for c in cases.values()]
+            vals = [v for v in vals if v]
+            if not vals:
+                out[region][row] = None
+                continue
+            w = np.array([v["pixels"] for v in vals], float)
+            out[region][row] = {k: float(sum(v[k] * wi for v, wi in zip(vals, w)) / w.sum())
+                                for k in ("mse", "me", "one_minus_ssim", "flip")}
+            out[region][row]["pixels"] = int(w.sum())
+    return out
 
 
 def ordering(heldout: dict) -> dict:
@@ -113,6 +192,9 @@ def ordering(heldout: dict) -> dict:
         out[f"morph_gan_beats_pix2pix_{k}"] = heldout["morph_gan"][k] < heldout["pix2pix"][k]
         out[f"pix2pix_beats_input_{k}"] = heldout["pix2pix"][k] < heldout["input"][k]
         out[f"joint_beats_two_stage_{k}"] = heldout["joint"][k] < heldout["morph_gan"][k]
+        if "joint_finetune" in heldout:
+            out[f"joint_finetune_beats_morph_gan_finetune_{k}"] = (heldout["joint_finetune"][k]
+                                                                   < heldout["morph_gan_finetune"][k])
     return out
 
 
@@ -130,6 +212,11 @@ def gan_chart(result: dict, path: Path) -> Path:
         for name, curve in r["curves"].items():
             ax.plot([p["seconds"] for p in curve], [p["heldout_mse"] for p in curve], "-", marker=".", label=name)
         ax.plot([r["train_seconds"]["joint"]], [r["heldout"]["joint"]["mse"]], "k*", ms=10, label="joint (final)")
+        if "joint_finetune" in r["heldout"]:
+            t0 = r["train_seconds"]["morph_gan"]
+            for name, mk in (("morph_gan_finetune", "s"), ("joint_finetune", "D")):
+                ax.plot([t0 + r["train_seconds"][name]], [r["heldout"][name]["mse"]], mk, color="k", mfc="none",
+                        ms=8, label=f"{name} (final)")
         for row, ls in (("input", "--"), ("morphed", ":")):
             ax.axhline(r["heldout"][row]["mse"], color="gray", ls=ls, lw=1, label=f"{row} render")
         ax.set_title(case)

@@ -86,3 +86,25 @@ def image_metrics(test: np.ndarray, ref: np.ndarray) -> dict:
     return {"psnr": psnr(a, b), "mse": mse(a, b), "me": float(np.abs(a - b).mean()), "one_minus_ssim": 1.0 - s,
             "nrmse": rmse / max(float(b.max() - b.min()), 1e-8), "sam_deg": float(sam.mean()),
             "flip": flip(a, b)}
+
+
+def region_metrics(test: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict:
+    """MSE, ME, 1−SSIM and ꟻLIP restricted to the pixels of ``mask`` (H, W), on linear RGB clipped to [0, 1].
+
+    SSIM is computed on the whole image (its 11×11 windows need context) and its
+    per-pixel map averaged over the mask; ``pixels`` is the mask's size (0: all NaN).
+    """
+    from skimage.metrics import structural_similarity
+
+    m = np.asarray(mask, bool)
+    if not m.any():
+        return {"mse": float("nan"), "me": float("nan"), "one_minus_ssim": float("nan"), "flip": float("nan"),
+                "pixels": 0}
+    a = np.clip(np.asarray(test, np.float64)[..., :3], 0, 1)
+    b = np.clip(np.asarray(ref, np.float64)[..., :3], 0, 1)
+    d = a[m] - b[m]
+    _, smap = structural_similarity(a, b, data_range=1.0, channel_axis=-1, gaussian_weights=True, sigma=1.5,
+                                    use_sample_covariance=False, full=True)
+    return {"mse": float(np.mean(d**2)), "me": float(np.mean(np.abs(d))),
+            "one_minus_ssim": float(1.0 - smap.mean(axis=-1)[m].mean()), "flip": flip(a, b, mask=m),
+            "pixels": int(m.sum())}
