@@ -55,10 +55,14 @@ class MorphSettings:
     spp: int = 4
     resolution: int | None = None  #: None = the benchmark's photo resolution
     remesh_input: bool = True  #: isotropic remesh of the input first (decimators leave slivers that flip)
-    target_vertices: int | None = None  #: remesh the input to about this many vertices (None: keep)
+    target_vertices: int | None = None  #: remesh the input to about this many vertices (None: see min_vertices)
+    #: without a target, a coarser input is remeshed up to about this many vertices: coarse reconstructions lack the
+    #: vertices to take the shape (village −12% Chamfer at its 4k, −23% at 10k; armadillo −46% / −54%)
+    min_vertices: int | None = 10_000
     remesh_at: tuple[int, ...] = ()  #: iterations after which to remesh isotropically (pymeshlab)
     checkpoint_every: int = 20
     forbid_flips: bool = False  #: undo a step at vertices of triangles it flips w.r.t. the start
+    repair_flips: bool = True  #: after the run, unfold triangles flipped w.r.t. the start (local smoothing; reported)
     seed: int = 0
 
     def __post_init__(self):
@@ -182,8 +186,9 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
     meta = bench.meta
     cams, fov, size, res, hdri, photos = _views(bench, s)
     v_in, f_in, c_in = _read_ply_colours(bench.coarse)
-    if s.remesh_input or s.target_vertices:
-        v_start, f_start, c_start = remesh(v_in, f_in, c_in, s.target_vertices)
+    target = s.target_vertices or (s.min_vertices if s.min_vertices and len(v_in) < s.min_vertices else None)
+    if s.remesh_input or target:
+        v_start, f_start, c_start = remesh(v_in, f_in, c_in, target)
     else:
         v_start, f_start, c_start = v_in, f_in, c_in
     ckpt_path = out / "checkpoint.npz"
@@ -284,6 +289,9 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
         return None
     v_out = np.array(dr.detach(positions()), np.float64).reshape(-1, 3)
     c_out = np.array(opt["c"], np.float32).reshape(-1, 3)
+    repair = {}
+    if s.repair_flips and not s.remesh_at:
+        v_out, repair = repair_flips(v_out, state.faces, v_start)
     write_ply(out / "morphed.ply", v_out, state.faces, np.clip(c_out, 0, 1))
     seconds = time.perf_counter() - t0
     del scene, params, opt
@@ -293,10 +301,60 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
     metrics.update({"seconds": seconds, "iterations": s.iterations, "skipped_steps": state.skipped_steps,
                     "loss_first": state.loss_history[0] if state.loss_history else None,
                     "loss_last": state.loss_history[-1] if state.loss_history else None,
-                    "settings": asdict(s), "vertices": int(len(v_out))})
+                    "settings": asdict(s), "vertices": int(len(v_out)), **repair})
     with imageio.atomic_path(out / "metrics.json") as tmp:
         tmp.write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
+
+
+def repair_flips(v: np.ndarray, f: np.ndarray, v_ref: np.ndarray, rounds: int = 200) -> tuple[np.ndarray, dict]:
+    """Unfold triangles whose normal turned against their orientation in ``v_ref`` (folds of the optimisation).
+
+    Each round, the vertices of flipped triangles first move halfway to their
+    1-ring mean (uniform Laplacian: irons out small folds in place); where that
+    does not resolve a fold within 10 rounds they are blended back towards
+    ``v_ref`` (fold-free by definition), and every 10 further rounds the set
+    widens by one ring — so the loop ends fold-free at the latest when the
+    region has returned to ``v_ref``. Only vertices of that set move. Returns the
+    mesh and ``{"inverted_before_repair", "inverted_after_repair",
+    "repaired_vertices", "repair_max_move"}``: the repair is reported, not silent.
+    """
+    import scipy.sparse as sp
+
+    v = np.array(v, np.float64)
+    n_ref = face_normals(v_ref, f)
+    n = len(v)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    a = ((a + a.T) > 0).astype(np.float64)
+    deg = np.maximum(np.asarray(a.sum(axis=1)).ravel(), 1)
+
+    def flipped(x):
+        return np.sum(face_normals(x, f) * n_ref, axis=1) < 0
+
+    bad = flipped(v)
+    before = int(bad.sum())
+    v0 = v.copy()
+    moved = np.zeros(n, bool)
+    ring = np.zeros(n, bool)
+    for r in range(rounds):
+        if not bad.any():
+            break
+        sel = np.zeros(n, bool)
+        sel[f[bad].ravel()] = True
+        if r >= 20 and r % 10 == 0:
+            ring = ring | sel
+            ring = ring | (a @ ring.astype(np.float64) > 0)
+        sel |= ring
+        target = (a @ v) / deg[:, None] if r < 10 else v_ref
+        v[sel] = 0.5 * v[sel] + 0.5 * target[sel]
+        moved |= sel
+        bad = flipped(v)
+    if bad.sum() > before:  # never hand back a worse mesh
+        v, bad, moved = v0, flipped(v0), np.zeros(n, bool)
+    return v, {"inverted_before_repair": before, "inverted_after_repair": int(bad.sum()),
+               "repaired_vertices": int(moved.sum()),
+               "repair_max_move": float(np.linalg.norm(v - v0, axis=1).max()) if moved.any() else 0.0}
 
 
 def _undo_flips(opt, key: str, v_before: np.ndarray, positions, to_param, n_start: np.ndarray,

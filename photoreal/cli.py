@@ -120,7 +120,8 @@ def _cmd_morph(a: argparse.Namespace) -> int:
         s = MorphSettings(iterations=a.iterations, views_per_step=a.views_per_step, mode=a.mode,
                           parameterisation="plain" if a.plain_adam else "large_steps", lambda_=a.lambda_,
                           target_vertices=a.target_vertices, resolution=a.resolution, seed=a.seed,
-                          forbid_flips=a.forbid_flips)
+                          forbid_flips=a.forbid_flips, repair_flips=not a.no_repair,
+                          min_vertices=a.min_vertices or None)
         out = Path(a.out) if a.out else Path(a.benchmark) / "morph"
         m = run_gcn_morph(bench, out, s) if a.gcn else run_morph(bench, out, s)
         if a.json:
@@ -185,7 +186,8 @@ def _cmd_bench_gan(a: argparse.Namespace) -> int:
 
     s = GanBenchSettings()
     if a.seconds_per_model is not None:
-        s = replace(s, seconds_per_model=a.seconds_per_model, joint_seconds=1.5 * a.seconds_per_model)
+        t = a.seconds_per_model  # the other budgets keep their default proportions
+        s = replace(s, seconds_per_model=t, joint_seconds=1.5 * t, cyclegan_seconds=3 * t, finetune_seconds=0.75 * t)
     result = bench_gan(s, out_dir=Path(a.json).parent)
     write_json(a.json, result)
     print(json.dumps({k: result[k] for k in ("heldout", "train_seconds", "infer_ms_per_image", "ordering")}, indent=2))
@@ -207,10 +209,14 @@ def _cmd_gan(a: argparse.Namespace) -> int:
     data = load_paired_views(bench, morph)
     if a.gan_cmd == "train":
         gs = GanTrainSettings(model="morph_gan" if a.model == "joint" else a.model, steps=a.steps,
-                              max_seconds=a.seconds, batch=a.batch, crop=a.crop, ngf=a.ngf, ndf=a.ngf, seed=a.seed)
+                              max_seconds=a.seconds, batch=a.batch, crop=a.crop, ngf=a.ngf, ndf=a.ngf, seed=a.seed,
+                              residual=not a.paper_head, val_every=0 if a.init_from else 6,
+                              init_from=None if a.model == "joint" else a.init_from)
         if a.model == "joint":
-            m = train_joint(bench, data, a.out, JointSettings(steps=a.steps, max_seconds=a.seconds, gan=gs,
-                                                              seed=a.seed))
+            # fine-tuning a finished Morph-GAN jointly starts from the morph run's mesh as well
+            m = train_joint(bench, data, a.out, JointSettings(
+                steps=a.steps, max_seconds=a.seconds, gan=gs, seed=a.seed, init_from=a.init_from,
+                init_mesh=str(morph / "morphed.ply") if a.init_from else None))
         else:
             m = train_gan(data, a.out, gs)
         keys = ("mse", "one_minus_ssim", "flip", "psnr", "train_seconds", "steps", "infer_ms_per_image")
@@ -242,6 +248,10 @@ def _add_gan_parser(sub) -> None:
     gt.add_argument("--batch", type=int, default=4)
     gt.add_argument("--crop", type=int, default=64)
     gt.add_argument("--ngf", type=int, default=16, help="generator and discriminator width")
+    gt.add_argument("--init-from", default=None,
+                    help="fine-tune a finished run folder of the same model (joint: of morph_gan, + the morphed mesh)")
+    gt.add_argument("--paper-head", action="store_true",
+                    help="generator outputs tanh directly (papers' head) instead of input + tanh correction")
     gt.add_argument("--json", default=None)
     gt.add_argument("--seed", type=int, default=0)
     ge = gsub.add_parser("eval", help="held-out metrics of a trained model")
@@ -336,6 +346,10 @@ def build_parser() -> argparse.ArgumentParser:
     mr.add_argument("--gcn", action="store_true", help="shape-aware GCN trained through the renderer")
     mr.add_argument("--forbid-flips", action="store_true",
                     help="undo a step at vertices of triangles it would flip (0 inverted, less accurate)")
+    mr.add_argument("--min-vertices", type=int, default=10_000,
+                    help="remesh a coarser input up to about this many vertices (0: keep its count)")
+    mr.add_argument("--no-repair", action="store_true",
+                    help="keep folds: skip the final unfolding of triangles flipped w.r.t. the start (reported)")
     mr.add_argument("--seed", type=int, default=0)
     m.set_defaults(func=_cmd_morph)
 

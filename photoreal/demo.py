@@ -127,7 +127,9 @@ def bench_section(out_dir: Path, bench: dict) -> None:
 
 def _table(rows: list[dict], cols: list[str]) -> str:
     def fmt(v):
-        return f"{v:.3f}" if isinstance(v, float) else html.escape(str(v))
+        if isinstance(v, float):  # small errors (MSE ~1e-3) keep 4 significant digits
+            return f"{v:.4g}" if 0 < abs(v) < 0.1 else f"{v:.3f}"
+        return html.escape(str(v))
 
     head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
     body = "".join("<tr>" + "".join(f"<td>{fmt(r.get(c, ''))}</td>" for c in cols) + "</tr>" for r in rows)
@@ -349,10 +351,19 @@ def demo_gan(out_dir: Path, bench_json: Path = Path("out/bench/gan.json")) -> di
     s = b["settings"]
     body = (f"<p>Held-out views ({', '.join(s['cases'])}), mean over cases; input = coarse mesh render, morphed = "
             f"morph run ({s['morph_iterations']} iterations), GANs trained {s['seconds_per_model']:.0f} s each on "
-            f"{s['crop']}² crops, joint {s['joint_seconds']:.0f} s. Lower is better except PSNR. "
-            f"{html.escape(b.get('artifact_regions_note', ''))}.</p>" + _table(rows(b), cols))
+            f"{s['crop']}² crops, joint {s['joint_seconds']:.0f} s from scratch; the two fine-tunes continue the "
+            f"two-stage Morph-GAN for {s.get('finetune_seconds', 0):.0f} s more each, with the mesh fixed "
+            f"(morph_gan_finetune) or optimised jointly through the renderer (joint_finetune). "
+            f"Lower is better except PSNR.</p>" + _table(rows(b), cols))
     body += "<p>Thesis ordering on held-out views: " + ", ".join(
         f"{html.escape(k)} = {v}" for k, v in b.get("ordering", {}).items()) + "</p>"
+    regions = b.get("artifact_regions") or {}
+    if regions:
+        rcols = ["region", "model", "mse", "me", "one_minus_ssim", "flip", "pixels"]
+        body += ("<p>Errors per artifact region (held-out pixels of cut chimneys, lifted chimneys, geometric "
+                 "edges, flat surfaces; from ground-truth renders; pixel-weighted over cases):</p>" + _table(
+                     [{"region": reg, "model": row, **m} for reg, t in regions.items() for row, m in t.items() if m],
+                     rcols))
     for case, r in b.get("cases", {}).items():
         body += f"<h4>{html.escape(case)}</h4>" + _table(rows(r), cols)
     if b.get("chart") and Path(b["chart"]).is_file():

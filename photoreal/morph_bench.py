@@ -20,7 +20,7 @@ ARMADILLO = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "mesh
 class MorphBenchSettings:
     cases: tuple[str, ...] = ("village", "armadillo")
     iterations: int = 200
-    sweep_vertices: tuple[int, ...] = (2000, 4000, 8000)
+    sweep_vertices: tuple[int, ...] = (2000, 4000, 8000, 16000)
     sweep_iterations: int = 120
     speed_vertices: int = 10_000
     speed_iterations: int = 60
@@ -37,7 +37,8 @@ def _source(case: str) -> str:
 
 def _summary(m: dict) -> dict:
     keys = ("chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input", "psnr_heldout_morphed",
-            "spikes", "inverted_triangles", "spike_vertices", "seconds", "vertices", "skipped_steps")
+            "spikes", "inverted_triangles", "spike_vertices", "seconds", "vertices", "skipped_steps",
+            "inverted_before_repair", "repaired_vertices", "repair_max_move")
     return {k: m.get(k) for k in keys}
 
 
@@ -62,7 +63,8 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, bar) -> dict:
                          resolution=s.speed_resolution, target_vertices=s.speed_vertices, seed=s.seed)
     ours = run_morph(bench, work / f"{case}_speed_ours", base, show_progress=False)
     tutorial = run_morph(bench, work / f"{case}_speed_tutorial",
-                         replace(base, spp=s.baseline_spp, lambda_=25.0, lr=0.05 * 10 / 2, lr_final=1.0),
+                         replace(base, spp=s.baseline_spp, lambda_=25.0, lr=0.05 * 10 / 2, lr_final=1.0,
+                                 repair_flips=False),
                          show_progress=False)
     bar.update(2)
     # Stability (shorter runs): batch sizes, plain Adam vs large steps, few views, GCN image-only.
