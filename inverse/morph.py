@@ -93,7 +93,7 @@ def morph_scene(mesh_ply: Path, mode: str, hdri: Path, integrator: dict | None =
                  "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": colour}}}
     # Remeshed/decimated reconstructions often have a few non-manifold vertices; Mitsuba warns about
     # each load with a full mesh dump. They are expected here, so only errors are logged.
-    logger = mi.Thread.thread().logger()
+    logger = mi.logger() if hasattr(mi, "logger") else mi.Thread.thread().logger()
     level = logger.log_level()
     logger.set_log_level(mi.LogLevel.Error)
     try:
