@@ -16,6 +16,9 @@ The data are unpaired on purpose (x and y come from different views). CPU-budget
 deviations: ``ngf = ndf = 16`` (paper 64; a 128² step with ngf 32 took ~10 s here); 6 residual blocks (the paper's choice for
 128² images); no 50-image history pool for D (batches are tiny); ``residual=True``
 adds G's tanh correction to its input (as in pix2pix.py; ``False`` = the paper's head).
+Measured on the village: with the residual head G stays at the identity (held-out MSE unchanged
+to 1e-5 after 350 steps, also at lr 1e-3 — the cycle and identity losses hold it there), so
+`photoreal bench gan` trains the paper's head, from scratch, for 3× the pix2pix budget.
 """
 
 from __future__ import annotations

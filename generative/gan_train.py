@@ -393,7 +393,8 @@ def train_joint(bench, data: PairedViews, out: str | Path, s: JointSettings | No
     """Jointly optimise the coarse mesh (V, C) and a Morph-GAN G through one loss (see the module docstring).
 
     Starts from the benchmark's coarse mesh (isotropically remeshed, as ``run_morph``)
-    and a fresh G, or — fine-tuning — from ``init_mesh`` and the G and D of ``init_from``; writes ``joint.ply``, ``checkpoint.pt`` and ``metrics.json``.
+    and a fresh G, or — fine-tuning — from ``init_mesh`` and the G and D of ``init_from``;
+    writes ``joint.ply``, ``checkpoint.pt``, ``heldout_pred.npz`` and ``metrics.json``.
     """
     s = s or JointSettings()
     with torch_threads(s.gan.threads):
