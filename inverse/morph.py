@@ -319,15 +319,14 @@ def repair_flips(v: np.ndarray, f: np.ndarray, v_ref: np.ndarray, rounds: int = 
     mesh and ``{"inverted_before_repair", "inverted_after_repair",
     "repaired_vertices", "repair_max_move"}``: the repair is reported, not silent.
     """
-    import scipy.sparse as sp
+    from .face_photo import graph_laplacian
 
     v = np.array(v, np.float64)
     n_ref = face_normals(v_ref, f)
     n = len(v)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    a = ((a + a.T) > 0).astype(np.float64)
-    deg = np.maximum(np.asarray(a.sum(axis=1)).ravel(), 1)
+    lap = graph_laplacian(n, f)  # D − A, binary adjacency
+    deg = np.maximum(lap.diagonal(), 1)
+    ring_of = abs(lap)  # nonzero at a vertex and its 1-ring
 
     def flipped(x):
         return np.sum(face_normals(x, f) * n_ref, axis=1) < 0
@@ -344,9 +343,9 @@ def repair_flips(v: np.ndarray, f: np.ndarray, v_ref: np.ndarray, rounds: int = 
         sel[f[bad].ravel()] = True
         if r >= 20 and r % 10 == 0:
             ring = ring | sel
-            ring = ring | (a @ ring.astype(np.float64) > 0)
+            ring = ring | (ring_of @ ring.astype(np.float64) > 0)
         sel |= ring
-        target = (a @ v) / deg[:, None] if r < 10 else v_ref
+        target = v - (lap @ v) / deg[:, None] if r < 10 else v_ref  # 1-ring mean, then the start
         v[sel] = 0.5 * v[sel] + 0.5 * target[sel]
         moved |= sel
         bad = flipped(v)

@@ -587,7 +587,7 @@ def artifact_masks(bench: MorphBenchmark, ids: list[int], spp: int = 16,
             jump = (d < cos_t) & h2
             sil = hit ^ np.roll(hit, 1, axis=ax)
             e |= jump | sil | np.roll(jump | sil, -1, axis=ax)
-        e &= hit | ndimage.binary_dilation(hit)
+        e &= ndimage.binary_dilation(hit)  # surface pixels and the background pixel just outside
         edges.append(ndimage.binary_dilation(e, iterations=dilate) if dilate else e)
         surface.append(hit)
     masks["edges"] = np.stack(edges)

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from generative.gan_data import load_paired_views
-from generative.gan_train import (MODELS, GanTrainSettings, JointSettings, load_heldout_predictions, load_trained,
-                                  mean_metrics, save_heldout_predictions, train_gan, train_joint)
+from generative.gan_train import (MODELS, GanTrainSettings, JointSettings, load_heldout_predictions, mean_metrics,
+                                  train_gan, train_joint)
 from inverse.morph import MorphSettings, run_morph
 from inverse.morph_data import (ARTIFACT_REGIONS, MorphBenchmarkSettings, artifact_masks, load_morph_benchmark,
                                 make_morph_benchmark)
@@ -120,28 +120,23 @@ def region_table(bench, data, case_dir: Path, morph_dir: Path) -> dict:
     t = data.test
     masks = artifact_masks(bench, t)
     images = {"input": data.rendered[t], "morphed": data.morphed[t]}
-    for name in REGION_ROWS[2:]:
-        d = case_dir / name
-        try:
-            images[name] = load_heldout_predictions(d, t)
-        except FileNotFoundError:  # a run finished before predictions were saved: re-predict from its checkpoint
-            if name.startswith("joint"):
-                raise
-            model, _ = load_trained(d)
-            save_heldout_predictions(d, model, data)
-            images[name] = load_heldout_predictions(d, t)
-    out = {}
-    for region in ARTIFACT_REGIONS:
-        out[region] = {}
-        for row, imgs in images.items():
-            per = [region_metrics(im, data.photos[i], m) for im, i, m in zip(imgs, t, masks[region])]
-            w = np.array([p["pixels"] for p in per], float)
-            if w.sum() == 0:
-                out[region][row] = None
-                continue
-            out[region][row] = {k: float(np.nansum([p[k] * wi for p, wi in zip(per, w)]) / w.sum())
-                                for k in ("mse", "me", "one_minus_ssim", "flip")}
-            out[region][row]["pixels"] = int(w.sum())
+    # every train_gan / train_joint call above (also on a finished run) saves its held-out predictions
+    images.update({name: load_heldout_predictions(case_dir / name, t) for name in REGION_ROWS[2:]})
+    return {region: {row: _pixel_weighted([region_metrics(im, data.photos[i], m)
+                                           for im, i, m in zip(imgs, t, masks[region])])
+                     for row, imgs in images.items()}
+            for region in ARTIFACT_REGIONS}
+
+
+def _pixel_weighted(parts: list[dict | None]) -> dict | None:
+    """Pixel-weighted mean of region metrics (views or cases); None when no part has pixels."""
+    parts = [p for p in parts if p and p["pixels"] > 0]
+    if not parts:
+        return None
+    w = np.array([p["pixels"] for p in parts], float)
+    out = {k: float(sum(p[k] * wi for p, wi in zip(parts, w)) / w.sum())
+           for k in ("mse", "me", "one_minus_ssim", "flip")}
+    out["pixels"] = int(w.sum())
     return out
 
 
@@ -175,20 +170,9 @@ def bench_gan(s: GanBenchSettings, out_dir: Path, show_progress: bool = True) ->
 
 def _mean_regions(cases: dict) -> dict:
     """Per region and row, the pixel-weighted mean over the cases that have that region."""
-    out: dict = {}
-    for region in ARTIFACT_REGIONS:
-        out[region] = {}
-        for row in REGION_ROWS:
-            vals = [c["artifact_regions"][region].get(row) for c in cases.values()]
-            vals = [v for v in vals if v]
-            if not vals:
-                out[region][row] = None
-                continue
-            w = np.array([v["pixels"] for v in vals], float)
-            out[region][row] = {k: float(sum(v[k] * wi for v, wi in zip(vals, w)) / w.sum())
-                                for k in ("mse", "me", "one_minus_ssim", "flip")}
-            out[region][row]["pixels"] = int(w.sum())
-    return out
+    return {region: {row: _pixel_weighted([c["artifact_regions"][region].get(row) for c in cases.values()])
+                     for row in REGION_ROWS}
+            for region in ARTIFACT_REGIONS}
 
 
 def ordering(heldout: dict) -> dict:
