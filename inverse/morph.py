@@ -68,6 +68,8 @@ class MorphSettings:
     def __post_init__(self):
         if self.views_per_step < 1 or self.iterations < 0 or self.spp < 1:
             raise ValueError(f"morph settings out of range: {self}")
+        if self.min_vertices is not None and self.min_vertices < 1:
+            raise ValueError(f"min_vertices must be ≥ 1 or None (keep the input's count), got {self.min_vertices}")
         if self.mode not in ("unlit", "lit") or self.parameterisation not in ("large_steps", "plain"):
             raise ValueError(f"unknown mode/parameterisation: {self.mode}/{self.parameterisation}")
 

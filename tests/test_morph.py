@@ -120,6 +120,11 @@ def test_forbid_flips_leaves_no_inverted_triangles(small_armadillo, tmp_path):
     assert m["vertices"] > 8000  # default: the 800-vertex input was remeshed up to ~10k (min_vertices)
 
 
+def test_out_of_range_morph_settings_are_named():
+    with pytest.raises(ValueError, match="min_vertices"):
+        MorphSettings(min_vertices=-5)
+
+
 def test_repair_flips_unfolds_locally_and_reports():
     """A fold pushed into a sphere is undone; vertices far from it do not move; the report counts it."""
     from inverse.mesh_metrics import face_normals
