@@ -121,7 +121,7 @@ def _cmd_morph(a: argparse.Namespace) -> int:
                           parameterisation="plain" if a.plain_adam else "large_steps", lambda_=a.lambda_,
                           target_vertices=a.target_vertices, resolution=a.resolution, seed=a.seed,
                           forbid_flips=a.forbid_flips, repair_flips=not a.no_repair,
-                          min_vertices=a.min_vertices or None)
+                          min_vertices=a.min_vertices or None, planarity_weight=a.planarity_weight)
         out = Path(a.out) if a.out else Path(a.benchmark) / "morph"
         m = run_gcn_morph(bench, out, s) if a.gcn else run_morph(bench, out, s)
         if a.json:
@@ -348,6 +348,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="undo a step at vertices of triangles it would flip (0 inverted, less accurate)")
     mr.add_argument("--min-vertices", type=int, default=10_000,
                     help="remesh a coarser input up to about this many vertices (0: keep its count)")
+    mr.add_argument("--planarity-weight", type=float, default=None,
+                    help="edge-preserving planarity prior (0: image loss only; default auto: on for scenes whose "
+                         "largest plane holds ≥ 20%% of the area, e.g. a ground plane)")
     mr.add_argument("--no-repair", action="store_true",
                     help="keep folds: skip the final unfolding of triangles flipped w.r.t. the start (reported)")
     mr.add_argument("--seed", type=int, default=0)

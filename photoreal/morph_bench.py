@@ -38,7 +38,8 @@ def _source(case: str) -> str:
 def _summary(m: dict) -> dict:
     keys = ("chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input", "psnr_heldout_morphed",
             "spikes", "inverted_triangles", "spike_vertices", "seconds", "vertices", "skipped_steps",
-            "inverted_before_repair", "repaired_vertices", "repair_max_move")
+            "inverted_before_repair", "repaired_vertices", "repair_max_move", "planarity_weight",
+            "dominant_plane_fraction")
     return {k: m.get(k) for k in keys}
 
 
@@ -64,7 +65,7 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, bar) -> dict:
     ours = run_morph(bench, work / f"{case}_speed_ours", base, show_progress=False)
     tutorial = run_morph(bench, work / f"{case}_speed_tutorial",
                          replace(base, spp=s.baseline_spp, lambda_=25.0, lr=0.05 * 10 / 2, lr_final=1.0,
-                                 repair_flips=False),
+                                 repair_flips=False, planarity_weight=0.0),
                          show_progress=False)
     bar.update(2)
     # Stability (shorter runs): batch sizes, plain Adam vs large steps, few views, GCN image-only.
@@ -77,6 +78,10 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, bar) -> dict:
                      "large_steps_lambda25": replace(short, lambda_=25.0)}.items():
         stab[name] = _summary(run_morph(bench, work / f"{case}_stab_{name}", st, show_progress=False))
         bar.update(1)
+    if main.get("planarity_weight"):  # the prior's ablation, where the auto rule switched it on
+        stab["no_planarity_prior"] = _summary(run_morph(bench, work / f"{case}_stab_noplan",
+                                                        replace(short, planarity_weight=0.0), show_progress=False))
+    bar.update(1)
     few = load_morph_benchmark(bench.path)
     few.meta = dict(few.meta, train=few.meta["train"][:4])  # four neighbouring views only: border regions unseen
     stab["few_views_4"] = _summary(run_morph(few, work / f"{case}_stab_few", short, show_progress=False))
@@ -102,7 +107,7 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, bar) -> dict:
 
 def bench_morph(s: MorphBenchSettings, out_dir: Path | None = None, show_progress: bool = True) -> dict:
     work = Path(tempfile.mkdtemp(prefix="photoreal_morph_bench_"))
-    per_case = 1 + len(s.sweep_vertices) + 2 + 7
+    per_case = 1 + len(s.sweep_vertices) + 2 + 8
     t0 = time.perf_counter()
     try:
         with progress_bar(total=per_case * len(s.cases), desc="bench morph", unit="run",

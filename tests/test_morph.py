@@ -70,6 +70,11 @@ def test_village_benchmark_has_chimney_artifacts(tmp_path):
     d = b.meta["degradation"]
     assert len(d["chimneys_cut"]) + len(d["chimneys_floating"]) == 3
     assert (b.path / "tex_brick.png").is_file() and (b.path / "tex_grass.png").is_file()
+    # the auto rule sees a man-made scene: its ground plane holds more than the threshold of the area
+    from inverse.morph import dominant_plane_fraction
+
+    v, f = load_mesh_any(b.coarse)
+    assert dominant_plane_fraction(v, f) > 1.5 * MorphSettings().planarity_auto_threshold
 
 
 def test_bad_inputs_leave_nothing(tmp_path):
@@ -118,6 +123,8 @@ def test_forbid_flips_leaves_no_inverted_triangles(small_armadillo, tmp_path):
     assert m["inverted_triangles"] == 0
     assert m["psnr_heldout_morphed"] > m["psnr_heldout_input"]
     assert m["vertices"] > 8000  # default: the 800-vertex input was remeshed up to ~10k (min_vertices)
+    # organic shape: the auto rule leaves the planarity prior off (its largest plane ~5 % of the area)
+    assert m["planarity_auto"] and m["planarity_weight"] == 0.0 and m["dominant_plane_fraction"] < 0.1
 
 
 def test_out_of_range_morph_settings_are_named():
@@ -148,3 +155,145 @@ def test_repair_flips_unfolds_locally_and_reports():
     np.testing.assert_array_equal(same, v)
     assert rep0 == {"inverted_before_repair": 0, "inverted_after_repair": 0, "repaired_vertices": 0,
                     "repair_max_move": 0.0}
+
+
+def _box(n=8):
+    """Closed unit cube [-1, 1]³, each side an n×n grid, outward winding, shared corner/edge vertices."""
+    g = np.linspace(-1, 1, n + 1)
+    vs, fs, off = [], [], 0
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            a, b = [k for k in range(3) if k != axis]
+            uu, vv = np.meshgrid(g, g, indexing="ij")
+            p = np.zeros(((n + 1) ** 2, 3))
+            p[:, axis], p[:, a], p[:, b] = sign, uu.ravel(), vv.ravel()
+            q = []
+            for i in range(n):
+                for j in range(n):
+                    c0, c1, c2, c3 = i * (n + 1) + j, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1, i * (n + 1) + j + 1
+                    q += [[c0, c1, c2], [c0, c2, c3]]
+            q = np.array(q)
+            # outward: (e_a × e_b) points along +axis for (a, b) in cyclic order
+            if np.cross(np.eye(3)[a], np.eye(3)[b])[axis] * sign < 0:
+                q = q[:, ::-1]
+            vs.append(p)
+            fs.append(q + off)
+            off += len(p)
+    v = np.concatenate(vs)
+    f = np.concatenate(fs)
+    uniq, inv = np.unique(np.round(v, 9), axis=0, return_inverse=True)
+    return uniq, inv.ravel()[f]
+
+
+def test_planarity_prior_closed_form_gradient_and_pairs():
+    """Hinge of two triangles: prior = d/(d+σ) with d = 1 − cos θ (closed form); gradient = central
+    differences (rtol 1e-3); a cube has 3F/2 consistent pairs, a flipped face drops its three edges."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from inverse.morph import dihedral_pairs, planarity_prior
+
+    def prior(v, f, sigma, grad=False):
+        p = mi.Point3f(*(mi.Float(np.ascontiguousarray(v[:, k], np.float32)) for k in range(3)))
+        dr.enable_grad(p)
+        val = planarity_prior(p, mi.UInt32(f.astype(np.uint32).ravel()),
+                              mi.UInt32(dihedral_pairs(f).astype(np.uint32).ravel()), sigma)
+        if grad:
+            dr.backward(val)
+            return float(val[0]), np.array(dr.grad(p)).T
+        return float(val[0])
+
+    theta = np.radians(35.0)
+    hinge = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -np.cos(theta), np.sin(theta)]])
+    fh = np.array([[0, 1, 2], [1, 0, 3]])
+    d = 1 - np.cos(theta)
+    assert prior(hinge, fh, 0.06) == pytest.approx(d / (d + 0.06), rel=1e-5)
+
+    v, f = _box(4)
+    assert len(dihedral_pairs(f)) == len(f) * 3 // 2
+    bad = f.copy()
+    bad[5] = bad[5, ::-1]
+    assert len(dihedral_pairs(bad)) == len(f) * 3 // 2 - 3
+
+    rng = np.random.default_rng(1)
+    vb = v + 0.03 * rng.normal(size=v.shape)
+    val, g = prior(vb, f, 0.06, grad=True)
+    i = int(np.argmax(np.abs(g).sum(1)))
+    for k in range(3):
+        e = np.zeros_like(vb)
+        e[i, k] = 1e-3
+        fd = (prior(vb + e, f, 0.06) - prior(vb - e, f, 0.06)) / 2e-3
+        assert g[i, k] == pytest.approx(fd, rel=2e-2, abs=1e-4)
+
+
+def test_planarity_prior_flattens_bumps_and_keeps_creases():
+    """Gradient descent on the prior alone: bumps on a cube's sides shrink ≥ 4×, the 90° creases stay
+    (the cube's extent changes < 5 %) — the edge-preserving property the village's walls need."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from inverse.morph import dihedral_pairs, planarity_prior
+
+    v, f = _box(8)
+    on_face = np.sum(np.abs(v) > 1 - 1e-9, axis=1) == 1  # interior of a side (not on an edge)
+    n = np.where(np.abs(v) > 1 - 1e-9, np.sign(v), 0.0)
+    bump = 0.06 * np.sin(3 * v[:, 0] + 1) * np.sin(3 * v[:, 1] + 2) * np.sin(3 * v[:, 2] + 3) * on_face
+    v0 = v + n * bump[:, None]
+    pairs = mi.UInt32(dihedral_pairs(f).astype(np.uint32).ravel())
+    fm = mi.UInt32(f.astype(np.uint32).ravel())
+    x = v0.copy()
+    for _ in range(300):
+        p = mi.Point3f(*(mi.Float(np.ascontiguousarray(x[:, k], np.float32)) for k in range(3)))
+        dr.enable_grad(p)
+        val = planarity_prior(p, fm, pairs, 1 - np.cos(np.radians(20.0)))
+        dr.backward(val)
+        x -= 3e-4 * len(f) * np.array(dr.grad(p)).T  # step ∝ faces: the mean divides each edge's share
+    def spread(y):  # worst, over the six sides, of the side's thickness along its normal
+        axis = np.argmax(np.abs(n), axis=1)
+        return max(np.ptp(y[on_face & (axis == a) & (n[:, a] == sg), a]) for a in range(3) for sg in (-1, 1))
+
+    before, after = spread(v0), spread(x)
+    assert after < before / 4, (before, after)
+    ext = np.abs(x).max(0)
+    np.testing.assert_allclose(ext, 1.0, rtol=0.05)
+
+
+def test_dominant_plane_fraction_closed_forms():
+    """A cube's largest plane is one side (exactly 1/6 of its area); on a sphere no patch is planar beyond the
+    cap whose normals stay within the 30° inlier angle, (1 − cos 30°)/2 = 0.067 of the area."""
+    from inverse.morph import dominant_plane_fraction
+
+    v, f = _box(8)
+    assert dominant_plane_fraction(v, f) == pytest.approx(1 / 6, rel=1e-9)
+    v, f = _sphere(1.0, 40)
+    frac = dominant_plane_fraction(v, f)
+    assert 0.02 < frac <= (1 - np.cos(np.radians(30))) / 2 + 0.005
+    # a ground plane under the cube: 8×8 side grid on a 6×6 plane of area 36 next to the cube's 24
+    g = np.linspace(-3, 3, 13)
+    gx, gz = np.meshgrid(g, g, indexing="ij")
+    gv = np.stack([gx.ravel(), np.full(gx.size, -1.5), gz.ravel()], 1)
+    gf = [[i * 13 + j, i * 13 + j + 1, (i + 1) * 13 + j] for i in range(12) for j in range(12)]
+    gf += [[i * 13 + j + 1, (i + 1) * 13 + j + 1, (i + 1) * 13 + j] for i in range(12) for j in range(12)]
+    bv, bf = _box(8)
+    both_v, both_f = np.concatenate([bv, gv]), np.concatenate([bf, np.array(gf) + len(bv)])
+    assert dominant_plane_fraction(both_v, both_f) == pytest.approx(36 / 60, rel=1e-9)
+
+
+def test_planarity_prior_is_wired_into_the_morph(small_armadillo, tmp_path):
+    """Same run with and without the prior: the prior's own measure (numpy re-implementation) ends lower with it."""
+    from inverse.mesh_metrics import face_normals
+    from inverse.morph import dihedral_pairs
+
+    def rho(path):
+        v, f = load_mesh_any(path)
+        n, pr = face_normals(v, f), dihedral_pairs(f)
+        d = 1 - np.sum(n[pr[:, 0]] * n[pr[:, 1]], axis=1)
+        sigma = 1 - np.cos(np.radians(20.0))
+        return float(np.mean(d / (d + sigma)))
+
+    base = MorphSettings(iterations=12, resolution=32, min_vertices=None, repair_flips=False, planarity_weight=0.0)
+    m0 = run_morph(small_armadillo, tmp_path / "off", base, show_progress=False)
+    m1 = run_morph(small_armadillo, tmp_path / "on", MorphSettings(**{**base.__dict__, "planarity_weight": 10.0}),
+                   show_progress=False)
+    assert m0["planarity_weight"] == 0.0 and m1["planarity_weight"] == 10.0 and not m1["planarity_auto"]
+    assert rho(tmp_path / "on" / "morphed.ply") < 0.95 * rho(tmp_path / "off" / "morphed.ply")
