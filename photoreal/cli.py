@@ -336,7 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
     mr.add_argument("benchmark")
     mr.add_argument("--out", default=None, help="output folder (default BENCHMARK/morph)")
     mr.add_argument("--json", default=None, help="metrics JSON")
-    mr.add_argument("--iterations", type=int, default=200)
+    mr.add_argument("--iterations", type=int, default=300)
     mr.add_argument("--views-per-step", type=int, default=3)
     mr.add_argument("--mode", choices=["lit", "unlit"], default="lit")
     mr.add_argument("--lambda", dest="lambda_", type=float, default=2.0, help="large-steps λ")

@@ -248,7 +248,9 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0) -> dict:
             f"{bench.meta['hdri']} HDRI; degraded input: {bench.meta['degradation']['coarse_vertices']} vertices "
             f"with bumps, wobble and misregistered colours. Morph: {iterations} iterations, large steps, lit mode, "
             f"3 views per step, input remeshed to {m['vertices']} vertices; folds left at the end are unfolded "
-            f"locally and counted (inverted_before_repair).</p><div>{figs}</div>" + _table(rows, ["metric", "value"]))
+            f"locally and counted (inverted_before_repair). Planarity prior weight {m['planarity_weight']:g} "
+            f"(auto: the input's largest plane holds {m.get('dominant_plane_fraction', 0):.0%} of its area; "
+            f"on from 20%, as on the village).</p><div>{figs}</div>" + _table(rows, ["metric", "value"]))
     bj = Path("out/bench/morph.json")
     if bj.is_file():
         mb = json.loads(bj.read_text())
@@ -256,9 +258,11 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0) -> dict:
         for case, r in mb["cases"].items():
             body += f"<h4>{html.escape(case)}</h4>" + _table([{k: r[k] for k in (
                 "chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input", "psnr_heldout_morphed",
-                "spikes", "s_per_iter_10k_4views_128", "s_per_iter_baseline", "chosen_vertices")}],
+                "spikes", "s_per_iter_10k_4views_128", "s_per_iter_baseline", "chosen_vertices")},
+                **{k: r.get(k) for k in ("dominant_plane_fraction", "planarity_weight")}}],
                 ["chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input", "psnr_heldout_morphed",
-                 "spikes", "s_per_iter_10k_4views_128", "s_per_iter_baseline", "chosen_vertices"])
+                 "spikes", "s_per_iter_10k_4views_128", "s_per_iter_baseline", "chosen_vertices",
+                 "dominant_plane_fraction", "planarity_weight"])
             body += "<p>Stability</p>" + _table([{"case": k, **v} for k, v in r["stability"].items()],
                                                ["case", "chamfer_input", "chamfer_morphed", "psnr_heldout_input",
                                                 "psnr_heldout_morphed", "spikes", "inverted_triangles",

@@ -19,7 +19,7 @@ ARMADILLO = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "mesh
 @dataclass
 class MorphBenchSettings:
     cases: tuple[str, ...] = ("village", "armadillo")
-    iterations: int = 200
+    iterations: int = 300
     sweep_vertices: tuple[int, ...] = (2000, 4000, 8000, 16000)
     sweep_iterations: int = 120
     speed_vertices: int = 10_000
