@@ -256,13 +256,10 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0) -> dict:
         mb = json.loads(bj.read_text())
         body += "<h3>Benchmark (<code>photoreal bench morph</code>)</h3>"
         for case, r in mb["cases"].items():
-            body += f"<h4>{html.escape(case)}</h4>" + _table([{k: r[k] for k in (
-                "chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input", "psnr_heldout_morphed",
-                "spikes", "s_per_iter_10k_4views_128", "s_per_iter_baseline", "chosen_vertices")},
-                **{k: r.get(k) for k in ("dominant_plane_fraction", "planarity_weight")}}],
-                ["chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input", "psnr_heldout_morphed",
-                 "spikes", "s_per_iter_10k_4views_128", "s_per_iter_baseline", "chosen_vertices",
-                 "dominant_plane_fraction", "planarity_weight"])
+            cols = ["chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input",
+                    "psnr_heldout_morphed", "spikes", "s_per_iter_10k_4views_128", "s_per_iter_baseline",
+                    "chosen_vertices", "dominant_plane_fraction", "planarity_weight"]
+            body += f"<h4>{html.escape(case)}</h4>" + _table([{k: r.get(k) for k in cols}], cols)
             body += "<p>Stability</p>" + _table([{"case": k, **v} for k, v in r["stability"].items()],
                                                ["case", "chamfer_input", "chamfer_morphed", "psnr_heldout_input",
                                                 "psnr_heldout_morphed", "spikes", "inverted_triangles",
