@@ -20,7 +20,7 @@ def test_torch_calls_drjit_and_gets_exact_gradients():
     loss = loss_fn(x)
     loss.backward()
     np.testing.assert_allclose(x.grad.numpy(), 2 * x.detach().numpy() * w, rtol=1e-6)  # closed form
-    np.testing.assert_allclose(float(loss), float((x.detach().numpy() ** 2 * w).sum()), rtol=1e-6)
+    np.testing.assert_allclose(float(loss.detach()), float((x.detach().numpy() ** 2 * w).sum()), rtol=1e-6)
 
 
 def test_torch_gradient_through_a_mitsuba_render_equals_drjit_native_gradient():
