@@ -257,13 +257,18 @@ def dominant_plane_fraction(v: np.ndarray, f: np.ndarray, seed: int = 0, dist: f
 
 def planarity_prior(p: mi.Point3f, faces: mi.UInt32, pairs: mi.UInt32, sigma: float) -> mi.Float:
     """Mean over ``pairs`` of ρ(1 − n_a·n_b), ρ(d) = d / (d + σ): pulls small dihedrals flat, saturates on
-    creases (a robust, edge-preserving piecewise-planarity prior; Geman–McClure form)."""
+    creases (a robust, edge-preserving piecewise-planarity prior; Geman–McClure form). 0 without pairs."""
+    if dr.width(pairs) == 0:
+        return mi.Float(0.0)
     def take(x, i):
         return mi.Vector3f(*(dr.gather(mi.Float, x[k], i) for k in range(3)))
 
     idx = dr.arange(mi.UInt32, dr.width(faces) // 3) * 3
     p0, p1, p2 = (take(p, dr.gather(mi.UInt32, faces, idx + k)) for k in range(3))
-    n = dr.normalize(dr.cross(p1 - p0, p2 - p0))
+    cr = dr.cross(p1 - p0, p2 - p0)
+    sq = dr.squared_norm(cr)
+    ok = sq > 1e-24  # a collapsed face: n = 0 and no gradient (normalising it would give NaN and poison the step)
+    n = dr.select(ok, cr / dr.sqrt(dr.select(ok, sq, 1.0)), 0.0)
     j = dr.arange(mi.UInt32, dr.width(pairs) // 2) * 2
     na, nb = take(n, dr.gather(mi.UInt32, pairs, j)), take(n, dr.gather(mi.UInt32, pairs, j + 1))
     d = 1.0 - dr.dot(na, nb)
@@ -346,8 +351,10 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
         frac = dominant_plane_fraction(v_start, f_start, seed=s.seed)
         planarity.update(dominant_plane_fraction=frac, planarity_weight=s.planarity_auto_weight
                          if frac >= s.planarity_auto_threshold else 0.0)
-    w_plan = planarity["planarity_weight"]
     pairs_mi = mi.UInt32(np.ascontiguousarray(dihedral_pairs(state.faces), np.uint32).ravel())
+    if planarity["planarity_weight"] and dr.width(pairs_mi) == 0:  # no manifold edge (an unwelded soup)
+        planarity["planarity_weight"] = 0.0
+    w_plan = planarity["planarity_weight"]
 
     with progress_bar(total=s.iterations, desc=f"morph {meta['kind']}", unit="it", disable=not show_progress) as bar:
         bar.update(state.iteration)

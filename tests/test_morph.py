@@ -211,6 +211,13 @@ def test_planarity_prior_closed_form_gradient_and_pairs():
     d = 1 - np.cos(theta)
     assert prior(hinge, fh, 0.06) == pytest.approx(d / (d + 0.06), rel=1e-5)
 
+    # a collapsed face (two equal corners) next to a flat hinge: n = 0 there, so d = 1 on its edge and 0 on the
+    # hinge's; the mean is (0 + 1/(1+σ))/2 and the gradient is finite (zero) instead of NaN
+    flat = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, -1, 0]])
+    fc = np.array([[0, 1, 2], [1, 0, 3], [3, 0, 4]])
+    val, g = prior(flat, fc, 0.06, grad=True)
+    assert val == pytest.approx(0.5 / 1.06, rel=1e-6) and np.isfinite(g).all()
+
     v, f = _box(4)
     assert len(dihedral_pairs(f)) == len(f) * 3 // 2
     bad = f.copy()
