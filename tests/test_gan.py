@@ -168,12 +168,12 @@ def test_pix2pix_objectives_are_gan_plus_100_l1_and_half_d():
     lg, terms = m.generator_loss(x, y, fake)
     adv = F.softplus(-m.D(torch.cat([x, fake], 1))).mean()
     assert m.cfg.lambda_l1 == 100.0
-    assert float(lg) == pytest.approx(float(adv + 100.0 * (fake - y).abs().mean()), rel=1e-5)
-    assert terms["g_l1"] == pytest.approx(float((fake - y).abs().mean()), rel=1e-5)
+    assert float(lg.detach()) == pytest.approx(float((adv + 100.0 * (fake - y).abs().mean()).detach()), rel=1e-5)
+    assert terms["g_l1"] == pytest.approx(float((fake - y).abs().mean().detach()), rel=1e-5)
     ld, _ = m.discriminator_loss(x, y, fake)
     real = F.softplus(-m.D(torch.cat([x, y], 1))).mean()
     fk = F.softplus(m.D(torch.cat([x, fake], 1))).mean()
-    assert float(ld) == pytest.approx(0.5 * float(real + fk), rel=1e-5)
+    assert float(ld.detach()) == pytest.approx(0.5 * float((real + fk).detach()), rel=1e-5)
     ld.backward()
     assert all(p.grad is None for p in m.G.parameters())  # D's loss does not reach G (fake detached)
 
@@ -186,12 +186,12 @@ def test_cyclegan_objective_lsgan_cycle_10_identity_half():
     adv = ((c.D_Y(c.G(x)) - 1) ** 2).mean() + ((c.D_X(c.F_(y)) - 1) ** 2).mean()
     cyc = (c.F_(c.G(x)) - x).abs().mean() + (c.G(c.F_(y)) - y).abs().mean()
     idt = (c.G(y) - y).abs().mean() + (c.F_(x) - x).abs().mean()
-    assert float(loss) == pytest.approx(float(adv + 10.0 * cyc + 0.5 * 10.0 * idt), rel=1e-5)
-    assert terms["cycle"] == pytest.approx(float(cyc), rel=1e-5)
+    assert float(loss.detach()) == pytest.approx(float((adv + 10.0 * cyc + 0.5 * 10.0 * idt).detach()), rel=1e-5)
+    assert terms["cycle"] == pytest.approx(float(cyc.detach()), rel=1e-5)
     ld, _ = c.discriminator_loss(x, y, fy, fx)
     expect = 0.5 * (((c.D_Y(y) - 1) ** 2).mean() + (c.D_Y(fy) ** 2).mean()) \
         + 0.5 * (((c.D_X(x) - 1) ** 2).mean() + (c.D_X(fx) ** 2).mean())
-    assert float(ld) == pytest.approx(float(expect), rel=1e-5)
+    assert float(ld.detach()) == pytest.approx(float(expect.detach()), rel=1e-5)
 
 
 # -- data and training -----------------------------------------------------------------------------------------------
