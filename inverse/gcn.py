@@ -97,7 +97,7 @@ def pretrain_identity(net: MeshGCN, x: torch.Tensor, steps: int, lr: float) -> l
         loss = net(x).pow(2).mean()
         loss.backward()
         opt.step()
-        hist.append(float(loss))
+        hist.append(float(loss.detach()))
     return hist
 
 
