@@ -260,6 +260,7 @@ def planarity_prior(p: mi.Point3f, faces: mi.UInt32, pairs: mi.UInt32, sigma: fl
     creases (a robust, edge-preserving piecewise-planarity prior; Geman–McClure form). 0 without pairs."""
     if dr.width(pairs) == 0:
         return mi.Float(0.0)
+
     def take(x, i):
         return mi.Vector3f(*(dr.gather(mi.Float, x[k], i) for k in range(3)))
 
