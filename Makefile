@@ -20,13 +20,14 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/photoreal demo --out out/demo
+	$(BIN)/photoreal demo --out out/demo --bench-dir out/bench
 
+# Two test processes, one Dr.Jit/torch thread each (tests/conftest.py): bit-reproducible runs, both cores busy.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2
 
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -n 2 -m "not slow"
 
 bench: $(STAMP)
 	mkdir -p out/bench

@@ -197,17 +197,31 @@ def cuda_works() -> bool:
         return False
 
 
+class VariantError(ValueError):
+    """``PHOTOREAL_VARIANT`` names a variant photoreal cannot run on (the message says which and why)."""
+
+
 def choose_variant(environ: Mapping[str, str] | None = None) -> str:
-    """``PHOTOREAL_VARIANT`` if set, else ``cuda_ad_rgb`` if CUDA works, else ``llvm_ad_rgb``."""
+    """``PHOTOREAL_VARIANT`` if set, else ``cuda_ad_rgb`` if CUDA works, else ``llvm_ad_rgb``.
+
+    The plugins need an RGB variant with automatic differentiation (``*_ad_rgb``); a CUDA variant is
+    refused up front on a machine where CUDA does not compute (Mitsuba would fail at the first render).
+    """
     environ = os.environ if environ is None else environ
     forced = environ.get(ENV_VARIANT)
     if forced:
         import mitsuba as mi
 
+        usable = [v for v in mi.variants() if v.endswith("_ad_rgb")]
         if forced not in mi.variants():
-            raise ValueError(
-                f"{ENV_VARIANT}={forced!r} is not a Mitsuba variant; available: {mi.variants()}"
-            )
+            raise VariantError(f"{ENV_VARIANT}={forced!r} is not a Mitsuba variant; photoreal runs on "
+                               f"{', '.join(usable)}")
+        if forced not in usable:
+            raise VariantError(f"{ENV_VARIANT}={forced!r}: photoreal needs an RGB variant with automatic "
+                               f"differentiation ({', '.join(usable)})")
+        if forced.startswith("cuda") and not cuda_works():
+            raise VariantError(f"{ENV_VARIANT}={forced!r}: no CUDA device computes on this machine; "
+                               "use llvm_ad_rgb (or unset it)")
         return forced
     return "cuda_ad_rgb" if cuda_works() else "llvm_ad_rgb"
 

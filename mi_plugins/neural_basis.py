@@ -134,8 +134,8 @@ class NeuralMaterial:
     def __post_init__(self) -> None:
         for name in ("t_off", "t_rgb"):
             t = getattr(self, name)
-            if t.ndim != 3 or t.shape[0] != t.shape[1]:
-                raise NeuralBTFError(f"{name} must be a square [R, R, C] texture, got shape {t.shape}")
+            if t.ndim != 3 or t.shape[0] != t.shape[1] or t.shape[0] < 2 or t.shape[2] < 1:
+                raise NeuralBTFError(f"{name} must be a square [R, R, C] texture with R ≥ 2, C ≥ 1, got shape {t.shape}")
             if not np.isfinite(t).all():
                 raise NeuralBTFError(f"{name} contains NaN or Inf")
 
@@ -258,6 +258,9 @@ def _atomic_savez(path: Path, arrays: dict) -> Path:
     os.close(fd)
     try:
         np.savez_compressed(tmp, **arrays)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # what open(path, "w") would give, not mkstemp's 0o600
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -300,6 +303,14 @@ def load_basis(path) -> Basis:
         raise NeuralBTFError(f"neural basis file {path} lacks array {e}") from None
     except (TypeError, json.JSONDecodeError, NeuralBTFError) as e:
         raise NeuralBTFError(f"neural basis file {path}: {e}") from None
+
+
+def check_pair(basis: Basis, mat: NeuralMaterial, basis_path="basis", mat_path="material") -> None:
+    """Refuse a material whose feature textures were fitted to another basis (they decode to garbage)."""
+    want, got = basis.meta.get("id"), mat.meta.get("basis")
+    if want and got and want != got:
+        raise NeuralBTFError(f"neural material {mat_path} was fitted to basis {got!r}, but {basis_path} is "
+                             f"basis {want!r}; fit the material to this basis (photoreal btf fit) or use its own")
 
 
 def save_material(path, mat: NeuralMaterial) -> Path:

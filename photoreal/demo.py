@@ -1,25 +1,25 @@
 """`make demo`: render the built-in scenes, their intrinsic layers, and an HTML report.
 
-Later capabilities add sections through :func:`add_section` (each section is
-a small HTML fragment stored under ``out/demo/sections/`` and stitched into
-``index.html`` in name order).
+Sections are small HTML fragments stored under ``OUT/sections/`` (:func:`add_section`) and stitched
+into ``index.html`` in name order. Benchmark tables come from the JSON files in ``bench_dir`` (what
+``photoreal bench …`` wrote); the demo never reads the working directory or the tests.
 """
 
 from __future__ import annotations
 
 import html
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from . import imageio
-from .metrics import psnr
-from .render import RenderSettings, load_scene, recompose, render_scene
-
-SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+from foundation import imageio, validate
+from foundation.assets import ARMADILLO, FACE, SCENES
+from foundation.files import check_output_dir, read_json, write_json, write_text
+from foundation.metrics import psnr
+from foundation.records import to_json
+from foundation.scene import RenderSettings, load_scene, recompose, render_scene
 
 
 @dataclass
@@ -31,6 +31,14 @@ class DemoSettings:
     face_uv_res: int = 256
     morph_iterations: int = 100  #: 0 skips the morphing section
     btf: bool = True  #: neural materials scene (+ `photoreal bench btf` tables when present)
+    plugin_bench: bool = True  #: time ggx_uv against principled (a short run of `photoreal bench plugins`)
+
+    def __post_init__(self):
+        validate.integer("resolution", self.resolution, 8, 4096)
+        validate.integer("spp", self.spp, 1)
+        validate.seed("seed", self.seed)
+        validate.integer("face_uv_res", self.face_uv_res, 16, 4096)
+        validate.integer("morph_iterations", self.morph_iterations, 0)
 
 
 DEMO_SCENES = [
@@ -42,12 +50,8 @@ DEMO_SCENES = [
 
 def add_section(out_dir: Path, key: str, title: str, body_html: str) -> Path:
     """Store one report section (HTML fragment); index.html is rebuilt from all of them."""
-    sec = Path(out_dir) / "sections"
-    sec.mkdir(parents=True, exist_ok=True)
-    path = sec / f"{key}.html"
-    with imageio.atomic_path(path) as tmp:
-        tmp.write_text(f"<section id='{html.escape(key)}'><h2>{html.escape(title)}</h2>\n{body_html}\n</section>\n")
-    return path
+    path = Path(out_dir) / "sections" / f"{key}.html"
+    return write_text(path, f"<section id='{html.escape(key)}'><h2>{html.escape(title)}</h2>\n{body_html}\n</section>\n")
 
 
 def write_index(out_dir: Path) -> Path:
@@ -69,10 +73,7 @@ td, th {{ border: 1px solid #bbb; padding: 0.2em 0.6em; text-align: right; }}
 {body}
 </body></html>
 """
-    index = out_dir / "index.html"
-    with imageio.atomic_path(index) as tmp:
-        tmp.write_text(page)
-    return index
+    return write_text(out_dir / "index.html", page)
 
 
 def _figure(src: str, caption: str) -> str:
@@ -87,7 +88,7 @@ def demo_scenes(out_dir: Path, s: DemoSettings) -> dict:
     for name, title in DEMO_SCENES:
         settings = RenderSettings(spp=s.spp, resolution=(s.resolution, s.resolution), aovs=True, seed=s.seed)
         t0 = time.perf_counter()
-        scene = load_scene(SCENES_DIR / f"{name}.xml", settings)
+        scene = load_scene(SCENES / f"{name}.xml", settings)
         rgb, layers = render_scene(scene, settings, label=name)
         seconds = time.perf_counter() - t0
         del scene
@@ -136,20 +137,27 @@ def _table(rows: list[dict], cols: list[str]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def demo_face(out_dir: Path, uv_res: int = 256, seed: int = 0) -> dict:
+def _bench_json(bench_dir: Path | None, name: str) -> dict | None:
+    """A benchmark's JSON from ``bench_dir`` if it is there (tables in the report); None otherwise."""
+    if bench_dir is None or not (Path(bench_dir) / name).is_file():
+        return None
+    return read_json(Path(bench_dir) / name, "benchmark result")
+
+
+def demo_face(out_dir: Path, uv_res: int = 256, seed: int = 0, bench_dir: Path | None = None) -> dict:
     """Josie scan: benchmark, UV-space fit, maps and relit renders against ground truth."""
-    from inverse.face_data import FaceBenchmarkSettings, load_benchmark, make_benchmark
-    from inverse.face_fit import FaceFitSettings, evaluate_fit, fit_face
+    from inverse.face import FaceBenchmarkSettings, FaceFitSettings, evaluate_fit, fit_face, load_benchmark, make_benchmark
 
     face_dir = Path(out_dir) / "face"
-    bench = load_benchmark(make_benchmark(SCENES_DIR / "assets" / "face" / "cyberheads" / "josie.obj",
-                                          face_dir / "benchmark", FaceBenchmarkSettings(uv_res=uv_res, seed=seed)))
+    bench = load_benchmark(make_benchmark(FACE / "cyberheads" / "josie.obj", face_dir / "benchmark",
+                                          FaceBenchmarkSettings(uv_res=uv_res, seed=seed)))
     result = fit_face(bench, FaceFitSettings(seed=seed))
     relit: dict = {}
-    m = evaluate_fit(bench, result, images=relit)
+    fm = evaluate_fit(bench, result, images=relit)
+    m = to_json(fm)
     gt, fit = bench.ground_truth, result.maps
     figs = []
-    for name, a, b, linear in (("albedo", gt["albedo"], fit["albedo"] * m["albedo_scale"], True),
+    for name, a, b, linear in (("albedo", gt["albedo"], fit["albedo"] * fm.albedo_scale, True),
                                ("normal", gt["normal"] * 0.5 + 0.5, fit["normal"] * 0.5 + 0.5, False),
                                ("roughness", np.repeat(gt["roughness"], 3, -1), np.repeat(fit["roughness"], 3, -1), False),
                                ("specular", np.repeat(gt["specular"], 3, -1), np.repeat(fit["specular"], 3, -1), False)):
@@ -169,22 +177,18 @@ def demo_face(out_dir: Path, uv_res: int = 256, seed: int = 0) -> dict:
                                                            "roughness_mae", "specular_mae", "relit_psnr", "relit_flip",
                                                            "observed_fraction", "seconds")]
     body = (f"<p>Real Cyberware scan <i>josie</i>; ground-truth maps {uv_res}² (scanned albedo + seeded relief, "
-            f"roughness, specular); {len(bench.meta['lights'])} directional lights × {len(bench.meta['views'])} views "
+            f"roughness, specular); {len(bench.meta.lights)} directional lights × {len(bench.meta.views)} views "
             f"rendered by Mitsuba with ggx_uv, taken texel-aligned. Fit: Adam through the UV-space GGX shader "
             f"(the plugin's own functions). Held-out: real HDRIs.</p>"
             + _figure("face/observation.png", "one observation (view 0, light 0)")
             + "<div>" + "".join(figs) + "</div>" + _table(rows, ["metric", "value"])
             + "<h3>Relit under held-out HDRIs</h3><div>" + "".join(relit_figs) + "</div>")
-    bench_json = Path("out/bench/face.json")
-    if bench_json.is_file():
-        fb = json.loads(bench_json.read_text())
+    fb = _bench_json(bench_dir, "face.json")
+    if fb is not None:
         body += "<h3>Speed vs accuracy and stability (<code>photoreal bench face</code>)</h3>"
         body += _table(fb["sweep"], ["uv_res", "seconds", "relit_psnr", "albedo_psnr", "normal_err_deg"])
         body += f"<p>chosen_uv_res = {fb['chosen_uv_res']} (smallest within 0.5 dB of the best relit PSNR)</p>"
-        if fb.get("chart") and Path(fb["chart"]).is_file():
-            import shutil
-
-            shutil.copyfile(fb["chart"], face_dir / "face_speed_accuracy.png")
+        if _copy_chart(fb, bench_dir, face_dir / "face_speed_accuracy.png"):
             body += "<img src='face/face_speed_accuracy.png'>"
         body += _table([{"case": k, **v} for k, v in fb["stability"].items()],
                        ["case", "albedo_psnr", "normal_err_deg", "relit_psnr", "albedo_psnr_drop_db",
@@ -193,22 +197,22 @@ def demo_face(out_dir: Path, uv_res: int = 256, seed: int = 0) -> dict:
     return {k: m[k] for k in ("albedo_psnr", "normal_err_deg", "relit_psnr", "seconds")}
 
 
-def demo_photo(out_dir: Path, uv_res: int = 256, seed: int = 0) -> dict:
-    """scikit-image's astronaut photograph → relightable face (landmarks from mediapipe or the shipped file)."""
+def demo_photo(out_dir: Path, uv_res: int = 256, seed: int = 0) -> dict | None:
+    """scikit-image's astronaut photograph → relightable face (landmarks from MediaPipe, run now)."""
     import skimage.data
 
-    from inverse.face_photo import PhotoFitSettings, load_landmarks, photo_to_face
+    from inverse.face import PhotoFitSettings, photo_to_face
 
-    photo_dir = Path(out_dir) / "photo"
-    image = skimage.data.astronaut()
     try:
         import mediapipe  # noqa: F401
-
-        landmarks, source = None, "MediaPipe Face Mesh 0.10.14 (run now)"
     except ImportError:
-        landmarks = load_landmarks(Path(__file__).resolve().parent.parent / "tests" / "data" / "astronaut_landmarks.npy")
-        source = "tests/data/astronaut_landmarks.npy (mediapipe not installed)"
-    r = photo_to_face(image, photo_dir, PhotoFitSettings(uv_res=uv_res, seed=seed), landmarks=landmarks)
+        add_section(out_dir, "31_photo", "One real photograph to a relightable face",
+                    "<p>Skipped: MediaPipe (the landmark detector) is not installed; "
+                    "<code>pip install mediapipe==0.10.14</code> (the project's <code>face</code> extra).</p>")
+        return None
+    photo_dir = Path(out_dir) / "photo"
+    source = "MediaPipe Face Mesh 0.10.14 (run now)"
+    r = to_json(photo_to_face(skimage.data.astronaut(), photo_dir, PhotoFitSettings(uv_res=uv_res, seed=seed)))
     figs = [_figure("photo/photo.png", "input photo (scikit-image astronaut)"),
             _figure("photo/photo_uv.png", "photo unwrapped into UV"),
             _figure("photo/visibility.png", "visibility mask"),
@@ -226,34 +230,35 @@ def demo_photo(out_dir: Path, uv_res: int = 256, seed: int = 0) -> dict:
     return {k: r[k] for k in ("landmark_reprojection_px", "rerender_psnr_visible_face", "seconds")}
 
 
-def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0) -> dict:
+def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: Path | None = None) -> dict:
     """Armadillo morph benchmark: degraded input vs morphed vs photo, metrics; bench tables if present."""
     import shutil
 
-    from inverse.morph import MorphSettings, run_morph
-    from inverse.morph_data import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
+    from inverse.morph import MorphBenchmarkSettings, MorphSettings, load_morph_benchmark, make_morph_benchmark, run_morph
 
     mdir = Path(out_dir) / "morph"
-    bench = load_morph_benchmark(make_morph_benchmark(SCENES_DIR / "assets" / "meshes" / "armadillo.ply",
-                                                      mdir / "benchmark", MorphBenchmarkSettings(seed=seed)))
+    bench = load_morph_benchmark(make_morph_benchmark(ARMADILLO, mdir / "benchmark", MorphBenchmarkSettings(seed=seed)))
     shutil.rmtree(mdir / "run", ignore_errors=True)
-    m = run_morph(bench, mdir / "run", MorphSettings(iterations=iterations, seed=seed))
-    i = bench.meta["test"][0]
+    mr = run_morph(bench, mdir / "run", MorphSettings(iterations=iterations, seed=seed))
+    m = to_json(mr)
+    m.update(inverted_before_repair=mr.repair.inverted_before_repair if mr.repair else None,
+             repaired_vertices=mr.repair.repaired_vertices if mr.repair else None)
+    i = bench.meta.test[0]
     figs = "".join(_figure(f"morph/run/heldout_{k}_view{i:02d}.png", label) for k, label in
                    (("input", "coarse input (held-out view)"), ("morphed", "morphed"), ("photo", "photo")))
     rows = [{"metric": k, "value": float(m[k])} for k in
             ("chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input", "psnr_heldout_morphed",
-             "spikes", "inverted_triangles", "inverted_before_repair", "repaired_vertices", "seconds") if k in m]
-    body = (f"<p>Stanford Armadillo, {len(bench.meta['cameras'])} drone-orbit photos path traced under the "
-            f"{bench.meta['hdri']} HDRI; degraded input: {bench.meta['degradation']['coarse_vertices']} vertices "
+             "spikes", "inverted_triangles", "inverted_before_repair", "repaired_vertices", "seconds")
+            if m.get(k) is not None]
+    body = (f"<p>Stanford Armadillo, {len(bench.meta.cameras)} drone-orbit photos path traced under the "
+            f"{bench.meta.hdri} HDRI; degraded input: {bench.meta.degradation.coarse_vertices} vertices "
             f"with bumps, wobble and misregistered colours. Morph: {iterations} iterations, large steps, lit mode, "
             f"3 views per step, input remeshed to {m['vertices']} vertices; folds left at the end are unfolded "
-            f"locally and counted (inverted_before_repair). Planarity prior weight {m['planarity_weight']:g} "
-            f"(auto: the input's largest plane holds {m.get('dominant_plane_fraction', 0):.0%} of its area; "
+            f"locally and counted (inverted_before_repair). Planarity prior weight {mr.planarity.weight:g} "
+            f"(auto: the input's largest plane holds {mr.planarity.dominant_plane_fraction or 0:.0%} of its area; "
             f"on from 20%, as on the village).</p><div>{figs}</div>" + _table(rows, ["metric", "value"]))
-    bj = Path("out/bench/morph.json")
-    if bj.is_file():
-        mb = json.loads(bj.read_text())
+    mb = _bench_json(bench_dir, "morph.json")
+    if mb is not None:
         body += "<h3>Benchmark (<code>photoreal bench morph</code>)</h3>"
         for case, r in mb["cases"].items():
             cols = ["chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input",
@@ -264,21 +269,18 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0) -> dict:
                                                ["case", "chamfer_input", "chamfer_morphed", "psnr_heldout_input",
                                                 "psnr_heldout_morphed", "spikes", "inverted_triangles",
                                                 "inverted_before_repair", "converged"])
-        if mb.get("chart") and Path(mb["chart"]).is_file():
-            shutil.copyfile(mb["chart"], mdir / "morph_speed_accuracy.png")
+        if _copy_chart(mb, bench_dir, mdir / "morph_speed_accuracy.png"):
             body += "<img src='morph/morph_speed_accuracy.png'>"
     add_section(out_dir, "40_morph", "Geometry morphing of a coarse reconstruction, against ground truth", body)
     return {k: m[k] for k in ("chamfer_input", "chamfer_morphed", "psnr_heldout_input", "psnr_heldout_morphed")}
 
 
-def demo_btf(out_dir: Path, s: DemoSettings) -> dict:
+def demo_btf(out_dir: Path, s: DemoSettings, bench_dir: Path | None = None) -> dict:
     """Neural materials among classic ones (seed 002 Fig. 1); the bench's table and chart if present."""
-    import shutil
-
     out_dir = Path(out_dir)
     settings = RenderSettings(spp=max(8, s.spp // 2), resolution=(int(s.resolution * 1.5), s.resolution), seed=s.seed)
     t0 = time.perf_counter()
-    scene = load_scene(SCENES_DIR / "neural_materials.xml", settings)
+    scene = load_scene(SCENES / "neural_materials.xml", settings)
     rgb, _ = render_scene(scene, settings, label="neural materials")
     seconds = time.perf_counter() - t0
     del scene
@@ -290,9 +292,8 @@ def demo_btf(out_dir: Path, s: DemoSettings) -> dict:
             "(<code>photoreal btf fit</code>).</p>"
             f"<div><figure><img style='width:480px' src='neural_materials.png'><figcaption>"
             f"{settings.resolution[0]}×{settings.resolution[1]}, {settings.spp} spp, {seconds:.1f} s</figcaption></figure></div>")
-    bj = Path("out/bench/btf.json")
-    if bj.is_file():
-        b = json.loads(bj.read_text())
+    b = _bench_json(bench_dir, "btf.json")
+    if b is not None:
         body += "<h3>Held-out slice PSNR per family (<code>photoreal bench btf</code>, seed 002 Table 1 / Fig. 4)</h3>"
         body += _table(b["table"] + [{"family": "mean", "psnr_universal": b["psnr_universal_mean"],
                                       "psnr_per_material": b["psnr_per_material_mean"]}],
@@ -305,45 +306,56 @@ def demo_btf(out_dir: Path, s: DemoSettings) -> dict:
                  f"the best): width {c['width']}, {c['tex_res']}² → {c['ms']:.0f} ms = {c['vs_principled']:.1f}× "
                  f"principled. M_rgb throughput: Dr.Jit (plugin path) {b['mlp_evals_per_s_drjit'] / 1e6:.2f} M/s, "
                  f"torch {b['mlp_evals_per_s_torch'] / 1e6:.2f} M/s.</p>")
-        if b.get("chart") and Path(b["chart"]).is_file():
-            shutil.copyfile(b["chart"], out_dir / "btf_speed_accuracy.png")
+        if _copy_chart(b, bench_dir, out_dir / "btf_speed_accuracy.png"):
             body += "<img src='btf_speed_accuracy.png'>"
     add_section(out_dir, "50_btf", "Universal neural BTF materials (seed 002)", body)
     return {"seconds": seconds}
 
 
-def run_demo(out_dir: str | Path, s: DemoSettings, with_bench: bool = True) -> Path:
-    from .bench import PluginBenchSettings, bench_plugins, write_json
+def run_demo(out_dir: str | Path, s: DemoSettings, bench_dir: str | Path | None = None) -> Path:
+    """Render every section into ``out_dir`` and write ``index.html``; bench tables from ``bench_dir``'s JSON."""
+    from .benchmarks.plugins import PluginBenchSettings, bench_plugins
 
-    out_dir = Path(out_dir)
+    out_dir = check_output_dir(out_dir, "index.html", "--out")
+    bench_dir = Path(bench_dir) if bench_dir is not None else None
     out_dir.mkdir(parents=True, exist_ok=True)
     results = {"scenes": demo_scenes(out_dir, s)}
     if s.face:
-        results["face"] = demo_face(out_dir, uv_res=s.face_uv_res, seed=s.seed)
+        results["face"] = demo_face(out_dir, uv_res=s.face_uv_res, seed=s.seed, bench_dir=bench_dir)
         results["photo"] = demo_photo(out_dir, uv_res=s.face_uv_res, seed=s.seed)
     if s.morph_iterations > 0:
-        results["morph"] = demo_morph(out_dir, iterations=s.morph_iterations, seed=s.seed)
+        results["morph"] = demo_morph(out_dir, iterations=s.morph_iterations, seed=s.seed, bench_dir=bench_dir)
     if s.btf:
-        results["btf"] = demo_btf(out_dir, s)
-    results["gan"] = demo_gan(out_dir)  # reads out/bench/gan.json when present; trains nothing
-    if with_bench:
+        results["btf"] = demo_btf(out_dir, s, bench_dir=bench_dir)
+    results["gan"] = demo_gan(out_dir, bench_dir)  # reads the bench's gan.json when present; trains nothing
+    if s.plugin_bench:
         bench = bench_plugins(PluginBenchSettings(resolution=128, spp=32, repetitions=3, rounds=2))
         write_json(out_dir / "bench_plugins.json", bench)
         bench_section(out_dir, bench)
         results["bench_plugins"] = {k: bench[k] for k in ("ggx_uv_ms", "principled_ms", "ggx_uv_vs_principled")}
-    imageio_path = out_dir / "demo.json"
-    with imageio.atomic_path(imageio_path) as tmp:
-        tmp.write_text(json.dumps(results, indent=2) + "\n")
+    write_json(out_dir / "demo.json", results)
     return write_index(out_dir)
 
 
-def demo_gan(out_dir: Path, bench_json: Path = Path("out/bench/gan.json")) -> dict | None:
-    """The `photoreal bench gan` table and chart (held-out views), when that JSON exists; no training here."""
+def _copy_chart(result: dict, bench_dir: Path | None, dest: Path) -> bool:
+    """Copy a benchmark's chart (found beside its JSON, by the file name it recorded) into the report."""
     import shutil
 
-    if not Path(bench_json).is_file():
+    if not result.get("chart") or bench_dir is None:
+        return False
+    src = Path(bench_dir) / Path(result["chart"]).name
+    if not src.is_file():
+        return False
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, dest)
+    return True
+
+
+def demo_gan(out_dir: Path, bench_dir: Path | None = None) -> dict | None:
+    """The `photoreal bench gan` table and chart (held-out views), when that JSON exists; no training here."""
+    b = _bench_json(bench_dir, "gan.json")
+    if b is None:
         return None
-    b = json.loads(Path(bench_json).read_text())
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     cols = ["model", "mse", "me", "one_minus_ssim", "nrmse", "sam_deg", "flip", "psnr", "train_s", "infer_ms"]
 
@@ -369,8 +381,7 @@ def demo_gan(out_dir: Path, bench_json: Path = Path("out/bench/gan.json")) -> di
                      rcols))
     for case, r in b.get("cases", {}).items():
         body += f"<h4>{html.escape(case)}</h4>" + _table(rows(r), cols)
-    if b.get("chart") and Path(b["chart"]).is_file():
-        shutil.copyfile(b["chart"], Path(out_dir) / "gan_speed_accuracy.png")
+    if _copy_chart(b, bench_dir, Path(out_dir) / "gan_speed_accuracy.png"):
         body += "<img src='gan_speed_accuracy.png'>"
     add_section(out_dir, "45_gan", "GAN refinement: pix2pix, CycleGAN, Morph-GAN, joint training (REAL-DIBS §3, §5, §6)",
                 body)

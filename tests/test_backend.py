@@ -80,9 +80,16 @@ def test_this_environment_resolves_a_usable_llvm():
 
 
 def test_variant_override_and_validation(monkeypatch):
-    assert bk.choose_variant({bk.ENV_VARIANT: "scalar_rgb"}) == "scalar_rgb"
-    with pytest.raises(ValueError, match="PHOTOREAL_VARIANT"):
+    assert bk.choose_variant({bk.ENV_VARIANT: "llvm_ad_rgb"}) == "llvm_ad_rgb"
+    with pytest.raises(bk.VariantError, match="PHOTOREAL_VARIANT='cuda_magic_rgb' is not a Mitsuba variant"):
         bk.choose_variant({bk.ENV_VARIANT: "cuda_magic_rgb"})
+    # variants photoreal's plugins cannot run on are refused up front, with the reason
+    for v in ("scalar_rgb", "llvm_ad_mono"):
+        with pytest.raises(bk.VariantError, match="RGB variant with automatic differentiation"):
+            bk.choose_variant({bk.ENV_VARIANT: v})
+    monkeypatch.setattr(bk, "cuda_works", lambda: False)
+    with pytest.raises(bk.VariantError, match="no CUDA device"):
+        bk.choose_variant({bk.ENV_VARIANT: "cuda_ad_rgb"})
 
 
 def test_variant_default_follows_cuda_probe(monkeypatch):

@@ -6,7 +6,7 @@ import torch
 import drjit as dr
 import mitsuba as mi
 
-from generative.bridge import drjit_to_torch, torch_to_drjit_loss
+from foundation.bridge import drjit_to_torch, torch_to_drjit_loss
 
 
 def test_torch_calls_drjit_and_gets_exact_gradients():

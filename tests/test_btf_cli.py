@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 
 import mi_plugins  # noqa: F401
-import drjit as dr
 import mitsuba as mi
 
-from inverse.btf_data import BTFRenderSettings
+from inverse.btf.data import BTFRenderSettings
 from mi_plugins.neural_basis import load_basis, load_material
 from photoreal.cli import main
 
@@ -77,7 +76,7 @@ def test_errors_name_the_file(tiny_data, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_bench_btf_writes_the_promised_json(tmp_path):
-    from photoreal.btf_bench import BTFBenchSettings, bench_btf
+    from photoreal.benchmarks.btf import BTFBenchSettings, bench_btf
 
     s = BTFBenchSettings(data_dir=str(tmp_path / "data"), train_per_family=1,
                          render=BTFRenderSettings(tex_res=8, slices=8, spp=2, mesh_res=16),

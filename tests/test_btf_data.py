@@ -9,9 +9,9 @@ import pytest
 
 import mitsuba as mi
 
-import inverse.btf_data as btf
+import inverse.btf.data as btf
 from conftest import local_si
-from inverse.btf_data import (
+from inverse.btf.data import (
     FAMILIES, BTFData, BTFDataError, BTFRenderSettings, constant_svbrdf, load_btf, load_dataset, make_periodic,
     make_svbrdf, render_btf, render_dataset, save_btf,
 )

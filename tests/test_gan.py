@@ -16,12 +16,15 @@ import mi_plugins  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from generative.bridge import drjit_images_to_torch
-from generative.cyclegan import CycleGAN, CycleGANConfig, ResnetGenerator
-from generative.gan_data import PairedViews, random_crops
-from generative.gan_train import GanTrainSettings, build_model, train_gan
-from generative.morph_gan import MorphGAN, paired_input
-from generative.pix2pix import PatchDiscriminator, Pix2Pix, Pix2PixConfig, UNetGenerator, gan_loss, receptive_field
+from foundation.errors import CheckpointError, UsageError
+from foundation.loop import read_checkpoint
+
+from foundation.bridge import drjit_images_to_torch
+from generative.gan.cyclegan import CycleGAN, CycleGANConfig, ResnetGenerator
+from generative.gan.data import PairedViews, random_crops
+from generative.gan.train import GanTrainSettings, build_model, train_gan
+from generative.gan.morph_gan import MorphGAN, paired_input
+from generative.gan.pix2pix import PatchDiscriminator, Pix2Pix, Pix2PixConfig, UNetGenerator, gan_loss, receptive_field
 
 TINY = Pix2PixConfig(ngf=4, ndf=4, levels=3)
 
@@ -29,7 +32,7 @@ TINY = Pix2PixConfig(ngf=4, ndf=4, levels=3)
 @pytest.fixture(autouse=True)
 def one_torch_thread():
     """One torch thread: with the 2 cores shared, torch's default 2 threads spin-wait (100× slower here)."""
-    from generative.gan_train import torch_threads
+    from foundation.threads import torch_threads
 
     with torch_threads(1):
         yield
@@ -226,15 +229,15 @@ def _tiny(model: str, steps: int) -> GanTrainSettings:
 def test_training_reduces_heldout_error_on_a_paired_task(tmp_path):
     d = synthetic_views()
     m = train_gan(d, tmp_path / "p2p", _tiny("pix2pix", 80), show_progress=False)
-    curve = [p["heldout_mse"] for p in m["curve"]]
+    curve = [p.heldout_mse for p in m.curve]
     assert curve[-1] < 0.5 * curve[0], curve
-    assert m["steps"] == 80 and (tmp_path / "p2p" / "metrics.json").is_file()
-    assert m["train_views"] == 5 and m["val_views"] == 1 and m["best_step"] in [p["step"] for p in m["curve"]]
-    assert m["mse"] <= m["last"]["mse"] * 1.5  # the selected G is a held-out-sane choice, not a diverged one
+    assert m.training.steps == 80 and (tmp_path / "p2p" / "metrics.json").is_file()
+    assert m.train_views == 5 and m.val_views == 1 and m.best_step in [p.step for p in m.curve]
+    assert m.heldout.mse <= m.last.mse * 1.5  # the selected G is a held-out-sane choice, not a diverged one
 
 
 def test_split_validation_every_kth_view():
-    from generative.gan_train import split_validation
+    from generative.gan.train import split_validation
 
     t, v = split_validation(list(range(12)), 6)
     assert v.tolist() == [5, 11] and t.tolist() == [0, 1, 2, 3, 4, 6, 7, 8, 9, 10]
@@ -249,19 +252,19 @@ def test_resume_reproduces_an_uninterrupted_run(tmp_path, model):
     assert train_gan(d, tmp_path / "b", s, show_progress=False, budget_steps=5) is None  # "killed" after 5 steps
     assert train_gan(d, tmp_path / "b", s, show_progress=False, budget_steps=4) is None
     resumed = train_gan(d, tmp_path / "b", s, show_progress=False)
-    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
-    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
-    assert a["step"] == b["step"] == 12
-    for k, v in a["model"].items():  # same thread count, same ops: equal up to float32 reassociation
-        torch.testing.assert_close(b["model"][k], v, rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose([h["g"] for h in b["history"]], [h["g"] for h in a["history"]], rtol=1e-5)
-    assert resumed["mse"] == pytest.approx(full["mse"], rel=1e-4)
-    with pytest.raises(ValueError, match="other settings"):
+    a, b = read_checkpoint(tmp_path / "a" / "checkpoint.npz"), read_checkpoint(tmp_path / "b" / "checkpoint.npz")
+    assert a.run.step == b.run.step == 12
+    for k, v in a.stage["model"].items():  # one torch thread (conftest): the same ops give the same bits
+        torch.testing.assert_close(b.stage["model"][k], v, rtol=0, atol=0)
+    assert b.run.losses == a.run.losses
+    assert resumed.heldout.mse == full.heldout.mse
+    with pytest.raises(CheckpointError, match=r"other settings or data \(settings.lr: 0.002 → 0.001\)"):
         train_gan(d, tmp_path / "b", replace(s, lr=1e-3), show_progress=False)
 
 
 def test_build_model_rejects_unknown_names():
-    with pytest.raises(ValueError, match="unknown GAN model 'pix3pix'"):
+    with pytest.raises(UsageError, match="model must be one of pix2pix, cyclegan, morph_gan_partial, morph_gan, "
+                                         "got 'pix3pix'"):
         build_model(GanTrainSettings(model="pix3pix"))
 
 
@@ -269,10 +272,19 @@ def test_build_model_rejects_unknown_names():
 
 
 @pytest.mark.slow
-def test_joint_training_moves_vertices_and_generator(tmp_path):
-    from generative.gan_data import load_paired_views
-    from generative.gan_train import JointSettings, train_joint
-    from inverse.morph_data import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
+def test_joint_training_descends_through_generator_and_renderer(tmp_path):
+    """One loss, two optimisers: a joint step must lower that loss on its own batch, through both parts.
+
+    Oracle (first-order descent): with the loop's RNG state restored, step 0 is evaluated again after its
+    update — same view, same render seed, one Dr.Jit and one torch thread, so the only change is the update.
+    Adam's first step moves every parameter against the sign of its gradient, so a correct gradient through
+    dr.wrap (G) and through Mitsuba (vertices, colours) lowers the loss; a wrong sign or a lost gradient
+    does not. Both parts must also have moved, and a full run must end finite.
+    """
+    from foundation.loop import rng_state, set_rng_state
+    from generative.gan.data import load_paired_views
+    from generative.gan.joint import JointSettings, JointStage, train_joint
+    from inverse.morph import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
 
     mesh = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
     bdir = make_morph_benchmark(mesh, tmp_path / "bench", MorphBenchmarkSettings(
@@ -281,20 +293,29 @@ def test_joint_training_moves_vertices_and_generator(tmp_path):
     (tmp_path / "morph").mkdir()
     shutil.copyfile(bench.coarse, tmp_path / "morph" / "morphed.ply")  # stand-in morph result
     data = load_paired_views(bench, tmp_path / "morph", show_progress=False)
-    gs = replace(_tiny("morph_gan", 1), levels=3)
-    s = JointSettings(steps=3, max_seconds=None, gan=gs, spp=2, checkpoint_every=1)
-    m = train_joint(bench, data, tmp_path / "joint", s, show_progress=False)
-    blob = torch.load(tmp_path / "joint" / "checkpoint.pt", weights_only=False)
-    init = build_model(s.gan)
-    moved_g = max(float((blob["model"][k] - v).abs().max()) for k, v in init.state_dict().items()
-                  if k.startswith("G.") and v.is_floating_point())
-    from inverse.morph import _read_ply_colours, remesh
+    gs = replace(_tiny("morph_gan", 1), levels=3, lr=1e-4)
+    s = JointSettings(steps=3, max_seconds=None, gan=gs, spp=8, lr=0.005, lr_colour=0.005, checkpoint_every=1)
 
-    v0, _, c0 = remesh(*_read_ply_colours(bench.coarse))
-    assert moved_g > 0  # the generator weights got gradients through dr.wrap
-    assert np.abs(blob["vertices"] - v0).max() > 0  # … and the vertices through Mitsuba, from the same loss
-    assert np.abs(blob["colours"] - c0).max() > 0
-    assert np.isfinite(m["mse"]) and m["steps"] == 3 and (tmp_path / "joint" / "joint.ply").is_file()
+    stage = JointStage(bench, data, tmp_path / "one", s)
+    v0, c0 = stage.mesh_state()
+    g0 = {k: v.clone() for k, v in stage.model.G.state_dict().items()}
+    state, torch_state = rng_state(stage.rng), torch.get_rng_state()
+    before = stage.step(0)
+    stage.apply(0)
+    set_rng_state(stage.rng, state)
+    torch.set_rng_state(torch_state)
+    after = stage.step(0)
+    stage.discard(0)
+    v1, c1 = stage.mesh_state()
+    stage.close()
+    assert after.loss < before.loss, (before.loss, after.loss)
+    assert np.abs(v1 - v0).max() > 0 and np.abs(c1 - c0).max() > 0  # the renderer's gradient reached the mesh
+    assert max(float((stage.model.G.state_dict()[k] - v).abs().max()) for k, v in g0.items()
+               if v.is_floating_point()) > 0  # … and dr.wrap's reached G
+
+    m = train_joint(bench, data, tmp_path / "joint", s, show_progress=False)
+    assert np.isfinite(m.heldout.mse) and m.training.steps == 3 and m.training.skipped_steps == 0
+    assert (tmp_path / "joint" / "joint.ply").is_file()
 
 
 # -- CLI ------------------------------------------------------------------------------------------------------------
@@ -309,26 +330,33 @@ def test_cli_errors_name_the_bad_path(tmp_path, capsys):
     assert main(["gan", "eval", str(bad), "--run", str(tmp_path / "o")]) == 2
     assert str(bad) in capsys.readouterr().err
     # A benchmark folder without a morph run: the missing morphed mesh is named.
-    import json
+    from inverse.morph import MorphBenchmarkSettings, make_morph_benchmark
 
-    from photoreal import imageio
-
-    bdir = tmp_path / "bench"
-    bdir.mkdir()
-    (bdir / "morph_benchmark.json").write_text(json.dumps({"cameras": [], "train": [], "test": []}))
-    imageio.write_exr(bdir / "photos.exr", {"view00": np.zeros((4, 4, 3), np.float32)})
+    mesh = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
+    bdir = make_morph_benchmark(mesh, tmp_path / "bench", MorphBenchmarkSettings(
+        n_views=4, resolution=32, spp=2, coarse_vertices=300), show_progress=False)
     nomorph = tmp_path / "nomorph"
     assert main(["gan", "train", str(bdir), "--morph", str(nomorph), "--out", str(tmp_path / "o")]) == 2
     assert str(nomorph / "morphed.ply") in capsys.readouterr().err
+    # A resolution the U-Net cannot take is refused before anything is rendered (not after).
+    b24 = make_morph_benchmark(mesh, tmp_path / "b24", MorphBenchmarkSettings(
+        n_views=4, resolution=24, spp=2, coarse_vertices=300), show_progress=False)
+    assert main(["gan", "train", str(b24), "--out", str(tmp_path / "o24")]) == 2
+    assert "24² views do not divide by 2^levels = 32" in capsys.readouterr().err
+    assert not (b24 / "morph").exists() and not (tmp_path / "o24").exists()
+    for argv, flag in ((["--steps", "0"], "--steps must be ≥ 1"), (["--seconds", "-5"], "--seconds must be > 0")):
+        assert main(["gan", "train", str(bdir), "--out", str(tmp_path / "o"), *argv]) == 2
+        assert flag in capsys.readouterr().err
 
 
 def test_demo_section_shows_the_bench_table_only_when_the_json_exists(tmp_path):
     import json
 
     from photoreal.demo import demo_gan
-    from photoreal.gan_bench import ordering
+    from photoreal.benchmarks.gan import ordering
 
-    assert demo_gan(tmp_path, tmp_path / "missing.json") is None
+    assert demo_gan(tmp_path, tmp_path / "nothing_here") is None
+    assert demo_gan(tmp_path, None) is None
     row = {"mse": 0.01, "me": 0.05, "one_minus_ssim": 0.2, "nrmse": 0.1, "sam_deg": 3.0, "flip": 0.1, "psnr": 20.0}
     names = ("input", "morphed", "pix2pix", "cyclegan", "morph_gan_partial", "morph_gan", "joint")
     heldout = {n: dict(row, mse=0.01 - 0.001 * k) for k, n in enumerate(names)}
@@ -336,7 +364,7 @@ def test_demo_section_shows_the_bench_table_only_when_the_json_exists(tmp_path):
     b = {**r, "cases": {"village": r}, "ordering": ordering(heldout), "settings": {
         "cases": ["village"], "morph_iterations": 1, "seconds_per_model": 5.0, "crop": 64, "joint_seconds": 5.0}}
     (tmp_path / "gan.json").write_text(json.dumps(b))
-    assert demo_gan(tmp_path, tmp_path / "gan.json")["joint"] == pytest.approx(0.004)
+    assert demo_gan(tmp_path, tmp_path)["joint"] == pytest.approx(0.004)
     page = (tmp_path / "sections" / "45_gan.html").read_text()
     assert "morph_gan_partial" in page and "0.004" in page and "morph_gan_beats_pix2pix_mse = True" in page
 
@@ -345,14 +373,14 @@ def test_demo_section_shows_the_bench_table_only_when_the_json_exists(tmp_path):
 
 
 def test_region_metrics_match_whole_image_metrics_and_ignore_outside_pixels():
-    from photoreal.metrics import image_metrics, region_metrics
+    from foundation.metrics import image_metrics, region_metrics
 
     rng = np.random.default_rng(0)
     ref = rng.uniform(0, 1, (32, 32, 3))
     test = np.clip(ref + rng.normal(0, 0.05, ref.shape), 0, 1)
     full = region_metrics(test, ref, np.ones((32, 32), bool))
     whole = image_metrics(test, ref)
-    assert full["mse"] == pytest.approx(whole["mse"], rel=1e-12) and full["me"] == pytest.approx(whole["me"], rel=1e-12)
+    assert full["mse"] == pytest.approx(whole.mse, rel=1e-12) and full["me"] == pytest.approx(whole.me, rel=1e-12)
     assert full["pixels"] == 32 * 32
     # errors only in the left half: the right-half region sees none of them, the left half all
     half = ref.copy()
@@ -370,27 +398,27 @@ def test_artifact_masks_cover_what_the_degradation_changed(tmp_path):
     ``eroded_parts`` mask (and vice versa, up to a pixel); regions lie on the truth's surface."""
     from scipy import ndimage
 
-    from inverse.morph_data import (MorphBenchmarkSettings, artifact_masks, load_morph_benchmark,
+    from inverse.morph import (MorphBenchmarkSettings, artifact_masks, load_morph_benchmark,
                                     make_morph_benchmark, sensor_dict)
 
     bench = load_morph_benchmark(make_morph_benchmark("village", tmp_path / "v", MorphBenchmarkSettings(
         n_views=4, test_every=2, resolution=64, spp=2), show_progress=False))
     ids = [0, 1, 2, 3]
     masks = artifact_masks(bench, ids)
-    deg = bench.meta["degradation"]
-    assert deg["chimneys_cut"] and masks["eroded_parts"].any() and masks["floating_parts"].any()
+    deg = bench.meta.degradation
+    assert deg.chimneys_cut and masks["eroded_parts"].any() and masks["floating_parts"].any()
     assert masks["flat"].mean() > 0.2 and masks["edges"].mean() > 0.02
     assert not (masks["flat"] & masks["edges"]).any()
 
     def depth(skip: set[int]) -> np.ndarray:
         shapes = {p: {"type": "ply", "filename": str(bench.path / f"gt_{p}.ply")}
-                  for p in bench.meta["gt_parts"] if int(p[4:]) not in skip}
+                  for p in bench.meta.gt_parts if int(p[4:]) not in skip}
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "d:depth"}, **shapes})
-        res, fov = bench.meta["settings"]["resolution"], bench.meta["fov"]
-        return np.stack([np.array(mi.render(scene, sensor=mi.load_dict(sensor_dict(bench.meta["cameras"][i], res, fov)),
+        res, fov = bench.meta.resolution, bench.meta.fov
+        return np.stack([np.array(mi.render(scene, sensor=mi.load_dict(sensor_dict(bench.meta.cameras[i], res, fov)),
                                             spp=16, seed=i))[..., 0] for i in ids])
 
-    changed = np.abs(depth(set()) - depth({c - 100 for c in deg["chimneys_cut"]})) > 1e-3
+    changed = np.abs(depth(set()) - depth({c - 100 for c in deg.chimneys_cut})) > 1e-3
     grow = lambda m: np.stack([ndimage.binary_dilation(x, iterations=1) for x in m])  # noqa: E731
     assert changed.any()
     assert not (changed & ~grow(masks["eroded_parts"])).any()
@@ -402,9 +430,10 @@ def test_finetunes_start_from_the_two_stage_model_and_mesh(tmp_path):
     """With (near-)zero learning rates both fine-tunes must reproduce the two-stage Morph-GAN's held-out
     outputs: the joint one re-renders its start mesh with the paired data's renderer (same seeds), so any
     mismatch in initial weights, start mesh or test-time light transport shows up here."""
-    from generative.gan_data import load_paired_views
-    from generative.gan_train import JointSettings, load_heldout_predictions, train_joint
-    from inverse.morph_data import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
+    from generative.gan.data import load_paired_views
+    from generative.gan.joint import JointSettings, train_joint
+    from generative.gan.train import load_heldout_predictions
+    from inverse.morph import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
 
     mesh = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
     bench = load_morph_benchmark(make_morph_benchmark(mesh, tmp_path / "bench", MorphBenchmarkSettings(

@@ -82,8 +82,10 @@ def _resolve(props: mi.Properties, name: str) -> str:
 class NeuralBTF(mi.BSDF):
     def __init__(self, props: mi.Properties) -> None:
         mi.BSDF.__init__(self, props)
-        basis = nb.load_basis(_resolve(props, "basis"))
-        mat = nb.load_material(_resolve(props, "material"), basis.config.channels)
+        basis_path, mat_path = _resolve(props, "basis"), _resolve(props, "material")
+        basis = nb.load_basis(basis_path)
+        mat = nb.load_material(mat_path, basis.config.channels)
+        nb.check_pair(basis, mat, basis_path, mat_path)
         self.tiling = float(props.get("tiling", 1.0))
         self.gain = float(props.get("gain", 1.0))
         for name, v in (("tiling", self.tiling), ("gain", self.gain)):

@@ -57,8 +57,9 @@ import mi_plugins  # noqa: F401  (sets the variant and registers ggx_uv)
 import drjit as dr
 import mitsuba as mi
 
-from photoreal.imageio import atomic_path
-from photoreal.progress import progress_bar
+from foundation.errors import UsageError
+from foundation.files import atomic_path, check_output_dir
+from foundation.progress import progress_bar
 
 FAMILIES: tuple[str, ...] = ("fabric", "metal", "stone", "wood", "plaster", "leather", "ceramic", "ground")
 
@@ -73,7 +74,7 @@ _F16_MAX = 65504.0
 _CHUNK_LANES = 1 << 20  # paths traced per kernel launch: bounds memory, amortises tracing
 
 
-class BTFDataError(ValueError):
+class BTFDataError(UsageError):
     """A BTF file is missing, unreadable or inconsistent (the message names the file)."""
 
 
@@ -744,6 +745,10 @@ def render_dataset(out_dir: str | Path, families: Sequence[str] = FAMILIES, per_
     """
     s = settings or BTFRenderSettings()
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out}: is a file, expected a dataset folder")
+    if out.exists() and any(p for p in out.iterdir() if p.suffix not in (".npz", ".json") and not p.name.startswith(".")):
+        check_output_dir(out, "index.json", "--out")  # a folder of other things is not a dataset to add to
     bad = [f for f in families if f not in FAMILIES]
     if bad:
         raise ValueError(f"render_dataset: unknown families {bad}; valid: {', '.join(FAMILIES)}")

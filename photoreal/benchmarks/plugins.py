@@ -1,26 +1,21 @@
-"""Benchmarks that write JSON: speed as ratios against a reference measured in the same run."""
+"""`photoreal bench plugins`: ggx_uv against builtin principled, as a ratio measured in the same run."""
 
 from __future__ import annotations
 
 import gc
-import json
 import os
 import platform
 import statistics
 import time
 from dataclasses import asdict, dataclass
-from pathlib import Path
-
-import numpy as np
 
 import mi_plugins  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from .imageio import atomic_path
-from .progress import progress_bar
-
-ASSETS = Path(__file__).resolve().parent.parent / "scenes" / "assets"
+from foundation import validate
+from foundation.assets import ARMADILLO, envmap
+from foundation.progress import progress_bar
 
 
 @dataclass
@@ -31,6 +26,14 @@ class PluginBenchSettings:
     rounds: int = 2  #: rounds alternate which plugin goes first
     max_depth: int = 6
     seed: int = 0
+
+    def __post_init__(self):
+        validate.integer("resolution", self.resolution, 8, 4096)
+        validate.integer("spp", self.spp, 1)
+        validate.integer("repetitions", self.repetitions, 1)
+        validate.integer("rounds", self.rounds, 1)
+        validate.integer("max_depth", self.max_depth, 1)
+        validate.seed("seed", self.seed)
 
 
 def plugin_bench_scene(bsdf: dict, s: PluginBenchSettings) -> dict:
@@ -44,9 +47,9 @@ def plugin_bench_scene(bsdf: dict, s: PluginBenchSettings) -> dict:
             "film": {"type": "hdrfilm", "width": s.resolution, "height": s.resolution},
             "sampler": {"type": "independent", "sample_count": s.spp},
         },
-        "env": {"type": "envmap", "filename": str(ASSETS / "hdri" / "forest.exr")},
+        "env": envmap("forest"),
         "armadillo": {
-            "type": "ply", "filename": str(ASSETS / "meshes" / "armadillo.ply"), "bsdf": bsdf,
+            "type": "ply", "filename": str(ARMADILLO), "bsdf": bsdf,
             "to_world": mi.ScalarTransform4f().scale(0.01).translate([0, 54.2, 0]).rotate([0, 1, 0], 180),
         },
         "floor": {"type": "rectangle", "bsdf": bsdf,
@@ -63,26 +66,27 @@ BENCH_BSDFS = {
 }
 
 
-def _time_render(scene: mi.Scene, spp: int, seed: int) -> float:
+def _time_render(scene: mi.Scene, spp: int, seed: int) -> tuple[float, float]:
+    """Wall time of one render and its mean pixel value (a check that the timed render is the scene)."""
     t0 = time.perf_counter()
     img = mi.render(scene, spp=spp, seed=seed)
     dr.eval(img)
     dr.sync_thread()
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, float(dr.mean(img, axis=None).array[0])
 
 
-def _first_render(scene: mi.Scene, spp: int, seed: int) -> tuple[float, dict]:
-    """Wall time of the first render and Dr.Jit's kernel history for it (compile vs cache)."""
+def _first_render(scene: mi.Scene, spp: int, seed: int) -> tuple[float, float, dict]:
+    """Wall time and mean value of the first render, and Dr.Jit's kernel history for it (compile vs cache)."""
     dr.kernel_history_clear()
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
-        wall = _time_render(scene, spp, seed)
+        wall, mean = _time_render(scene, spp, seed)
         hist = dr.kernel_history()
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     ms = sum(h.get("codegen_time", 0.0) + h.get("backend_time", 0.0) for h in hist)
-    return wall, {"compile_s": ms / 1000.0, "kernels": len(hist),
-                  "from_disk_cache": int(sum(1 for h in hist if h.get("cache_disk")))}
+    return wall, mean, {"compile_s": ms / 1000.0, "kernels": len(hist),
+                        "from_disk_cache": int(sum(1 for h in hist if h.get("cache_disk")))}
 
 
 def bench_plugins(s: PluginBenchSettings, show_progress: bool = True) -> dict:
@@ -97,18 +101,22 @@ def bench_plugins(s: PluginBenchSettings, show_progress: bool = True) -> dict:
     times: dict[str, list[float]] = {k: [] for k in BENCH_BSDFS}
     first: dict[str, list[float]] = {k: [] for k in BENCH_BSDFS}
     jit: dict[str, list[dict]] = {k: [] for k in BENCH_BSDFS}
+    means: dict[str, list[float]] = {k: [] for k in BENCH_BSDFS}
     order = list(BENCH_BSDFS)
     total = s.rounds * len(order) * (s.repetitions + 1)
     with progress_bar(total=total, desc="bench plugins", unit="render", disable=not show_progress) as bar:
         for r in range(s.rounds):
             for name in order if r % 2 == 0 else order[::-1]:
                 scene = mi.load_dict(plugin_bench_scene(BENCH_BSDFS[name], s))
-                wall, info = _first_render(scene, s.spp, s.seed)
+                wall, mean, info = _first_render(scene, s.spp, s.seed)
                 first[name].append(wall)
+                means[name].append(mean)
                 jit[name].append(info)
                 bar.update(1)
                 for i in range(s.repetitions):
-                    times[name].append(_time_render(scene, s.spp, s.seed + 1 + i))
+                    t, mean = _time_render(scene, s.spp, s.seed + 1 + i)
+                    times[name].append(t)
+                    means[name].append(mean)
                     bar.update(1)
                 del scene
                 gc.collect()
@@ -127,23 +135,9 @@ def bench_plugins(s: PluginBenchSettings, show_progress: bool = True) -> dict:
                          "Dr.Jit's kernel history; kernels already in Dr.Jit's memory or on-disk cache "
                          "(~/.drjit) cost ~0, so a warm machine reports ~0"),
         "all_ms": {k: [1000.0 * t for t in v] for k, v in times.items()},
+        "mean_value": {k: statistics.fmean(v) for k, v in means.items()},
         "settings": asdict(s),
         "variant": mi.variant(),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
         "scene": "armadillo + floor, forest.exr envmap, path tracer; every surface uses the plugin",
     }
-
-
-def write_json(path: str | os.PathLike, data: dict) -> Path:
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, default=_jsonable) + "\n")
-    return path
-
-
-def _jsonable(x):
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    raise TypeError(f"not JSON serialisable: {type(x)}")

@@ -8,12 +8,12 @@ import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
-from inverse.morph import MorphSettings, run_gcn_morph, run_morph
-from inverse.morph_data import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
-
-from .progress import progress_bar
-
-ARMADILLO = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
+from foundation import validate
+from foundation.assets import ARMADILLO
+from foundation.progress import progress_bar
+from foundation.records import to_json
+from inverse.morph import (MorphBenchmarkSettings, MorphResult, MorphSettings, load_morph_benchmark,
+                           make_morph_benchmark, run_gcn_morph, run_morph)
 
 
 @dataclass
@@ -30,21 +30,37 @@ class MorphBenchSettings:
     stability_iterations: int = 80
     seed: int = 0
 
+    def __post_init__(self):
+        for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations"):
+            validate.integer(name, getattr(self, name), 1)
+        for n in (*self.sweep_vertices, self.speed_vertices):
+            validate.integer("sweep_vertices", n, 100)
+        validate.integer("speed_views", self.speed_views, 1)
+        validate.integer("speed_resolution", self.speed_resolution, 8, 4096)
+        validate.integer("baseline_spp", self.baseline_spp, 1)
+        validate.seed("seed", self.seed)
 
-def _source(case: str) -> str:
+
+def source(case: str) -> str:
+    """A benchmark case: "village", "armadillo" (bundled) or a mesh file."""
     return "village" if case == "village" else str(ARMADILLO if case == "armadillo" else case)
 
 
-def _summary(m: dict) -> dict:
+def _summary(m: MorphResult) -> dict:
     keys = ("chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input", "psnr_heldout_morphed",
-            "spikes", "inverted_triangles", "spike_vertices", "seconds", "vertices", "skipped_steps",
-            "inverted_before_repair", "repaired_vertices", "repair_max_move", "planarity_weight",
-            "dominant_plane_fraction")
-    return {k: m.get(k) for k in keys}
+            "spikes", "inverted_triangles", "spike_vertices", "seconds", "vertices")
+    out = {k: getattr(m, k) for k in keys}
+    out["skipped_steps"] = m.training.skipped_steps
+    out.update(inverted_before_repair=m.repair.inverted_before_repair if m.repair else None,
+               repaired_vertices=m.repair.repaired_vertices if m.repair else None,
+               repair_max_move=m.repair.repair_max_move if m.repair else None,
+               planarity_weight=m.planarity.weight if m.planarity else None,
+               dominant_plane_fraction=m.planarity.dominant_plane_fraction if m.planarity else None)
+    return out
 
 
 def bench_case(case: str, work: Path, s: MorphBenchSettings, bar) -> dict:
-    bench = load_morph_benchmark(make_morph_benchmark(_source(case), work / f"bench_{case}",
+    bench = load_morph_benchmark(make_morph_benchmark(source(case), work / f"bench_{case}",
                                                       MorphBenchmarkSettings(seed=s.seed), show_progress=False))
     main = run_morph(bench, work / f"{case}_main", MorphSettings(iterations=s.iterations, seed=s.seed),
                      show_progress=False)
@@ -53,8 +69,8 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, bar) -> dict:
     for n in s.sweep_vertices:
         m = run_morph(bench, work / f"{case}_v{n}", MorphSettings(iterations=s.sweep_iterations, target_vertices=n,
                                                                   seed=s.seed), show_progress=False)
-        sweep.append({"mesh_vertices": m["vertices"], "target_vertices": n, "chamfer": m["chamfer_morphed"],
-                      "psnr": m["psnr_heldout_morphed"], "seconds": m["seconds"]})
+        sweep.append({"mesh_vertices": m.vertices, "target_vertices": n, "chamfer": m.chamfer_morphed,
+                      "psnr": m.psnr_heldout_morphed, "seconds": m.seconds})
         bar.update(1)
     best = min(r["chamfer"] for r in sweep)
     chosen = min(r["mesh_vertices"] for r in sweep if r["chamfer"] <= 1.05 * best)
@@ -78,12 +94,12 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, bar) -> dict:
                      "large_steps_lambda25": replace(short, lambda_=25.0)}.items():
         stab[name] = _summary(run_morph(bench, work / f"{case}_stab_{name}", st, show_progress=False))
         bar.update(1)
-    if main.get("planarity_weight"):  # the prior's ablation, where the auto rule switched it on
+    if main.planarity and main.planarity.weight:  # the prior's ablation, where the auto rule switched it on
         stab["no_planarity_prior"] = _summary(run_morph(bench, work / f"{case}_stab_noplan",
                                                         replace(short, planarity_weight=0.0), show_progress=False))
     bar.update(1)
     few = load_morph_benchmark(bench.path)
-    few.meta = dict(few.meta, train=few.meta["train"][:4])  # four neighbouring views only: border regions unseen
+    few.meta = replace(few.meta, train=few.meta.train[:4])  # four neighbouring views only: border regions unseen
     stab["few_views_4"] = _summary(run_morph(few, work / f"{case}_stab_few", short, show_progress=False))
     bar.update(1)
     stab["gcn_image_loss_only"] = _summary(run_gcn_morph(bench, work / f"{case}_stab_gcn",
@@ -95,13 +111,13 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, bar) -> dict:
                                 and row["psnr_heldout_morphed"] > row["psnr_heldout_input"])
     return {
         **_summary(main),
-        "s_per_iter_10k_4views_128": ours["seconds"] / s.speed_iterations,
-        "s_per_iter_baseline": tutorial["seconds"] / s.speed_iterations,
-        "speed_ratio": (ours["seconds"] / s.speed_iterations) / (tutorial["seconds"] / s.speed_iterations),
-        "chamfer_ours_speed_run": ours["chamfer_morphed"], "chamfer_baseline_speed_run": tutorial["chamfer_morphed"],
-        "speed_vertices": ours["vertices"],
+        "s_per_iter_10k_4views_128": ours.seconds / s.speed_iterations,
+        "s_per_iter_baseline": tutorial.seconds / s.speed_iterations,
+        "speed_ratio": (ours.seconds / s.speed_iterations) / (tutorial.seconds / s.speed_iterations),
+        "chamfer_ours_speed_run": ours.chamfer_morphed, "chamfer_baseline_speed_run": tutorial.chamfer_morphed,
+        "speed_vertices": ours.vertices,
         "sweep": sweep, "chosen_vertices": chosen, "stability": stab,
-        "degradation": bench.meta["degradation"],
+        "degradation": to_json(bench.meta.degradation),
     }
 
 
@@ -132,7 +148,7 @@ def morph_chart(result: dict, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .imageio import save_figure
+    from foundation.imageio import save_figure
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
     for case, r in result["cases"].items():

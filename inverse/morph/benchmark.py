@@ -18,9 +18,8 @@ The village's textures come from the real photographs scikit-image ships
 
 from __future__ import annotations
 
-import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,10 +27,16 @@ import numpy as np
 import mi_plugins  # noqa: F401
 import mitsuba as mi
 
-from photoreal import imageio
-from photoreal.progress import progress_bar
+from foundation import imageio, validate
+from foundation.assets import envmap, hdri_path
+from foundation.errors import UsageError
+from foundation.files import atomic_dir, read_json, write_json
+from foundation.mesh import load_mesh_any, normalise_mesh, sample_surface, vertex_normals, write_ply
+from foundation.progress import progress_bar
+from foundation.records import from_json, to_json
 
-ASSETS = Path(__file__).resolve().parent.parent / "scenes" / "assets"
+MARKER = "morph_benchmark.json"  #: written last: a folder holding it is a complete benchmark
+FORMAT = "photoreal-morph-benchmark/1"
 
 
 @dataclass
@@ -50,6 +55,65 @@ class MorphBenchmarkSettings:
     colour_blur: float = 0.02  #: × scene size, colour lookup blur radius
     n_houses: int = 6
     seed: int = 0
+
+    def __post_init__(self):
+        # At least 4 views: every test_every-th is held out, and both splits must be non-empty.
+        validate.integer("n_views", self.n_views, 4, 1024)
+        validate.integer("test_every", self.test_every, 2, self.n_views)
+        validate.integer("resolution", self.resolution, 16, 4096)
+        validate.integer("spp", self.spp, 1, 1 << 16)
+        validate.integer("photo_max_depth", self.photo_max_depth, 2, 64)
+        validate.integer("coarse_vertices", self.coarse_vertices, 100)
+        validate.integer("n_houses", self.n_houses, 1, 6)
+        validate.seed("seed", self.seed)
+        for name in ("bump_amplitude", "wobble_amplitude", "misregistration", "colour_blur"):
+            validate.non_negative(name, getattr(self, name))
+        if len(self.elevation_deg) != 2 or not -89 <= self.elevation_deg[0] <= self.elevation_deg[1] <= 89:
+            raise UsageError(f"elevation_deg must be (low, high) within [-89, 89]°, got {self.elevation_deg}")
+        hdri_path(self.hdri)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A look-at camera (y up)."""
+
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+
+
+@dataclass
+class Degradation:
+    """What :func:`degrade` did to the ground truth (the artifact log of the benchmark)."""
+
+    chimneys_cut: list[int]
+    chimneys_floating: list[int]
+    bump_rms: float
+    coarse_vertices: int
+    dense_vertices: int
+
+
+@dataclass
+class MorphBenchmarkMeta:
+    """``morph_benchmark.json``: how the benchmark was made, its cameras and split."""
+
+    source: str  #: the mesh file it was made from (as given) or "village"
+    kind: str  #: "village" or the mesh file's stem
+    settings: MorphBenchmarkSettings
+    cameras: list[Camera]
+    fov: float  #: degrees, horizontal
+    train: list[int]  #: camera indices of the photos to fit
+    test: list[int]  #: held-out camera indices (never fitted)
+    scene_size: float  #: bounding-box diagonal of the ground truth
+    centre: list[float]
+    hdri: str  #: bundled HDRI name or EXR path lighting the photos
+    degradation: Degradation
+    gt_parts: list[str]
+    seconds: float
+    format: str = FORMAT
+
+    @property
+    def resolution(self) -> int:
+        return self.settings.resolution
 
 
 # -- meshes ---------------------------------------------------------------------------------------
@@ -182,35 +246,7 @@ def part_mesh(part: Part, name: str) -> mi.Mesh:
     return mesh
 
 
-# -- generic meshes ---------------------------------------------------------------------------------
-
-
-def load_mesh_any(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and triangles of an OBJ/PLY/OFF file (pymeshlab reads all three)."""
-    import pymeshlab
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such mesh file")
-    ms = pymeshlab.MeshSet()
-    try:
-        ms.load_new_mesh(str(path))
-    except Exception as exc:  # pymeshlab raises its own PyMeshLabException
-        raise ValueError(f"{path}: cannot read mesh ({exc})") from exc
-    m = ms.current_mesh()
-    v, f = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
-    if len(f) == 0 or not np.isfinite(v).all():
-        raise ValueError(f"{path}: mesh has no faces or non-finite vertices")
-    return v, f
-
-
-def normalise_mesh(v: np.ndarray) -> np.ndarray:
-    """Centre on the floor (min y = 0) and scale to a 2-unit bounding diagonal."""
-    lo, hi = v.min(0), v.max(0)
-    s = 2.0 / np.linalg.norm(hi - lo)
-    out = (v - 0.5 * (lo + hi)) * s
-    out[:, 1] -= out[:, 1].min()
-    return out
+# -- generic meshes -------------------------------------------------------------------------------------------------
 
 
 def procedural_colours(v: np.ndarray, seed: int) -> np.ndarray:
@@ -228,7 +264,7 @@ def procedural_colours(v: np.ndarray, seed: int) -> np.ndarray:
 # -- cameras -------------------------------------------------------------------------------------------
 
 
-def drone_orbit(n: int, centre: np.ndarray, radius: float, elevation: tuple[float, float], seed: int) -> list[dict]:
+def drone_orbit(n: int, centre: np.ndarray, radius: float, elevation: tuple[float, float], seed: int) -> list[Camera]:
     """``n`` cameras on a jittered orbit, altitude varying between the elevation bounds."""
     rng = np.random.default_rng(seed + 5)
     cams = []
@@ -236,14 +272,15 @@ def drone_orbit(n: int, centre: np.ndarray, radius: float, elevation: tuple[floa
         az = 2 * np.pi * i / n + rng.uniform(-0.05, 0.05)
         el = np.radians(elevation[0] + (elevation[1] - elevation[0]) * (0.5 + 0.5 * np.sin(3 * az)))
         eye = centre + radius * np.array([np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)])
-        cams.append({"eye": eye.tolist(), "target": (centre + rng.normal(scale=0.02 * radius, size=3)).tolist()})
+        target = centre + rng.normal(scale=0.02 * radius, size=3)
+        cams.append(Camera(tuple(map(float, eye)), tuple(map(float, target))))
     return cams
 
 
-def sensor_dict(cam: dict, res: int, fov: float, sample_border: bool = False) -> dict:
+def sensor_dict(cam: Camera, res: int, fov: float, sample_border: bool = False) -> dict:
     """Perspective camera; ``sample_border`` for shape optimisation (geometry entering the frame)."""
     return {"type": "perspective", "fov": fov,
-            "to_world": mi.ScalarTransform4f().look_at(origin=cam["eye"], target=cam["target"], up=[0, 1, 0]),
+            "to_world": mi.ScalarTransform4f().look_at(origin=list(cam.eye), target=list(cam.target), up=[0, 1, 0]),
             "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"},
                      "sample_border": sample_border},
             "sampler": {"type": "independent"}}
@@ -258,16 +295,8 @@ def _smooth_field(p: np.ndarray, scale: float, rng: np.random.Generator, n: int 
     return sum(np.sin(p @ k[i] + ph[i]) for i in range(n)) / np.sqrt(n)
 
 
-def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    vn = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(vn, f[:, k], fn)
-    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-20)
-
-
 def degrade(v: np.ndarray, f: np.ndarray, labels: np.ndarray, s: MorphBenchmarkSettings, size: float,
-            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, dict]:
+            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, Degradation]:
     """Photogrammetry-like artifacts; returns the coarse mesh and a log of what was done."""
     import fast_simplification
     import pymeshlab
@@ -321,7 +350,7 @@ def degrade(v: np.ndarray, f: np.ndarray, labels: np.ndarray, s: MorphBenchmarkS
     m = ms.current_mesh()
     log["coarse_vertices"] = int(m.vertex_number())
     log["dense_vertices"] = int(len(v2))
-    return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64), log
+    return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64), Degradation(**log)
 
 
 def misregistered_colours(vc: np.ndarray, gt_points: np.ndarray, gt_colours: np.ndarray, s: MorphBenchmarkSettings,
@@ -340,38 +369,6 @@ def misregistered_colours(vc: np.ndarray, gt_points: np.ndarray, gt_colours: np.
     return out
 
 
-def sample_surface(v: np.ndarray, f: np.ndarray, n: int,
-                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Area-uniform points, their face ids and barycentric weights."""
-    a = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    fid = rng.choice(len(f), size=n, p=a / a.sum())
-    r1, r2 = rng.random(n), rng.random(n)
-    s1 = np.sqrt(r1)
-    w = np.stack([1 - s1, s1 * (1 - r2), s1 * r2], axis=1)
-    return np.einsum("nk,nkd->nd", w, v[f[fid]]), fid, w
-
-
-def write_ply(path: Path, v: np.ndarray, f: np.ndarray, colours: np.ndarray | None = None) -> Path:
-    """Binary PLY with optional per-vertex colours (float r, g, b in [0, 1]; Mitsuba reads them)."""
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(v)}",
-              "property float x", "property float y", "property float z"]
-    if colours is not None:
-        header += ["property float r", "property float g", "property float b"]
-    header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
-    vert = np.asarray(v, np.float32)
-    if colours is not None:
-        vert = np.concatenate([vert, np.asarray(colours, np.float32)], axis=1)
-    faces = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    faces["n"] = 3
-    faces["i"] = f
-    with imageio.atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(("\n".join(header) + "\n").encode())
-            fh.write(vert.astype("<f4").tobytes())
-            fh.write(faces.tobytes())
-    return path
-
-
 # -- the benchmark -----------------------------------------------------------------------------------------
 
 
@@ -381,11 +378,11 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
     s = s or MorphBenchmarkSettings()
     out = Path(out)
     rng = np.random.default_rng(s.seed)
-    hdr = ASSETS / "hdri" / f"{s.hdri}.exr"
-    if not hdr.is_file():
-        raise FileNotFoundError(f"{hdr}: no such HDRI")
+    env = envmap(s.hdri)  # validated before any work
+    if str(source) != "village":
+        load_mesh_any(source)  # a missing, unreadable or degenerate mesh is named before the folder is touched
     t0 = time.perf_counter()
-    with imageio.atomic_dir(out) as tmp:
+    with atomic_dir(out, MARKER) as tmp:
         shapes: dict = {}
         if str(source) == "village":
             parts = village_parts(s.n_houses, s.seed)
@@ -450,7 +447,7 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
         radius = 0.5 * size / np.tan(np.radians(fov / 2)) * (0.75 if kind == "village" else 0.8)
         cams = drone_orbit(s.n_views, centre, radius, s.elevation_deg, s.seed)
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": s.photo_max_depth},
-                              "env": {"type": "envmap", "filename": str(hdr)}, **shapes})
+                              "env": env, **shapes})
         photos = {}
         with progress_bar(total=len(cams), desc=f"photos {kind}", unit="view", disable=not show_progress) as bar:
             for i, cam in enumerate(cams):
@@ -468,22 +465,24 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
         write_ply(tmp / "coarse.ply", cv, cf, ccol)
         imageio.write_png(tmp / "preview_view00.png", photos["view00"])
         test = [i for i in range(s.n_views) if i % s.test_every == s.test_every - 1]
-        meta = {
-            "format": "photoreal-morph-benchmark/1",
-            "source": str(source), "kind": kind, "settings": asdict(s),
-            "cameras": cams, "fov": fov, "train": [i for i in range(s.n_views) if i not in test], "test": test,
-            "scene_size": size, "centre": centre.tolist(), "hdri": s.hdri, "degradation": log,
-            "gt_parts": sorted(k for k in shapes), "seconds": time.perf_counter() - t0,
-        }
-        (tmp / "morph_benchmark.json").write_text(json.dumps(meta, indent=2) + "\n")
+        meta = MorphBenchmarkMeta(
+            source=str(source), kind=kind, settings=s, cameras=cams, fov=fov,
+            train=[i for i in range(s.n_views) if i not in test], test=test, scene_size=size,
+            centre=centre.tolist(), hdri=s.hdri, degradation=log, gt_parts=sorted(k for k in shapes),
+            seconds=time.perf_counter() - t0)
+        write_json(tmp / MARKER, to_json(meta))  # last: its presence marks a complete benchmark
     return out
 
 
 @dataclass
 class MorphBenchmark:
     path: Path
-    meta: dict
+    meta: MorphBenchmarkMeta
     photos: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def photo(self, i: int) -> np.ndarray:
+        """Photo of camera ``i``, (H, W, 3) float32 linear RGB."""
+        return self.photos[f"view{i:02d}"][..., :3].astype(np.float32)
 
     @property
     def coarse(self) -> Path:
@@ -495,14 +494,34 @@ class MorphBenchmark:
 
 
 def load_morph_benchmark(path: str | Path) -> MorphBenchmark:
+    """Read a benchmark folder; a missing or inconsistent part is named."""
     path = Path(path)
-    mp = path / "morph_benchmark.json"
+    mp = path / MARKER
+    if not path.is_dir():
+        raise UsageError(f"{path}: no such morph benchmark folder")
     if not mp.is_file():
-        raise FileNotFoundError(f"{path}: not a morph benchmark folder (no morph_benchmark.json)")
-    meta = json.loads(mp.read_text())
+        raise UsageError(f"{path}: not a morph benchmark folder (no {MARKER}; make one with "
+                         "`photoreal morph make-benchmark`)")
+    raw = read_json(mp, "morph benchmark description")
+    if raw.get("format") != FORMAT:
+        raise UsageError(f"{mp}: unknown format {raw.get('format')!r} (expected {FORMAT!r})")
+    meta = from_json(MorphBenchmarkMeta, raw, str(mp))
+    n = len(meta.cameras)
+    if not meta.train or not meta.test or max(meta.train + meta.test) >= n or min(meta.train + meta.test) < 0:
+        raise UsageError(f"{mp}: train/test views must be non-empty indices of the {n} cameras")
+    for name in ("coarse.ply", "ground_truth.ply"):
+        if not (path / name).is_file():
+            raise UsageError(f"{path / name}: missing from the benchmark")
     ch = imageio.read_exr(path / "photos.exr")
     names = sorted({k.rsplit(".", 1)[0] for k in ch})
-    return MorphBenchmark(path, meta, {n: imageio.exr_layer(ch, n) for n in names})
+    photos = {nm: imageio.exr_layer(ch, nm) for nm in names}
+    missing = [i for i in range(n) if f"view{i:02d}" not in photos]
+    if missing:
+        raise UsageError(f"{path / 'photos.exr'}: no photo for camera(s) {missing[:5]}")
+    res = meta.settings.resolution
+    if any(photos[f"view{i:02d}"].shape[:2] != (res, res) for i in range(n)):
+        raise UsageError(f"{path / 'photos.exr'}: photos are not {res}×{res} as the benchmark says")
+    return MorphBenchmark(path, meta, photos)
 
 
 # -- artifact regions in image space (for per-region errors of the refinement stages) ---------------------------
@@ -530,9 +549,9 @@ def artifact_masks(bench: MorphBenchmark, ids: list[int], spp: int = 16,
     from scipy import ndimage
 
     meta = bench.meta
-    res, fov = meta["settings"]["resolution"], meta["fov"]
-    deg = meta.get("degradation", {})
-    parts = {int(p[4:]): bench.path / f"gt_{p}.ply" for p in meta.get("gt_parts", [])}
+    res, fov = meta.resolution, meta.fov
+    deg = meta.degradation
+    parts = {int(p[4:]): bench.path / f"gt_{p}.ply" for p in meta.gt_parts}
     if not parts:
         raise ValueError(f"{bench.path}: benchmark lists no ground-truth parts (gt_parts)")
     for i, p in parts.items():
@@ -550,17 +569,17 @@ def artifact_masks(bench: MorphBenchmark, ids: list[int], spp: int = 16,
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 1}, **shapes})
         out = np.empty((len(ids), res, res), np.float32)
         for k, i in enumerate(ids):
-            sensor = mi.load_dict(sensor_dict(meta["cameras"][i], res, fov))
+            sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, fov))
             out[k] = np.array(mi.render(scene, sensor=sensor, spp=spp, seed=int(i)))[..., 0]
         return out
 
-    cut = {c - 100 for c in deg.get("chimneys_cut", [])}
-    lifted = {c - 100 for c in deg.get("chimneys_floating", [])}
+    cut = {c - 100 for c in deg.chimneys_cut}
+    lifted = {c - 100 for c in deg.chimneys_floating}
     masks = {"eroded_parts": coverage(cut) > 0 if cut else np.zeros((len(ids), res, res), bool)}
     if lifted:
         # Lift in pixels: 0.15·size/10 world units seen from the orbit radius (small-angle projection).
-        radius = float(np.mean([np.linalg.norm(np.subtract(c["eye"], c["target"])) for c in meta["cameras"]]))
-        lift_px = 0.015 * meta["scene_size"] / (2 * radius * np.tan(np.radians(fov / 2))) * res
+        radius = float(np.mean([np.linalg.norm(np.subtract(c.eye, c.target)) for c in meta.cameras]))
+        lift_px = 0.015 * meta.scene_size / (2 * radius * np.tan(np.radians(fov / 2))) * res
         grow = max(1, int(np.ceil(lift_px)))
         masks["floating_parts"] = np.stack([ndimage.binary_dilation(m, iterations=grow)
                                             for m in coverage(lifted) > 0])
@@ -573,7 +592,7 @@ def artifact_masks(bench: MorphBenchmark, ids: list[int], spp: int = 16,
     cos_t = np.cos(np.radians(edge_deg))
     edges, surface = [], []
     for i in ids:
-        sensor = mi.load_dict(sensor_dict(meta["cameras"][i], res, fov))
+        sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, fov))
         n = np.array(mi.render(scene, sensor=sensor, spp=spp, seed=int(i)))[..., :3]
         ln = np.linalg.norm(n, axis=-1)
         hit = ln > 1e-3

@@ -1,4 +1,8 @@
-"""Render Mitsuba XML scenes that use photoreal's plugins, with clear errors and atomic output."""
+"""Load and render Mitsuba scenes (XML files or dicts) with clear errors, progress and atomic output.
+
+Also the intrinsic layers of seed 000: :func:`split_intrinsics` (I = D / A) and :func:`recompose`
+(R = A·I + S), used by the demo, the CLI and the diffusion stages.
+"""
 
 from __future__ import annotations
 
@@ -16,10 +20,16 @@ import mitsuba as mi
 from mi_plugins.integrators.intrinsic import AOV_GROUPS
 
 from . import imageio
+from .errors import UsageError
+from .files import check_output_file
 from .progress import progress_bar
+from .threads import exr_safe
+from .validate import SEED_MAX
+
+MAX_SIDE = 16384  #: largest film side accepted (a 100000² film would need ~120 GB before the first sample)
 
 
-class SceneError(RuntimeError):
+class SceneError(UsageError):
     """A scene file could not be parsed or loaded; the message names the file."""
 
 
@@ -33,11 +43,14 @@ class RenderSettings:
 
     def __post_init__(self):
         if self.spp is not None and self.spp < 1:
-            raise ValueError(f"spp must be >= 1, got {self.spp}")
-        if self.resolution is not None and (len(self.resolution) != 2 or min(self.resolution) < 1):
-            raise ValueError(f"resolution must be two positive integers, got {self.resolution}")
+            raise UsageError(f"spp must be >= 1, got {self.spp}")
+        if self.resolution is not None and (len(self.resolution) != 2 or min(self.resolution) < 1
+                                            or max(self.resolution) > MAX_SIDE):
+            raise UsageError(f"resolution must be two integers in [1, {MAX_SIDE}], got {self.resolution}")
+        if not 0 <= self.seed <= SEED_MAX:
+            raise UsageError(f"seed must be in [0, {SEED_MAX}], got {self.seed}")
         if self.pass_spp < 1:
-            raise ValueError(f"pass_spp must be >= 1, got {self.pass_spp}")
+            raise UsageError(f"pass_spp must be >= 1, got {self.pass_spp}")
 
 
 def _set_child(parent: ET.Element, tag: str, name: str, value: str) -> None:
@@ -94,7 +107,8 @@ def load_scene(path: str | os.PathLike, settings: RenderSettings | None = None) 
     saved = [resolver[i] for i in range(len(resolver))]
     resolver.prepend(str(path.parent.resolve()))
     try:
-        return mi.load_string(xml)
+        with exr_safe():  # Mitsuba's EXR reader needs ≥ 2 Dr.Jit threads (foundation.threads)
+            scene = mi.load_string(xml)
     except Exception as exc:
         msg = str(exc).strip()
         # Python plugin constructors report through a traceback; keep its last line.
@@ -105,6 +119,11 @@ def load_scene(path: str | os.PathLike, settings: RenderSettings | None = None) 
         resolver.clear()
         for p in saved:
             resolver.append(p)
+    if not scene.sensors():
+        raise SceneError(f"{path}: the scene has no <sensor> (a camera to render from)")
+    if scene.integrator() is None:
+        raise SceneError(f"{path}: the scene has no <integrator>")
+    return scene
 
 
 def _channel_split(img: np.ndarray, aov_names: list[str]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -149,7 +168,14 @@ def render_scene(scene: mi.Scene, settings: RenderSettings, show_progress: bool 
     with progress_bar(total=spp, desc=label, unit="spp", disable=not show_progress) as bar, \
             evaluated_mode(uses_neural_btf(scene)):
         for i, k in enumerate(per):
-            img = np.array(mi.render(scene, spp=k, seed=settings.seed * 100_003 + i), dtype=np.float64)
+            # The sampler seed is 32-bit: wrap (seeds < 42950 give the same passes as before the wrap).
+            seed = (settings.seed * 100_003 + i) % 2**32
+            try:
+                img = np.array(mi.render(scene, spp=k, seed=seed), dtype=np.float64)
+            except RuntimeError as exc:  # Ctrl-C inside a Python plugin arrives wrapped by Dr.Jit
+                if "KeyboardInterrupt" in str(exc):
+                    raise KeyboardInterrupt from None
+                raise
             acc = img * k if acc is None else acc + img * k
             bar.update(k)
     img = (acc / spp).astype(np.float32)
@@ -167,7 +193,9 @@ def render_file(
     """Render a scene file to ``out`` (EXR with AOV layers) plus ``out`` with .png; returns a summary."""
     out = Path(out)
     if out.suffix.lower() != ".exr":
-        raise ValueError(f"{out}: output must be an .exr file")
+        raise UsageError(f"{out}: output must be an .exr file")
+    check_output_file(out, "output")
+    check_output_file(out.with_suffix(".png"), "preview")
     scene = load_scene(scene_path, settings)
     rgb, aovs = render_scene(scene, settings, show_progress, label=Path(scene_path).name)
     layers = {"": rgb, **{k: v for k, v in aovs.items()}}

@@ -4,15 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
+from .mesh import edge_lengths, face_normals, sample_surface
 
 
 def _samples(v, f, n, seed):
-    from .morph_data import sample_surface
-
     pts, fid, _ = sample_surface(v, f, n, np.random.default_rng(seed))
     return pts, face_normals(v, f)[fid]
 
@@ -37,18 +32,6 @@ def chamfer(va, fa, vb, fb, n: int = 100_000, n_ref: int = 1_000_000, seed: int 
     na_ref, nb_ref = rna, rnb
     nc = 0.5 * (np.abs(np.sum(na * nb_ref[ia], axis=1)).mean() + np.abs(np.sum(nb * na_ref[ib], axis=1)).mean())
     return {"chamfer": float(0.5 * (da.mean() + db.mean())), "normal_consistency": float(nc)}
-
-
-def edge_lengths(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Mean incident edge length per vertex."""
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    ln = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
-    s = np.zeros(len(v))
-    c = np.zeros(len(v))
-    for k in range(2):
-        np.add.at(s, e[:, k], ln)
-        np.add.at(c, e[:, k], 1)
-    return s / np.maximum(c, 1)
 
 
 def inverted_triangles(v: np.ndarray, f: np.ndarray, gv: np.ndarray, gf: np.ndarray) -> int:

@@ -13,28 +13,28 @@ reach the morphed mesh) against fine-tuning it with the mesh fixed (``morph_gan_
 Both fine-tunes start from the same selected G and D, train on all train views and keep
 their last weights (no validation selection), so the only difference is the mesh's gradient.
 
-Artifact regions (:func:`inverse.morph_data.artifact_masks`): errors restricted to the
+Artifact regions (:func:`inverse.morph.artifact_masks`): errors restricted to the
 held-out pixels of cut chimneys, lifted chimneys, geometric edges and flat surfaces.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from generative.gan_data import load_paired_views
-from generative.gan_train import (MODELS, GanTrainSettings, JointSettings, load_heldout_predictions, mean_metrics,
-                                  train_gan, train_joint)
-from inverse.morph import MorphSettings, run_morph
-from inverse.morph_data import (ARTIFACT_REGIONS, MorphBenchmarkSettings, artifact_masks, load_morph_benchmark,
-                                make_morph_benchmark)
+from foundation import validate
+from foundation.files import read_json
+from foundation.metrics import ImageMetrics, region_metrics
+from foundation.progress import progress_bar
+from generative.gan import (MODELS, GanTrainSettings, JointSettings, load_heldout_predictions, load_paired_views,
+                            mean_metrics, train_gan, train_joint)
+from inverse.morph import (ARTIFACT_REGIONS, MorphBenchmarkSettings, MorphSettings, artifact_masks,
+                           load_morph_benchmark, make_morph_benchmark, run_morph)
 
-from .morph_bench import _source
-from .progress import progress_bar
+from .morph import source
 
 METRICS = ("mse", "me", "one_minus_ssim", "nrmse", "sam_deg", "flip", "psnr")
 
@@ -53,23 +53,31 @@ class GanBenchSettings:
     batch: int = 4
     seed: int = 0
 
+    def __post_init__(self):
+        for name in ("seconds_per_model", "cyclegan_seconds", "joint_seconds", "finetune_seconds"):
+            validate.positive(name, getattr(self, name))
+        validate.integer("morph_iterations", self.morph_iterations, 1)
+        validate.integer("crop", self.crop, 8)
+        validate.integer("batch", self.batch, 1)
+        validate.seed("seed", self.seed)
+
 
 def _prepare(case: str, work: Path, s: GanBenchSettings, show_progress: bool):
     bdir, mdir = work / case / "benchmark", work / case / "morph"
     if not (bdir / "morph_benchmark.json").is_file():
-        make_morph_benchmark(_source(case), bdir, MorphBenchmarkSettings(seed=s.seed), show_progress=show_progress)
+        make_morph_benchmark(source(case), bdir, MorphBenchmarkSettings(seed=s.seed), show_progress=show_progress)
     bench = load_morph_benchmark(bdir)
     if not (mdir / "metrics.json").is_file():
         run_morph(bench, mdir, MorphSettings(iterations=s.morph_iterations, seed=s.seed), show_progress=show_progress)
-    return bench, mdir, json.loads((mdir / "metrics.json").read_text())
+    return bench, mdir, read_json(mdir / "metrics.json", "morph metrics")
 
 
 def bench_case(case: str, work: Path, s: GanBenchSettings, bar, show_progress: bool = False) -> dict:
     bench, mdir, morph = _prepare(case, work, s, show_progress)
     data = load_paired_views(bench, mdir, show_progress=show_progress)
     t = data.test
-    heldout = {"input": mean_metrics(data.rendered[t], data.photos[t]),
-               "morphed": mean_metrics(data.morphed[t], data.photos[t])}
+    heldout = {"input": _metrics(mean_metrics(data.rendered[t], data.photos[t])),
+               "morphed": _metrics(mean_metrics(data.morphed[t], data.photos[t]))}
     train_s, infer, curves, steps = {"morph": morph["seconds"]}, {}, {}, {}
     base = GanTrainSettings(max_seconds=s.seconds_per_model, crop=s.crop, batch=s.batch, seed=s.seed)
     for name in MODELS:
@@ -77,15 +85,16 @@ def bench_case(case: str, work: Path, s: GanBenchSettings, bar, show_progress: b
         if name == "cyclegan":
             ms = replace(ms, residual=False, max_seconds=s.cyclegan_seconds)
         m = train_gan(data, work / case / name, ms, show_progress=show_progress)
-        heldout[name] = {k: m[k] for k in METRICS}
-        train_s[name], infer[name], curves[name] = m["train_seconds"], m["infer_ms_per_image"], m["curve"]
-        steps[name] = m["steps"]
+        heldout[name] = _metrics(m.heldout)
+        train_s[name], infer[name] = m.training.train_seconds, m.heldout.infer_ms_per_image
+        curves[name] = [asdict(c) for c in m.curve]
+        steps[name] = m.training.steps
         bar.update(1)
     j = train_joint(bench, data, work / case / "joint", JointSettings(max_seconds=s.joint_seconds, gan=base,
                                                                       seed=s.seed), show_progress=show_progress)
-    heldout["joint"] = {k: j[k] for k in METRICS}
-    heldout["joint_mesh_only"] = {k: j["mesh_only"][k] for k in METRICS}
-    train_s["joint"], infer["joint"] = j["train_seconds"], j["infer_ms_per_image"]
+    heldout["joint"] = _metrics(j.heldout)
+    heldout["joint_mesh_only"] = _metrics(j.mesh_only)
+    train_s["joint"], infer["joint"] = j.training.train_seconds, j.heldout.infer_ms_per_image
     train_s["two_stage_morph_gan"] = morph["seconds"] + train_s["morph_gan"]
     bar.update(1)
     # Equal extra time on top of the finished two-stage Morph-GAN: mesh fixed vs mesh optimised jointly.
@@ -98,10 +107,10 @@ def bench_case(case: str, work: Path, s: GanBenchSettings, bar, show_progress: b
                      JointSettings(max_seconds=s.finetune_seconds, gan=ft, init_from=init,
                                    init_mesh=str(mdir / "morphed.ply"), seed=s.seed), show_progress=show_progress)
     for name, m in (("morph_gan_finetune", c), ("joint_finetune", jf)):
-        heldout[name] = {k: m[k] for k in METRICS}
-        train_s[name], infer[name] = m["train_seconds"], m["infer_ms_per_image"]
-    heldout["joint_finetune_mesh_only"] = {k: jf["mesh_only"][k] for k in METRICS}
-    steps.update(joint=j["steps"], morph_gan_finetune=c["steps"], joint_finetune=jf["steps"])
+        heldout[name] = _metrics(m.heldout)
+        train_s[name], infer[name] = m.training.train_seconds, m.heldout.infer_ms_per_image
+    heldout["joint_finetune_mesh_only"] = _metrics(jf.mesh_only)
+    steps.update(joint=j.training.steps, morph_gan_finetune=c.training.steps, joint_finetune=jf.training.steps)
     bar.update(1)
     regions = region_table(bench, data, work / case, mdir)
     return {"heldout": heldout, "train_seconds": train_s, "infer_ms_per_image": infer, "curves": curves,
@@ -113,10 +122,12 @@ def bench_case(case: str, work: Path, s: GanBenchSettings, bar, show_progress: b
 REGION_ROWS = ("input", "morphed", *MODELS, "joint", "morph_gan_finetune", "joint_finetune")
 
 
+def _metrics(m: ImageMetrics) -> dict:
+    return {k: getattr(m, k) for k in METRICS}
+
+
 def region_table(bench, data, case_dir: Path, morph_dir: Path) -> dict:
     """{region: {row: {mse, me, one_minus_ssim, flip, pixels}}} over the held-out views (pixel-weighted means)."""
-    from photoreal.metrics import region_metrics
-
     t = data.test
     masks = artifact_masks(bench, t)
     images = {"input": data.rendered[t], "morphed": data.morphed[t]}
@@ -194,7 +205,7 @@ def gan_chart(result: dict, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .imageio import save_figure
+    from foundation.imageio import save_figure
 
     cases = result["cases"]
     fig, axes = plt.subplots(1, len(cases), figsize=(5.5 * len(cases), 4), squeeze=False)

@@ -16,7 +16,6 @@ horizontal flips (the thesis' augmentation).
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -27,17 +26,23 @@ import torch
 import mi_plugins  # noqa: F401
 import mitsuba as mi
 
-from inverse.morph import morph_scene
-from inverse.morph_data import ASSETS, MorphBenchmark, sensor_dict
-from photoreal import imageio
-from photoreal.progress import progress_bar
+from foundation import validate
+from foundation.errors import UsageError
+from foundation.files import atomic_path, file_digest
+from foundation.progress import progress_bar
+from inverse.morph import MODES, MorphBenchmark, morph_scene, sensor_dict
 
 
 @dataclass
 class GanDataSettings:
     spp: int = 32
     max_depth: int = 3
-    mode: str = "lit"  #: appearance mode of inverse/morph.py's scene
+    mode: str = "lit"  #: appearance mode of inverse.morph's scene
+
+    def __post_init__(self):
+        validate.integer("spp", self.spp, 1)
+        validate.integer("max_depth", self.max_depth, 2)
+        validate.one_of("mode", self.mode, MODES)
 
 
 @dataclass
@@ -56,21 +61,16 @@ class PairedViews:
         return int(self.photos.shape[1])
 
 
-def _digest(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
-
-
 def render_mesh_views(mesh_ply: Path, bench: MorphBenchmark, ids: list[int], s: GanDataSettings,
                       desc: str = "render", show_progress: bool = True) -> np.ndarray:
     """Render a coloured PLY at the benchmark's cameras ``ids`` → (len(ids), H, W, 3) float32."""
     meta = bench.meta
-    res = meta["settings"]["resolution"]
-    scene = morph_scene(Path(mesh_ply), s.mode, ASSETS / "hdri" / f"{meta['hdri']}.exr",
-                        integrator={"type": "path", "max_depth": s.max_depth})
+    res = meta.resolution
+    scene = morph_scene(Path(mesh_ply), s.mode, meta.hdri, integrator={"type": "path", "max_depth": s.max_depth})
     out = np.empty((len(ids), res, res, 3), np.float32)
     with progress_bar(total=len(ids), desc=desc, unit="view", disable=not show_progress) as bar:
         for k, i in enumerate(ids):
-            sensor = mi.load_dict(sensor_dict(meta["cameras"][i], res, meta["fov"]))
+            sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, meta.fov))
             out[k] = np.array(mi.render(scene, sensor=sensor, spp=s.spp, seed=int(i)))[..., :3]
             bar.update(1)
     del scene
@@ -84,26 +84,30 @@ def load_paired_views(bench: MorphBenchmark, morph_dir: str | Path, s: GanDataSe
     morph_dir = Path(morph_dir)
     morphed_ply = morph_dir / "morphed.ply"
     if not morphed_ply.is_file():
-        raise FileNotFoundError(f"{morphed_ply}: no morphed mesh (run `photoreal morph run` first)")
+        raise UsageError(f"{morphed_ply}: no morphed mesh (run `photoreal morph run` first)")
     meta = bench.meta
-    n = len(meta["cameras"])
-    key = json.dumps({"coarse": _digest(bench.coarse), "morphed": _digest(morphed_ply), **asdict(s)}, sort_keys=True)
+    n = len(meta.cameras)
+    key = json.dumps({"coarse": file_digest(bench.coarse), "morphed": file_digest(morphed_ply), **asdict(s)},
+                     sort_keys=True)
     cache = morph_dir / "gan_renders.npz"
     rendered = morphed = None
     if cache.is_file():
-        z = np.load(cache, allow_pickle=False)
-        if str(z["key"]) == key:
-            rendered, morphed = z["rendered"], z["morphed"]
+        try:
+            with np.load(cache, allow_pickle=False) as z:
+                if str(z["key"]) == key:
+                    rendered, morphed = z["rendered"], z["morphed"]
+        except Exception:  # a damaged cache is only a cache: render again
+            rendered = morphed = None
     if rendered is None:
         ids = list(range(n))
         rendered = render_mesh_views(bench.coarse, bench, ids, s, "render coarse", show_progress)
         morphed = render_mesh_views(morphed_ply, bench, ids, s, "render morphed", show_progress)
-        with imageio.atomic_path(cache, suffix=".npz") as tmp:
+        with atomic_path(cache, suffix=".npz") as tmp:
             np.savez(tmp, key=key, rendered=rendered, morphed=morphed)
-    photos = np.stack([bench.photos[f"view{i:02d}"][..., :3].astype(np.float32) for i in range(n)])
+    photos = np.stack([bench.photo(i) for i in range(n)])
     if photos.shape != rendered.shape:
         raise ValueError(f"{bench.path}: photos {photos.shape} and renders {rendered.shape} differ in shape")
-    return PairedViews(photos, rendered, morphed, list(meta["train"]), list(meta["test"]), meta.get("kind", ""))
+    return PairedViews(photos, rendered, morphed, list(meta.train), list(meta.test), meta.kind)
 
 
 def to_nchw(images: np.ndarray) -> torch.Tensor:

@@ -1,4 +1,4 @@
-"""Face fitting workflows behind `photoreal face ...` and `photoreal bench face`."""
+"""`photoreal bench face`: face fitting accuracy against time over UV resolution, and a stability table."""
 
 from __future__ import annotations
 
@@ -10,41 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
-from inverse.face_data import FaceBenchmarkSettings, load_benchmark, make_benchmark
-from inverse.face_fit import (FaceFitSettings, RenderRefineSettings, evaluate_fit, fit_face, refine_through_renders,
-                              save_maps)
+from foundation import validate
+from foundation.assets import FACE
+from foundation.errors import UsageError
+from foundation.progress import progress_bar
+from foundation.records import to_json
+from inverse.face import FaceBenchmarkSettings, FaceFitSettings, evaluate_fit, fit_face, load_benchmark, make_benchmark
 
-from .bench import write_json
-from .progress import progress_bar
-
-SCANS = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "face" / "cyberheads"
-
-
-def fit_benchmark_dir(bench_dir: str | Path, json_path: str | Path | None, maps_out: str | Path | None,
-                      settings: FaceFitSettings, relight: bool = True, show_progress: bool = True,
-                      refine: RenderRefineSettings | None = None) -> dict:
-    """`photoreal face fit`: fit, evaluate against the ground truth, write maps and metrics.
-
-    With ``refine``, the UV-space fit is followed by refinement through full
-    camera renders (``prb`` through the ggx_uv plugin); both stages are scored.
-    """
-    bench = load_benchmark(bench_dir)
-    result = fit_face(bench, settings, show_progress=show_progress)
-    metrics = evaluate_fit(bench, result, relight=relight)
-    if refine is not None and refine.iterations > 0:
-        t0 = time.perf_counter()
-        maps, history = refine_through_renders(bench, result.maps, refine, show_progress=show_progress)
-        result.maps = maps
-        result.seconds += time.perf_counter() - t0
-        metrics = {"uv_fit": metrics, **evaluate_fit(bench, result, relight=relight),
-                   "render_refine": {"settings": asdict(refine), "camera_loss": history}}
-    metrics["fit_settings"] = asdict(settings)
-    metrics["benchmark"] = str(Path(bench_dir).resolve())
-    if maps_out is not None:
-        save_maps(result.maps, Path(maps_out))
-    if json_path is not None:
-        write_json(json_path, metrics)
-    return metrics
+SCANS = FACE / "cyberheads"
 
 
 @dataclass
@@ -55,6 +28,24 @@ class FaceBenchSettings:
     stability_res: int = 128
     seed: int = 0
 
+    def __post_init__(self):
+        for r in self.uv_resolutions:
+            validate.integer("uv_resolutions", r, 16, 4096)
+        if self.main_res not in self.uv_resolutions:
+            raise UsageError(f"main_res {self.main_res} is not among uv_resolutions {self.uv_resolutions}")
+        validate.integer("stability_res", self.stability_res, 16, 4096)
+        validate.seed("seed", self.seed)
+
+    def scan_path(self) -> Path:
+        """The scan: a bundled head by name (josie, paul) or an OBJ path."""
+        scan = Path(self.scan)
+        if not scan.suffix:
+            scan = SCANS / f"{self.scan}.obj"
+            if not scan.is_file():
+                names = ", ".join(sorted(p.stem for p in SCANS.glob("*.obj")))
+                raise UsageError(f"--scan {self.scan}: not a bundled scan ({names}) or an OBJ file")
+        return scan
+
 
 def _run_case(scan: Path, work: Path, name: str, bs: FaceBenchmarkSettings, fs: FaceFitSettings) -> dict:
     d = make_benchmark(scan, work / name, bs, show_progress=False)
@@ -62,7 +53,7 @@ def _run_case(scan: Path, work: Path, name: str, bs: FaceBenchmarkSettings, fs: 
     t0 = time.perf_counter()
     result = fit_face(bench, fs, show_progress=False)
     fit_s = time.perf_counter() - t0
-    m = evaluate_fit(bench, result)
+    m = to_json(evaluate_fit(bench, result))
     m["fit_seconds"] = fit_s
     m["finite"] = bool(all(np.isfinite(v).all() for v in result.maps.values()))
     return m
@@ -70,9 +61,7 @@ def _run_case(scan: Path, work: Path, name: str, bs: FaceBenchmarkSettings, fs: 
 
 def bench_face(s: FaceBenchSettings, out_dir: Path | None = None, show_progress: bool = True) -> dict:
     """Accuracy vs time over UV resolution, plus a stability table; returns the JSON dict."""
-    scan = Path(s.scan)
-    if not scan.suffix:
-        scan = SCANS / f"{s.scan}.obj"
+    scan = s.scan_path()
     work = Path(tempfile.mkdtemp(prefix="photoreal_face_bench_"))
     stability_cases = {
         "baseline": (FaceBenchmarkSettings(uv_res=s.stability_res, seed=s.seed), FaceFitSettings(seed=s.seed)),
@@ -106,8 +95,6 @@ def bench_face(s: FaceBenchSettings, out_dir: Path | None = None, show_progress:
                 bar.update(1)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    if main is None:
-        raise ValueError(f"main_res {s.main_res} is not among uv_resolutions {s.uv_resolutions}")
     best = max(r["relit_psnr"] for r in sweep)
     chosen = min(r["uv_res"] for r in sweep if r["relit_psnr"] >= best - 0.5)
     base = stability["baseline"]
@@ -143,7 +130,7 @@ def face_chart(result: dict, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .imageio import save_figure
+    from foundation.imageio import save_figure
 
     sw = result["sweep"]
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.6))

@@ -1,57 +1,24 @@
 """Image I/O: multi-channel EXR (OpenEXR), PNG previews, linear <-> sRGB (colour-science).
 
-Every writer goes through :func:`atomic_path`: data is written to a temporary
-file beside the target and renamed into place, so a crash or an exception
-never leaves a half-written output.
+Every writer goes through :func:`foundation.files.atomic_path`: data is written to a temporary
+file beside the target and renamed into place, so a crash or an exception never leaves a
+half-written output.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
-import tempfile
 from pathlib import Path
-from typing import Iterator, Mapping
+from typing import Mapping
 
 import numpy as np
 
-
-class ImageIOError(RuntimeError):
-    """An image file is missing, unreadable or not what was expected."""
-
-
-@contextlib.contextmanager
-def atomic_path(target: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
-    """Yield a temporary path in the target's folder; rename it over the target on success."""
-    target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix or target.suffix, dir=target.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        os.replace(tmp, target)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+from .errors import UsageError
+from .files import atomic_path
 
 
-@contextlib.contextmanager
-def atomic_dir(target: str | os.PathLike) -> Iterator[Path]:
-    """Yield a hidden sibling folder; on success it replaces ``target``, on any error it is removed."""
-    import shutil
-
-    target = Path(target)
-    tmp = target.with_name(f".{target.name}.partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)  # no half-written folder
-        raise
-    if target.exists():
-        shutil.rmtree(target)
-    tmp.rename(target)
+class ImageIOError(UsageError):
+    """An image file is missing, unreadable or not what was expected (the message names it)."""
 
 
 # -- colour transfer ----------------------------------------------------------------

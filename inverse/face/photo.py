@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -37,16 +37,24 @@ import mi_plugins  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
+from foundation import imageio, validate
+from foundation.assets import FACE, envmap, hdri_path
+from foundation.errors import FailureError, UsageError
+from foundation.files import atomic_dir, write_json
+from foundation.loop import LoopSettings, RunState, Stage, StepResult, all_finite, run_loop
+from foundation.mesh import UVMesh, graph_laplacian, load_obj, write_obj
+from foundation.progress import progress_bar
+from foundation.records import to_json
 from mi_plugins.uv_shader import UVLight, UVMaps, UVView, shade_uv
-from photoreal import imageio
-from photoreal.progress import progress_bar
 
-from .face_fit import fill_unobserved
-from .uv_bake import UVMesh, bake_geometry, load_obj
+from .benchmark import Light
+from .fit import fill_unobserved
+from .uv_bake import bake_geometry
 
-ASSETS = Path(__file__).resolve().parent.parent / "scenes" / "assets"
-TEMPLATE = ASSETS / "face" / "canonical_face_model.obj"
+TEMPLATE = FACE / "canonical_face_model.obj"
 N_LANDMARKS = 468
+MARKER = "photo_face.json"  #: written last: a folder holding it is a complete from-photo output
+MIN_SIDE = 64  #: smallest photo side (px) a face can be unwrapped from
 
 
 @dataclass
@@ -63,6 +71,20 @@ class PhotoFitSettings:
     relight_spp: int = 64
     seed: int = 0
 
+    def __post_init__(self):
+        validate.integer("uv_res", self.uv_res, 16, 4096)
+        validate.positive("laplacian_weight", self.laplacian_weight)
+        validate.in_range("grazing_cos", self.grazing_cos, 0.0, 1.0, hi_open=True)
+        validate.integer("n_lights", self.n_lights, 1, 16)
+        validate.integer("light_iterations", self.light_iterations, 1)
+        validate.in_range("roughness", self.roughness, 0.05, 1.0)
+        validate.in_range("specular", self.specular, 0.0, 1.0)
+        validate.integer("relight_res", self.relight_res, 8, 4096)
+        validate.integer("relight_spp", self.relight_spp, 1)
+        validate.seed("seed", self.seed)
+        for h in self.hdris:
+            hdri_path(h)
+
 
 # -- 1. landmarks ---------------------------------------------------------------------------------
 
@@ -77,19 +99,44 @@ def detect_landmarks(image: np.ndarray) -> np.ndarray:
     with mp.solutions.face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=False) as fm:
         res = fm.process(np.ascontiguousarray(image[..., :3]))
     if not res.multi_face_landmarks:
-        raise ValueError("no face found in the image")
+        raise UsageError("no face found in the image (pass --landmarks FILE to give them)")
     lm = np.array([[p.x, p.y, p.z] for p in res.multi_face_landmarks[0].landmark[:N_LANDMARKS]], np.float64)
     return lm
 
 
+def check_landmarks(a: np.ndarray, where: str = "landmarks") -> np.ndarray:
+    """468×3 MediaPipe-style landmarks: finite, x and y normalised to the image (≈ [0, 1]), not collapsed."""
+    a = np.asarray(a)
+    if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < N_LANDMARKS:
+        raise UsageError(f"{where}: expected {N_LANDMARKS}×3 landmarks, got shape {a.shape}")
+    a = a[:N_LANDMARKS].astype(np.float64)
+    if not np.isfinite(a).all():
+        raise UsageError(f"{where}: landmarks contain NaN/Inf")
+    xy = a[:, :2]
+    if xy.min() < -0.5 or xy.max() > 1.5:
+        raise UsageError(f"{where}: x, y must be normalised image coordinates (MediaPipe's, ≈ 0…1); "
+                         f"got values from {xy.min():.3g} to {xy.max():.3g}")
+    if float(np.ptp(xy, axis=0).min()) < 1e-3:
+        raise UsageError(f"{where}: landmarks are collapsed to a point or a line (spread "
+                         f"{np.ptp(xy, axis=0).round(5).tolist()})")
+    return a
+
+
 def load_landmarks(path: str | Path) -> np.ndarray:
+    """Landmarks from ``.npy`` or ``.json`` (468×3 numbers); a damaged or foreign file is named."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such landmark file")
-    a = np.load(path) if path.suffix == ".npy" else np.asarray(json.loads(path.read_text()), np.float64)
-    if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < N_LANDMARKS or not np.isfinite(a).all():
-        raise ValueError(f"{path}: expected {N_LANDMARKS}×3 finite landmarks, got {a.shape}")
-    return a[:N_LANDMARKS]
+        raise UsageError(f"{path}: no such landmark file")
+    try:
+        if path.suffix == ".npy":
+            a = np.load(path, allow_pickle=False)
+        else:
+            a = np.asarray(json.loads(path.read_text()), dtype=np.float64)
+    except (ValueError, TypeError, OSError, EOFError, UnicodeDecodeError) as exc:
+        msg = " ".join(str(exc).split())
+        raise UsageError(f"{path}: not a readable landmark file ({N_LANDMARKS}×3 numbers as .npy or JSON): "
+                         f"{msg[:160]}") from None
+    return check_landmarks(a, str(path))
 
 
 def landmarks_to_image_space(lm: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -112,17 +159,6 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
     r = u @ np.diag(d) @ vt
     s = float((sig * d).sum() / (a * a).sum() * len(src))
     return s, r, mu_d - s * r @ mu_s
-
-
-def graph_laplacian(n: int, faces: np.ndarray):
-    import scipy.sparse as sp
-
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.concatenate([e, e[:, ::-1]])
-    adj = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    adj.data[:] = 1.0
-    deg = np.asarray(adj.sum(1)).ravel()
-    return sp.diags(deg) - adj
 
 
 @dataclass
@@ -154,17 +190,6 @@ def fit_template(template: UVMesh, target: np.ndarray, laplacian_weight: float) 
     err = np.linalg.norm(fitted[:N_LANDMARKS, :2] - target[:, :2], axis=1).mean()
     err_rigid = np.linalg.norm(rigid[:, :2] - target[:, :2], axis=1).mean()
     return TemplateFit(fitted, s, r, t, float(err), float(err_rigid))
-
-
-def write_obj(path: Path, vertices: np.ndarray, template: UVMesh) -> Path:
-    """OBJ with the template's faces and texture coordinates (atomic write)."""
-    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
-    lines += [f"vt {u:.6f} {w:.6f}" for u, w in template.uvs]
-    lines += [f"f {a + 1}/{ta + 1} {b + 1}/{tb + 1} {c + 1}/{tc + 1}"
-              for (a, b, c), (ta, tb, tc) in zip(template.faces, template.face_uvs)]
-    with imageio.atomic_path(path) as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
-    return path
 
 
 # -- 3–4. unwrap and fill --------------------------------------------------------------------------------
@@ -212,61 +237,82 @@ def symmetric_fill(tex: np.ndarray, weight: np.ndarray, valid: np.ndarray, thres
 
 @dataclass
 class FittedLighting:
-    lights: list[dict]
+    lights: list[Light]
     ambient: float
     skin_colour: list[float]
-    loss: list[float]
+    loss: list[float] = field(default_factory=list)
 
 
-def fit_lighting(tex: np.ndarray, weight: np.ndarray, geo, s: PhotoFitSettings) -> FittedLighting:
+class LightingStage(Stage):
     """Directional lights + ambient + one skin colour explaining the unwrapped photo (UV shader, Adam)."""
-    rng = np.random.default_rng(s.seed)
-    t = lambda a: mi.TensorXf(np.ascontiguousarray(a, np.float32))  # noqa: E731
-    pos, nrm, tan = t(geo.position), t(geo.normal), t(geo.tangent)
-    w = t(weight[..., None])
-    target = t(tex)
-    opt = mi.ad.Adam(lr=0.02)
-    for k in range(s.n_lights):
-        d = np.array([0.0, 0.0, 1.0]) + rng.normal(scale=0.3, size=3)
-        opt[f"dir{k}"] = mi.Vector3f(*map(float, d / np.linalg.norm(d)))
-        opt[f"int{k}"] = mi.Float(1.0)
-    opt["ambient"] = mi.Float(0.2)
-    opt["colour"] = mi.Color3f(*map(float, np.clip(np.median(tex[weight > 0.5], axis=0), 0.05, 1.0)))
-    norm = max(1.0, float(weight.sum()))
-    history = []
-    for _ in range(s.light_iterations):
+
+    name = "fit lighting"
+
+    def __init__(self, tex: np.ndarray, weight: np.ndarray, geo, s: PhotoFitSettings):
+        rng = np.random.default_rng(s.seed)
+        t = lambda a: mi.TensorXf(np.ascontiguousarray(a, np.float32))  # noqa: E731
+        self.s, self.shape = s, tex.shape
+        self.pos, self.nrm, self.tan = t(geo.position), t(geo.normal), t(geo.tangent)
+        self.w, self.target = t(weight[..., None]), t(tex)
+        self.opt = mi.ad.Adam(lr=0.02)
+        for k in range(s.n_lights):
+            d = np.array([0.0, 0.0, 1.0]) + rng.normal(scale=0.3, size=3)
+            self.opt[f"dir{k}"] = mi.Vector3f(*map(float, d / np.linalg.norm(d)))
+            self.opt[f"int{k}"] = mi.Float(1.0)
+        self.opt["ambient"] = mi.Float(0.2)
+        self.opt["colour"] = mi.Color3f(*map(float, np.clip(np.median(tex[weight > 0.5], axis=0), 0.05, 1.0)))
+        self.norm = max(1.0, float(weight.sum()))
+
+    def step(self, it: int) -> StepResult:
+        s, opt = self.s, self.opt
         lights = [UVLight("directional", dr.normalize(opt[f"dir{k}"]), mi.Color3f(opt[f"int{k}"]))
                   for k in range(s.n_lights)]
-        colour = opt["colour"]
-        albedo = mi.TensorXf(dr.ravel(dr.zeros(mi.Color3f, tex.shape[0] * tex.shape[1]) + colour), shape=tex.shape)
+        albedo = mi.TensorXf(dr.ravel(dr.zeros(mi.Color3f, self.shape[0] * self.shape[1]) + opt["colour"]),
+                             shape=self.shape)
         maps = UVMaps(albedo=albedo, roughness=s.roughness, specular=s.specular)
-        pred = shade_uv(pos, nrm, tan, maps, lights, UVView(direction=(0.0, 0.0, 1.0)))
+        pred = shade_uv(self.pos, self.nrm, self.tan, maps, lights, UVView(direction=(0.0, 0.0, 1.0)))
         pred = pred + albedo * mi.TensorXf(opt["ambient"])
-        diff = (pred - target) * w
-        loss = dr.sum(diff * diff, axis=None) / norm
+        diff = (pred - self.target) * self.w
+        loss = dr.sum(diff * diff, axis=None) / self.norm
         dr.backward(loss)
+        return StepResult(float(loss.array[0]), all_finite(*(dr.grad(opt[k]) for k in opt.keys())))
+
+    def apply(self, it: int) -> None:
+        opt = self.opt
         opt.step()
-        for k in range(s.n_lights):
+        for k in range(self.s.n_lights):
             opt[f"int{k}"] = dr.maximum(opt[f"int{k}"], 0.0)
             # Lights stay in front of the face (the photo is lit from the camera's side of it).
             d = opt[f"dir{k}"]
             opt[f"dir{k}"] = mi.Vector3f(d.x, d.y, dr.maximum(d.z, 0.05))
         opt["ambient"] = dr.maximum(opt["ambient"], 0.0)
         opt["colour"] = dr.clip(opt["colour"], 0.01, 1.0)
-        history.append(float(loss.array[0]))
-    lights = []
-    for k in range(s.n_lights):
-        d = np.array(opt[f"dir{k}"]).ravel()
-        lights.append({"kind": "directional", "to_light": (d / np.linalg.norm(d)).tolist(),
-                       "irradiance": [float(np.array(opt[f"int{k}"]).ravel()[0])] * 3})
-    return FittedLighting(lights, float(np.array(opt["ambient"]).ravel()[0]),
-                          np.array(opt["colour"]).ravel().tolist(), history)
+
+    def discard(self, it: int) -> None:
+        for k in self.opt.keys():
+            dr.set_grad(self.opt[k], 0)
+
+    def finish(self, run: RunState) -> FittedLighting:
+        opt, lights = self.opt, []
+        for k in range(self.s.n_lights):
+            d = np.array(opt[f"dir{k}"]).ravel()
+            lights.append(Light("directional", tuple(map(float, d / np.linalg.norm(d))),
+                                (float(np.array(opt[f"int{k}"]).ravel()[0]),) * 3))
+        return FittedLighting(lights, float(np.array(opt["ambient"]).ravel()[0]),
+                              np.array(opt["colour"]).ravel().tolist(), list(run.losses))
+
+
+def fit_lighting(tex: np.ndarray, weight: np.ndarray, geo, s: PhotoFitSettings,
+                 show_progress: bool = False) -> FittedLighting:
+    """Fit :class:`LightingStage` (the shared loop, in memory: it takes seconds)."""
+    return run_loop(LightingStage(tex, weight, geo, s), LoopSettings(steps=s.light_iterations),
+                    show_progress=show_progress)
 
 
 def white_shading(geo, lighting: FittedLighting, s: PhotoFitSettings) -> np.ndarray:
     """Diffuse shading of a white, non-specular surface under the fitted lights + ambient."""
     t = lambda a: mi.TensorXf(np.ascontiguousarray(a, np.float32))  # noqa: E731
-    lights = [UVLight("directional", tuple(l["to_light"]), tuple(l["irradiance"])) for l in lighting.lights]
+    lights = [UVLight("directional", tuple(l.to_light), tuple(l.irradiance)) for l in lighting.lights]
     out = shade_uv(t(geo.position), t(geo.normal), t(geo.tangent), UVMaps(albedo=1.0, specular=0.0), lights,
                    UVView(direction=(0.0, 0.0, 1.0)), ambient=lighting.ambient)
     return np.array(out)
@@ -302,31 +348,58 @@ def photo_camera(width: float, height: float, res_w: int | None = None, res_h: i
 # -- the whole pipeline ---------------------------------------------------------------------------------------------
 
 
+@dataclass
+class PhotoFaceResult:
+    """``photo_face.json``: how well the template and the fitted lighting explain the photo."""
+
+    landmark_reprojection_px: float
+    landmark_reprojection_px_rigid: float
+    rerender_psnr_visible_face: float
+    visible_uv_fraction: float
+    lighting: FittedLighting  #: its loss history is cut to the last value
+    settings: PhotoFitSettings
+    image_size: tuple[int, int]
+    seconds: float
+    outputs: list[str]
+
+
 def photo_to_face(image: np.ndarray, out: str | Path, s: PhotoFitSettings | None = None,
-                  landmarks: np.ndarray | None = None, show_progress: bool = True) -> dict:
-    """Run steps 1–7; writes maps, mesh, renders and ``photo_face.json`` into ``out``."""
-    from photoreal.metrics import masked_psnr
+                  landmarks: np.ndarray | None = None, show_progress: bool = True) -> PhotoFaceResult:
+    """Run steps 1–7; writes maps, mesh, renders and ``photo_face.json`` into the folder ``out``.
+
+    The folder appears complete or not at all (written beside it and renamed at the end).
+    """
+    from scipy.ndimage import binary_erosion
+
+    from foundation.metrics import masked_psnr
 
     s = s or PhotoFitSettings()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     if image.ndim != 3 or image.shape[2] < 3:
-        raise ValueError(f"expected an RGB image, got shape {image.shape}")
-    t0 = time.perf_counter()
+        raise UsageError(f"expected an RGB image, got shape {image.shape}")
     h, w = image.shape[:2]
+    if min(h, w) < MIN_SIDE:
+        raise UsageError(f"the photo is {w}×{h} pixels; a face needs at least {MIN_SIDE}×{MIN_SIDE}")
+    if landmarks is not None:
+        landmarks = check_landmarks(landmarks)
+    t0 = time.perf_counter()
     steps = 7 + len(s.hdris)
-    with progress_bar(total=steps, desc="photo → face", unit="step", disable=not show_progress) as bar:
+    with atomic_dir(out, MARKER) as tmp, \
+            progress_bar(total=steps, desc="photo → face", unit="step", disable=not show_progress) as bar:
         lm = detect_landmarks(image) if landmarks is None else landmarks
-        (out / "landmarks.json").write_text(json.dumps(lm.tolist()))
+        write_json(tmp / "landmarks.json", lm.tolist())
         bar.update(1)
         target = landmarks_to_image_space(lm, w, h)
         template = load_obj(TEMPLATE)
         fit = fit_template(template, target, s.laplacian_weight)
-        mesh_path = write_obj(out / "face_fitted.obj", fit.vertices, template)
+        if not np.isfinite(fit.vertices).all():
+            raise FailureError("the template fit to the landmarks is not finite (degenerate landmarks?)")
+        mesh_path = write_obj(tmp / "face_fitted.obj", fit.vertices, template)
         bar.update(1)
         tex, weight, geo = unwrap_photo(image, mesh_path, s.uv_res, s.grazing_cos)
-        bar.update(1)
         valid = geo.mask
+        if not (weight[valid] > 0.3).any():
+            raise UsageError("no texel of the face template is visible in the photo (do the landmarks belong to it?)")
+        bar.update(1)
         filled, seen = symmetric_fill(tex, weight, valid)
         filled = fill_unobserved({"t": filled}, seen, valid)["t"]
         bar.update(1)
@@ -342,55 +415,47 @@ def photo_to_face(image: np.ndarray, out: str | Path, s: PhotoFitSettings | None
         bar.update(1)
 
         # Re-render under the fitted lighting from the photo's camera; compare on the visible face.
-        emit = {f"l{k}": {"type": "directional", "direction": (-np.asarray(l["to_light"])).tolist(),
-                          "irradiance": {"type": "rgb", "value": l["irradiance"]}} for k, l in enumerate(lighting.lights)}
+        emit = {f"l{k}": {"type": "directional", "direction": (-np.asarray(l.to_light)).tolist(),
+                          "irradiance": {"type": "rgb", "value": list(l.irradiance)}}
+                for k, l in enumerate(lighting.lights)}
         emit["amb"] = {"type": "constant", "radiance": {"type": "rgb", "value": [lighting.ambient] * 3}}
         scene = _face_scene(mesh_path, albedo, s, emit, photo_camera(w, h))
         rerender = np.array(mi.render(scene, spp=s.relight_spp, seed=s.seed))[..., :3]
         cover = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "dd:depth"},
                               "face": {"type": "obj", "filename": str(mesh_path)},
                               "sensor": photo_camera(w, h)})
-        from scipy.ndimage import binary_erosion
-
         # Visible face region: covered pixels, eroded by 2 px so that silhouette pixels (which
         # mix the face with the background) do not count.
         face_px = binary_erosion(np.array(mi.render(cover, spp=1))[..., 0] > 0, iterations=2)
+        if not face_px.any():
+            raise UsageError(f"the fitted face covers no pixel of the {w}×{h} photo (landmarks outside the face?)")
         photo_lin = imageio.srgb_to_linear(image[..., :3].astype(np.float32) / 255.0)
         rerender_psnr = masked_psnr(rerender, photo_lin, face_px)
         del scene, cover
         bar.update(1)
 
-        relit = {}
         lo, hi = fit.vertices[:, :2].min(0), fit.vertices[:, :2].max(0)
         side = 1.15 * float((hi - lo).max())
         for hdri in s.hdris:
-            env = {"env": {"type": "envmap", "filename": str(ASSETS / "hdri" / f"{hdri}.exr")}}
             # Framed on the face, seen from the photo's viewpoint.
             cam = photo_camera(side, side, s.relight_res, s.relight_res, centre=tuple((lo + hi) / 2))
-            scene = _face_scene(mesh_path, albedo, s, env, cam)
-            relit[hdri] = np.array(mi.render(scene, spp=s.relight_spp, seed=s.seed))[..., :3]
-            imageio.write_png(out / f"relit_{hdri}.png", relit[hdri])
+            scene = _face_scene(mesh_path, albedo, s, {"env": envmap(hdri)}, cam)
+            imageio.write_png(tmp / f"relit_{hdri}.png", np.array(mi.render(scene, spp=s.relight_spp, seed=s.seed))[..., :3])
             del scene
             bar.update(1)
 
-    imageio.write_exr(out / "maps.exr", {"albedo": albedo, "photo_uv": tex, "visibility": weight,
-                                         "shading": shading})
-    imageio.write_png(out / "albedo.png", albedo)
-    imageio.write_png(out / "photo_uv.png", tex * (weight[..., None] > 0))
-    imageio.write_png(out / "visibility.png", np.repeat(weight[..., None], 3, -1), linear=False)
-    imageio.write_png(out / "rerender.png", rerender)
-    imageio.write_png(out / "photo.png", image[..., :3])
-    result = {
-        "landmark_reprojection_px": fit.reprojection_px,
-        "landmark_reprojection_px_rigid": fit.reprojection_px_rigid,
-        "rerender_psnr_visible_face": rerender_psnr,
-        "visible_uv_fraction": float((weight[valid] > 0.3).mean()),
-        "lighting": asdict(lighting) | {"loss": lighting.loss[-1:]},
-        "settings": asdict(s),
-        "image_size": [w, h],
-        "seconds": time.perf_counter() - t0,
-        "outputs": sorted(p.name for p in out.iterdir()),
-    }
-    with imageio.atomic_path(out / "photo_face.json") as tmp:
-        tmp.write_text(json.dumps(result, indent=2) + "\n")
+        imageio.write_exr(tmp / "maps.exr", {"albedo": albedo, "photo_uv": tex, "visibility": weight,
+                                             "shading": shading})
+        imageio.write_png(tmp / "albedo.png", albedo)
+        imageio.write_png(tmp / "photo_uv.png", tex * (weight[..., None] > 0))
+        imageio.write_png(tmp / "visibility.png", np.repeat(weight[..., None], 3, -1), linear=False)
+        imageio.write_png(tmp / "rerender.png", rerender)
+        imageio.write_png(tmp / "photo.png", image[..., :3])
+        result = PhotoFaceResult(
+            landmark_reprojection_px=fit.reprojection_px, landmark_reprojection_px_rigid=fit.reprojection_px_rigid,
+            rerender_psnr_visible_face=rerender_psnr, visible_uv_fraction=float((weight[valid] > 0.3).mean()),
+            lighting=FittedLighting(lighting.lights, lighting.ambient, lighting.skin_colour, lighting.loss[-1:]),
+            settings=s, image_size=(w, h), seconds=time.perf_counter() - t0,
+            outputs=sorted([*(p.name for p in tmp.iterdir()), MARKER]))
+        write_json(tmp / MARKER, to_json(result))
     return result

@@ -27,10 +27,9 @@ Everything is written to one folder (EXR layers + ``benchmark.json``);
 
 from __future__ import annotations
 
-import json
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -38,13 +37,18 @@ import numpy as np
 import mi_plugins  # noqa: F401
 import mitsuba as mi
 
-from photoreal import imageio
-from photoreal.progress import progress_bar
+from foundation import imageio, validate
+from foundation.assets import envmap, hdri_path
+from foundation.errors import UsageError
+from foundation.files import atomic_dir, read_json, write_json
+from foundation.mesh import MeshError, UVMesh, load_obj
+from foundation.progress import progress_bar
+from foundation.records import from_json, to_json
 
-from .uv_bake import GeometryMaps, UVMesh, bake_geometry, load_obj
+from .uv_bake import GeometryMaps, bake_geometry
 
-ASSETS = Path(__file__).resolve().parent.parent / "scenes" / "assets"
-HDRI_DIR = ASSETS / "hdri"
+MARKER = "benchmark.json"  #: written last: a folder holding it is a complete face benchmark
+FORMAT = "photoreal-face-benchmark/1"
 
 
 @dataclass
@@ -61,6 +65,57 @@ class FaceBenchmarkSettings:
     normal_strength_deg: float = 10.0  #: RMS tilt of the ground-truth normal map
     s_disp: float = 0.01
     seed: int = 0
+
+    def __post_init__(self):
+        validate.integer("uv_res", self.uv_res, 8, 4096)
+        validate.integer("n_lights", self.n_lights, 1, 64)
+        validate.integer("render_res", self.render_res, 8, 4096)
+        validate.integer("render_spp", self.render_spp, 1, 1 << 16)
+        validate.positive("light_irradiance", self.light_irradiance)
+        validate.positive("camera_distance", self.camera_distance)
+        validate.in_range("normal_strength_deg", self.normal_strength_deg, 0.0, 80.0)
+        validate.non_negative("s_disp", self.s_disp)
+        validate.seed("seed", self.seed, 10_000_000)
+        if not self.views:
+            raise UsageError("views: at least one (yaw, pitch) view is needed")
+        if not self.heldout_hdris:
+            raise UsageError("heldout_hdris: at least one HDRI is needed")
+        for h in self.heldout_hdris:
+            hdri_path(h)
+
+
+@dataclass
+class Light:
+    """A directional light: unit direction towards the light and RGB irradiance."""
+
+    kind: str
+    to_light: tuple[float, float, float]
+    irradiance: tuple[float, float, float]
+
+
+@dataclass
+class HeldoutCamera:
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+    fov: float
+
+
+@dataclass
+class FaceBenchmarkMeta:
+    """``benchmark.json`` of a face benchmark."""
+
+    scan: str  #: the OBJ it was made from (as given)
+    mesh: str  #: the benchmark's own copy of the geometry, relative to the folder
+    settings: FaceBenchmarkSettings
+    lights: list[Light]
+    views: list[tuple[float, float, float]]  #: camera positions
+    centre: tuple[float, float, float]
+    radius: float
+    front: tuple[float, float, float]
+    heldout_camera: HeldoutCamera
+    camera_fov: float
+    seconds: float
+    format: str = FORMAT
 
 
 # -- the scan and its frame -------------------------------------------------------------
@@ -88,7 +143,7 @@ def orbit_direction(front: np.ndarray, yaw_deg: float, pitch_deg: float, up=(0.0
 
 
 def training_lights(front: np.ndarray, n: int, irradiance: float, seed: int,
-                    spread: tuple[float, float] = (60.0, 45.0)) -> list[dict]:
+                    spread: tuple[float, float] = (60.0, 45.0)) -> list[Light]:
     """``n`` directional lights spread over the frontal hemisphere (seeded jitter)."""
     rng = np.random.default_rng(seed + 17)
     lights = []
@@ -99,7 +154,7 @@ def training_lights(front: np.ndarray, n: int, irradiance: float, seed: int,
         yaw = spread[0] * r * np.cos(k * golden) + rng.uniform(-5, 5)
         pitch = spread[1] * r * np.sin(k * golden) + rng.uniform(-5, 5)
         d = orbit_direction(front, yaw, pitch)
-        lights.append({"kind": "directional", "to_light": d.tolist(), "irradiance": [irradiance] * 3})
+        lights.append(Light("directional", tuple(map(float, d)), (float(irradiance),) * 3))
     return lights
 
 
@@ -145,15 +200,23 @@ def normals_from_height(height: np.ndarray, geo: GeometryMaps, strength_deg: flo
     return n.astype(np.float32)
 
 
+def scan_texture(mesh: UVMesh) -> np.ndarray:
+    """The scan's texture (map_Kd of its material) as 8-bit RGB; a missing or damaged file is named."""
+    if mesh.texture is None:
+        raise MeshError(f"{mesh.path}: the scan needs a texture (mtllib with map_Kd), none found")
+    if not Path(mesh.texture).is_file():
+        raise MeshError(f"{mesh.path}: its texture {mesh.texture} does not exist")
+    return imageio.read_photo(str(mesh.texture))
+
+
 def ground_truth_maps(mesh: UVMesh, geo: GeometryMaps, s: FaceBenchmarkSettings) -> dict[str, np.ndarray]:
     """Seeded ground truth: albedo (scan texture), normal (tangent space, unit), roughness, specular, displacement."""
     from PIL import Image
 
-    if mesh.texture is None or not Path(mesh.texture).is_file():
-        raise FileNotFoundError(f"{mesh.path}: the scan needs a texture (mtllib with map_Kd), none found")
+    tex = scan_texture(mesh)
     res = s.uv_res
     rng = np.random.default_rng(s.seed)
-    tex = Image.open(mesh.texture).convert("RGB").resize((res, res), Image.BICUBIC)
+    tex = Image.fromarray(tex).resize((res, res), Image.BICUBIC)
     albedo = imageio.srgb_to_linear(np.asarray(tex, np.float32) / 255.0)
     height = skin_relief(res, rng)
     normal = normals_from_height(height, geo, s.normal_strength_deg)
@@ -198,10 +261,10 @@ def scan_scene(mesh_path: Path, maps: dict, s: FaceBenchmarkSettings, emitters: 
     return mi.load_dict(d)
 
 
-def directional_emitters(lights: list[dict]) -> dict:
+def directional_emitters(lights: list[Light]) -> dict:
     return {
-        f"light{k}": {"type": "directional", "direction": (-np.asarray(l["to_light"])).tolist(),
-                      "irradiance": {"type": "rgb", "value": l["irradiance"]}}
+        f"light{k}": {"type": "directional", "direction": (-np.asarray(l.to_light)).tolist(),
+                      "irradiance": {"type": "rgb", "value": list(l.irradiance)}}
         for k, l in enumerate(lights)
     }
 
@@ -278,10 +341,7 @@ def camera_sensor(eye: np.ndarray, target: np.ndarray, res: int, fov: float = 30
 def render_heldout(mesh_path: Path, maps: dict, s: FaceBenchmarkSettings, hdri: str, eye: np.ndarray,
                    target: np.ndarray, fov: float) -> tuple[np.ndarray, np.ndarray]:
     """Camera render under a real HDRI (full path tracing) and the fully covered face pixels."""
-    hdr = HDRI_DIR / f"{hdri}.exr"
-    if not hdr.is_file():
-        raise FileNotFoundError(f"{hdr}: no such HDRI (available: {sorted(p.stem for p in HDRI_DIR.glob('*.exr'))})")
-    scene = scan_scene(mesh_path, maps, s, {"env": {"type": "envmap", "filename": str(hdr)}},
+    scene = scan_scene(mesh_path, maps, s, {"env": envmap(hdri)},
                        camera_sensor(eye, target, s.render_res, fov), {"type": "intrinsic", "max_depth": 4})
     img = np.array(mi.render(scene, spp=s.render_spp, seed=s.seed + 7))
     rgb = img[..., :3]
@@ -301,12 +361,11 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
     renamed into place at the end.
     """
     s = s or FaceBenchmarkSettings()
-    if s.uv_res < 8 or s.n_lights < 1 or not s.views or s.render_res < 8 or s.render_spp < 1:
-        raise ValueError(f"face benchmark settings out of range: {s}")
     scan, out = Path(scan), Path(out)
     mesh = load_obj(scan)
+    scan_texture(mesh)  # a missing or damaged texture is named before any rendering
     t0 = time.perf_counter()
-    with imageio.atomic_dir(out) as tmp:
+    with atomic_dir(out, MARKER) as tmp:
         # The benchmark carries its own copy of the geometry (self-contained folder).
         shutil.copyfile(scan, tmp / "mesh.obj")
         geo = bake_geometry(mesh, s.uv_res)
@@ -322,7 +381,7 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
                           disable=not show_progress) as bar:
             for k, light in enumerate(lights):
                 scene = scan_scene(scan, gt, s, directional_emitters([light]))
-                vis_light[f"light{k}"] = light_visibility(scene, geo, np.asarray(light["to_light"]))
+                vis_light[f"light{k}"] = light_visibility(scene, geo, np.asarray(light.to_light))
                 bar.update(1)
                 for v, eye in enumerate(views):
                     img, seen = texel_observation(scene, geo, eye, radius, seed=s.seed + 31 * k + v)
@@ -351,26 +410,19 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
         imageio.write_exr(tmp / "camera.exr", camera)
         imageio.write_png(tmp / "albedo_gt.png", gt["albedo"])
         imageio.write_png(tmp / "observation_v0_l0.png", obs["v0_l0"])
-        meta = {
-            "scan": str(scan.resolve()),
-            "mesh": "mesh.obj",
-            "settings": asdict(s),
-            "lights": lights,
-            "views": [v.tolist() for v in views],
-            "centre": centre.tolist(), "radius": radius, "front": front.tolist(),
-            "heldout_camera": {"eye": views[0].tolist(), "target": centre.tolist(), "fov": fov},
-            "camera_fov": fov,
-            "seconds": time.perf_counter() - t0,
-            "format": "photoreal-face-benchmark/1",
-        }
-        (tmp / "benchmark.json").write_text(json.dumps(meta, indent=2) + "\n")
+        meta = FaceBenchmarkMeta(
+            scan=str(scan), mesh="mesh.obj", settings=s, lights=lights, views=[tuple(map(float, v)) for v in views],
+            centre=tuple(map(float, centre)), radius=radius, front=tuple(map(float, front)),
+            heldout_camera=HeldoutCamera(tuple(map(float, views[0])), tuple(map(float, centre)), fov),
+            camera_fov=fov, seconds=time.perf_counter() - t0)
+        write_json(tmp / MARKER, to_json(meta))  # last: its presence marks a complete benchmark
     return out
 
 
 @dataclass
 class FaceBenchmark:
     path: Path
-    meta: dict
+    meta: FaceBenchmarkMeta
     geometry: dict[str, np.ndarray]
     ground_truth: dict[str, np.ndarray]
     observations: dict[str, np.ndarray]  #: "v{view}_l{light}" -> (H, W, 3)
@@ -380,15 +432,11 @@ class FaceBenchmark:
 
     @property
     def mesh_path(self) -> Path:
-        return self.path / self.meta.get("mesh", "mesh.obj")
+        return self.path / self.meta.mesh
 
     @property
     def settings(self) -> FaceBenchmarkSettings:
-        d = dict(self.meta["settings"])
-        d["views"] = tuple(tuple(v) for v in d["views"])
-        d["heldout_hdris"] = tuple(d["heldout_hdris"])
-        d["light_spread_deg"] = tuple(d.get("light_spread_deg", (60.0, 45.0)))
-        return FaceBenchmarkSettings(**d)
+        return self.meta.settings
 
 
 def _layers(path: Path) -> dict[str, np.ndarray]:
@@ -398,16 +446,35 @@ def _layers(path: Path) -> dict[str, np.ndarray]:
 
 
 def load_benchmark(path: str | Path) -> FaceBenchmark:
+    """Read a face benchmark folder; a missing file, a foreign EXR or a bad description is named."""
     path = Path(path)
-    meta_path = path / "benchmark.json"
+    meta_path = path / MARKER
+    if not path.is_dir():
+        raise UsageError(f"{path}: no such face benchmark folder")
     if not meta_path.is_file():
-        raise FileNotFoundError(f"{path}: not a face benchmark folder (no benchmark.json)")
-    meta = json.loads(meta_path.read_text())
-    if meta.get("format") != "photoreal-face-benchmark/1":
-        raise ValueError(f"{meta_path}: unknown format {meta.get('format')!r}")
+        raise UsageError(f"{path}: not a face benchmark folder (no {MARKER}; make one with "
+                         "`photoreal face make-benchmark`)")
+    raw = read_json(meta_path, "face benchmark description")
+    if raw.get("format") != FORMAT:
+        raise UsageError(f"{meta_path}: unknown format {raw.get('format')!r} (expected {FORMAT!r})")
+    meta = from_json(FaceBenchmarkMeta, raw, str(meta_path))
+    if not (path / meta.mesh).is_file():
+        raise UsageError(f"{path / meta.mesh}: missing from the benchmark")
     geometry = _layers(path / "geometry.exr")
     geometry = {k: (v[..., 0] if v.shape[-1] == 1 else v) for k, v in geometry.items()}
     vis = {k: v[..., 0] for k, v in _layers(path / "visibility.exr").items()}
     camera = _layers(path / "camera.exr") if (path / "camera.exr").is_file() else {}
-    return FaceBenchmark(path, meta, geometry, _layers(path / "ground_truth.exr"),
-                         _layers(path / "observations.exr"), vis, _layers(path / "heldout.exr"), camera)
+    bench = FaceBenchmark(path, meta, geometry, _layers(path / "ground_truth.exr"),
+                          _layers(path / "observations.exr"), vis, _layers(path / "heldout.exr"), camera)
+    need = {"geometry.exr": (bench.geometry, ["mask", "position", "normal", "tangent", "bitangent_sign"]),
+            "ground_truth.exr": (bench.ground_truth, ["albedo", "normal", "roughness", "specular", "displacement"]),
+            "observations.exr": (bench.observations, [f"v{v}_l{k}" for v in range(len(meta.views))
+                                                      for k in range(len(meta.lights))]),
+            "visibility.exr": (bench.visibility, [f"v{v}" for v in range(len(meta.views))]
+                               + [f"light{k}" for k in range(len(meta.lights))]),
+            "heldout.exr": (bench.heldout, [h for h in meta.settings.heldout_hdris])}
+    for name, (layers, keys) in need.items():
+        missing = [k for k in keys if k not in layers]
+        if missing:
+            raise UsageError(f"{path / name}: not this benchmark's layers (missing {', '.join(missing[:4])})")
+    return bench

@@ -2,7 +2,29 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+
 import numpy as np
+
+
+@dataclass
+class ImageMetrics:
+    """The thesis' image metrics plus PSNR and ꟻLIP (see :func:`image_metrics`); lower is better except PSNR."""
+
+    psnr: float
+    mse: float
+    me: float  #: mean absolute error
+    one_minus_ssim: float
+    nrmse: float  #: RMSE / (max − min of the reference)
+    sam_deg: float  #: mean spectral angle between RGB vectors, degrees
+    flip: float  #: mean ꟻLIP (LDR, sRGB-encoded)
+
+    @classmethod
+    def mean(cls, items: "list[ImageMetrics]") -> "ImageMetrics":
+        """Field-wise mean (e.g. over views)."""
+        if not items:
+            raise ValueError("mean of no metrics")
+        return cls(**{f.name: float(np.mean([getattr(m, f.name) for m in items])) for f in fields(cls)})
 
 
 def mse(a: np.ndarray, b: np.ndarray) -> float:
@@ -70,7 +92,7 @@ def global_scale(test: np.ndarray, ref: np.ndarray) -> float:
     return float(t @ r / den) if den > 0 else 1.0
 
 
-def image_metrics(test: np.ndarray, ref: np.ndarray) -> dict:
+def image_metrics(test: np.ndarray, ref: np.ndarray) -> ImageMetrics:
     """The thesis' image metrics plus PSNR and ꟻLIP, on linear RGB clipped to [0, 1].
 
     MSE, ME (mean absolute error), 1−SSIM, NRMSE (RMSE / (max − min of the
@@ -83,9 +105,9 @@ def image_metrics(test: np.ndarray, ref: np.ndarray) -> dict:
     norm = np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1)
     sam = np.degrees(np.arccos(np.clip(np.where(norm > 1e-8, dot / np.maximum(norm, 1e-8), 1.0), -1, 1)))
     s = ssim(a, b)
-    return {"psnr": psnr(a, b), "mse": mse(a, b), "me": float(np.abs(a - b).mean()), "one_minus_ssim": 1.0 - s,
-            "nrmse": rmse / max(float(b.max() - b.min()), 1e-8), "sam_deg": float(sam.mean()),
-            "flip": flip(a, b)}
+    return ImageMetrics(psnr=psnr(a, b), mse=mse(a, b), me=float(np.abs(a - b).mean()), one_minus_ssim=1.0 - s,
+                        nrmse=rmse / max(float(b.max() - b.min()), 1e-8), sam_deg=float(sam.mean()),
+                        flip=flip(a, b))
 
 
 def region_metrics(test: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict:

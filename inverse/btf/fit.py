@@ -16,18 +16,21 @@ thousand iterations (every value is a parameter, the paper's run unchanged on a 
 
 from __future__ import annotations
 
-import json
-import time
+import hashlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
 
+import mi_plugins  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_plugins.neural_basis import (Basis, BasisConfig, NeuralBTFError, NeuralMaterial, _atomic_savez,
-                                     _to_tensor_layers, bilinear, evaluate_tensor, mlp_tensor, offset, rows)
+from foundation import validate
+from foundation.loop import LoopSettings, RunState, Stage, StepResult, all_finite, run_loop
+from foundation.optim_state import load_optimizer_state, optimizer_state
+from mi_plugins.neural_basis import (Basis, BasisConfig, NeuralBTFError, NeuralMaterial, _to_tensor_layers, bilinear,
+                                     evaluate_tensor, mlp_tensor, offset, rows)
 
 __all__ = ["Prefilter", "OptimSettings", "train_basis", "fit_material", "fit_settings", "fit_prefilter", "train_per_material", "predict",
            "heldout_psnr", "psnr", "psnr_pair", "split_slices", "gaussian_periodic"]
@@ -61,16 +64,16 @@ class OptimSettings:
     checkpoint_every: int = 200
     log_every: int = 25
 
-    def validate(self) -> None:
+    def __post_init__(self) -> None:
         for name in ("iterations", "batch", "checkpoint_every", "log_every"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"OptimSettings.{name} must be ≥ 1, got {getattr(self, name)}")
+            validate.integer(name, getattr(self, name), 1)
         for name in ("lr_net", "lr_tex", "tex_init_std"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"OptimSettings.{name} must be a positive number, got {v}")
-        if self.tex_res < 0:
-            raise ValueError(f"OptimSettings.tex_res must be ≥ 0 (0 = BTF resolution), got {self.tex_res}")
+            validate.positive(name, getattr(self, name))
+        validate.integer("tex_res", self.tex_res, 0, 4096)  # 0 = the BTF's resolution
+        validate.seed("seed", self.seed)
+
+    def validate(self) -> None:
+        self.__post_init__()
 
 
 # -- prefilter -----------------------------------------------------------------------------------
@@ -108,6 +111,7 @@ def gaussian_periodic(t: np.ndarray, tau: float) -> np.ndarray:
 
 def split_slices(n_slices: int, heldout_fraction: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
     """Fit on the first slices, hold out the last ones (slices are i.i.d. random direction pairs)."""
+    validate.in_range("heldout_fraction", heldout_fraction, 0.0, 1.0, lo_open=True, hi_open=True)
     n_held = max(1, int(round(n_slices * heldout_fraction)))
     if n_held >= n_slices:
         raise ValueError(f"cannot hold out {n_held} of {n_slices} slices")
@@ -151,7 +155,6 @@ class _Adam:
     def step(self, params: dict[str, np.ndarray], grads: dict[str, np.ndarray]) -> None:
         self.t += 1
         for k, g in grads.items():
-            g = np.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)  # NaN guard: skip poisoned entries
             m = self.m.setdefault(k, np.zeros_like(g))
             v = self.v.setdefault(k, np.zeros_like(g))
             m *= self.b1
@@ -162,27 +165,16 @@ class _Adam:
             vh = v / (1 - self.b2**self.t)
             params[k] -= (self.lrs[k.split(".")[0]] * mh / (np.sqrt(vh) + self.eps)).astype(np.float32)
 
-    def state(self) -> dict[str, np.ndarray]:
-        d = {f"adam_m/{k}": a for k, a in self.m.items()}
-        d.update({f"adam_v/{k}": a for k, a in self.v.items()})
-        d["adam_t"] = np.array(self.t)
-        return d
+    def state_dict(self) -> dict:
+        return {"t": self.t, "m": dict(self.m), "v": dict(self.v)}
 
-    def load(self, d: dict[str, np.ndarray]) -> None:
-        self.t = int(d["adam_t"])
-        self.m = {k[7:]: d[k].copy() for k in d if k.startswith("adam_m/")}
-        self.v = {k[7:]: d[k].copy() for k in d if k.startswith("adam_v/")}
+    def load_state_dict(self, d: dict) -> None:
+        self.t = int(d["t"])
+        self.m = {k: np.array(a) for k, a in d["m"].items()}
+        self.v = {k: np.array(a) for k, a in d["v"].items()}
 
 
-# -- the optimisation loop -----------------------------------------------------------------------
-
-
-@dataclass
-class _State:
-    params: dict[str, np.ndarray]
-    adam: _Adam
-    iteration: int = 0
-    history: list = field(default_factory=list)
+# -- the optimisation (a stage of the shared loop) --------------------------------------------
 
 
 def _net_layers(params: dict[str, np.ndarray], net: str, depth: int):
@@ -227,123 +219,112 @@ def _scatter_taps(leaves, tp, n_texels: int, channels: int) -> np.ndarray:
     return np.bincount(ids, weights=wts, minlength=n_texels * channels).astype(np.float32)
 
 
-def _optimise(cfg: BasisConfig, state: _State, vals, wi, wo, slices: np.ndarray, s: OptimSettings,
-              train_net: bool, checkpoint: Path | None, desc: str, progress: bool) -> _State:
-    from photoreal.progress import progress_bar
+class BTFStage(Stage):
+    """L1 (§4.2) on random (material, slice, texel) batches, prefiltered textures, Adam in numpy.
 
-    n_mat, _, h, w, _ = vals.shape
-    res = state.params["t_rgb"].shape[1]
-    depth = cfg.depth
-    bar = progress_bar(total=s.iterations, desc=desc, disable=not progress)
-    bar.update(state.iteration)
-    t0 = time.perf_counter()
-    while state.iteration < s.iterations:
-        it = state.iteration
+    ``train_net``: the MLPs train with the textures (§4.2, NeuMIP); otherwise they are frozen (§4.3).
+    Each iteration draws its batch from ``default_rng([seed, it])``, so a resumed run sees the same batches.
+    """
+
+    def __init__(self, cfg: BasisConfig, basis: Basis | None, materials: Sequence, slices: np.ndarray,
+                 s: OptimSettings, train_net: bool, desc: str):
+        self.cfg, self.basis, self.s, self.train_net, self.name = cfg, basis, s, train_net, desc
+        self.vals, self.wi, self.wo = _stack(materials)
+        self.slices = np.asarray(slices)
+        self.res = s.tex_res or self.vals.shape[2]
+        names = [m.meta.get("name", str(i)) for i, m in enumerate(materials)]
+        self.key = {"cfg": asdict(cfg), "settings": {k: v for k, v in asdict(s).items()
+                                                     if k not in ("iterations", "checkpoint_every", "log_every")},
+                    "materials": names, "slices": self.slices.tolist(), "train_net": train_net,
+                    "basis": None if basis is None else basis.meta.get("id", "given")}
+        lrs = {"t_off": s.lr_tex, "t_rgb": s.lr_tex, "m_off": s.lr_net, "m_rgb": s.lr_net}
+        rng = np.random.default_rng([s.seed, 2**31 - 1])
+        start = basis if basis is not None else Basis.init(cfg, s.seed)
+        self.params = {k: v.copy() for k, v in start.arrays().items()}
+        for t in ("t_off", "t_rgb"):
+            self.params[t] = (rng.standard_normal((len(materials), self.res, self.res, cfg.channels))
+                              * s.tex_init_std).astype(np.float32)
+        self.adam = _Adam(lrs)
+        self.grads: dict[str, np.ndarray] = {}
+
+    # The schedule depends only on t, so rerunning with more iterations continues the same run:
+    # the iteration count is not part of the fingerprint.
+    def fingerprint(self) -> dict:
+        return self.key
+
+    def state(self) -> dict:
+        return {"params": dict(self.params), "adam": optimizer_state(self.adam)}
+
+    def load_state(self, tree: dict) -> None:
+        self.params = {k: np.array(v) for k, v in tree["params"].items()}
+        load_optimizer_state(self.adam, tree["adam"], f"{self.name} optimizer")
+
+    def step(self, it: int) -> StepResult:
+        s, cfg, vals = self.s, self.cfg, self.vals
+        n_mat, _, h, w, _ = vals.shape
         rng = np.random.default_rng([s.seed, it])  # per-iteration stream: resume reproduces the batch
         m = rng.integers(0, n_mat, s.batch)
-        sl = slices[rng.integers(0, len(slices), s.batch)]
+        sl = self.slices[rng.integers(0, len(self.slices), s.batch)]
         y, x = rng.integers(0, h, s.batch), rng.integers(0, w, s.batch)
         uv = np.stack([(x + 0.5) / w, (y + 0.5) / h], 1).astype(np.float32)
         target = vals[m, sl, y, x]
 
-        t_off = mi.Float(gaussian_periodic(state.params["t_off"], s.tau_off.tau(it)).ravel())
-        t_rgb = mi.Float(gaussian_periodic(state.params["t_rgb"], s.tau_rgb.tau(it)).ravel())
+        t_off = mi.Float(gaussian_periodic(self.params["t_off"], s.tau_off.tau(it)).ravel())
+        t_rgb = mi.Float(gaussian_periodic(self.params["t_rgb"], s.tau_rgb.tau(it)).ravel())
         taps: dict = {}
-        pred, m_off, m_rgb = _forward(cfg, state.params, t_off, t_rgb, res, m, uv, wi[m, sl, y, x],
-                                      wo[m, sl, y, x], train_net, taps)
+        pred, m_off, m_rgb = _forward(cfg, self.params, t_off, t_rgb, self.res, m, uv, self.wi[m, sl, y, x],
+                                      self.wo[m, sl, y, x], self.train_net, taps)
         loss = 0
         for c in range(3):
             loss = loss + dr.sum(dr.abs(pred[c] - mi.Float(target[:, c])))
         loss = loss / (3 * s.batch)  # L1 (§4.2)
         dr.backward(loss)
 
-        shape = state.params["t_off"].shape
-        n_tex = n_mat * res * res
+        shape = self.params["t_off"].shape
+        n_tex = n_mat * self.res * self.res
         grads = {k: gaussian_periodic(_scatter_taps(*taps[k], n_tex, cfg.channels).reshape(shape),
                                       (s.tau_off if k == "t_off" else s.tau_rgb).tau(it)) for k in ("t_off", "t_rgb")}
-        if train_net:
+        if self.train_net:
             for net, layers in (("m_off", m_off), ("m_rgb", m_rgb)):
-                for k in range(depth):
+                for k in range(cfg.depth):
                     grads[f"{net}.{k}.W"] = dr.grad(layers[k][0]).numpy()
                     grads[f"{net}.{k}.b"] = dr.grad(layers[k][1]).numpy()
+        self.grads = grads
         l1 = float(loss.numpy()[0]) if hasattr(loss, "numpy") else float(loss)
-        if not np.isfinite(l1):
-            raise FloatingPointError(f"{desc}: loss became {l1} at iteration {it}")
-        state.adam.step(state.params, grads)
-        state.iteration += 1
-        if it % s.log_every == 0 or state.iteration == s.iterations:
-            state.history.append({"iteration": it, "l1": l1, "seconds": time.perf_counter() - t0})
-        bar.set_postfix(l1=f"{l1:.4f}", refresh=False)
-        bar.update(1)
-        if checkpoint is not None and (state.iteration % s.checkpoint_every == 0 or state.iteration == s.iterations):
-            _save_state(checkpoint, cfg, state, s)
-    bar.close()
-    return state
+        return StepResult(l1, all_finite(*grads.values()), log={"l1": l1})
 
+    def apply(self, it: int) -> None:
+        self.adam.step(self.params, self.grads)
 
-def _settings_key(cfg: BasisConfig, s: OptimSettings, extra: dict) -> str:
-    """What a checkpoint must match to be resumed. The iteration count is not part of it: the
-    schedule depends only on t, so rerunning with more iterations continues the same run."""
-    settings = {k: v for k, v in asdict(s).items() if k not in ("iterations", "checkpoint_every", "log_every")}
-    return json.dumps({"cfg": asdict(cfg), "settings": settings, **extra}, sort_keys=True, default=str)
+    def discard(self, it: int) -> None:
+        self.grads = {}
 
-
-def _save_state(path: Path, cfg: BasisConfig, state: _State, s: OptimSettings) -> None:
-    d = {f"p/{k}": v for k, v in state.params.items()}
-    d.update(state.adam.state())
-    d["iteration"] = np.array(state.iteration)
-    d["history"] = np.array(json.dumps(state.history))
-    d["key"] = np.array(state.__dict__.get("key", ""))
-    _atomic_savez(path, d)
-
-
-def _load_state(path: Path | None, key: str, lrs: dict) -> _State | None:
-    """Resume from ``path`` if it exists and was written by a run with identical settings."""
-    if path is None or not Path(path).is_file():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            d = {k: z[k] for k in z.files}
-    except Exception as e:  # truncated or foreign file: name it instead of numpy's internals
-        raise NeuralBTFError(f"checkpoint {path} is not a readable .npz ({type(e).__name__}: {e}); "
-                             "delete it to start over") from None
-    if str(d.get("key", "")) != key:
-        raise NeuralBTFError(f"checkpoint {path} was written with different settings or data; "
-                             "delete it or choose another --checkpoint path")
-    adam = _Adam(lrs)
-    adam.load(d)
-    st = _State({k[2:]: d[k].copy() for k in d if k.startswith("p/")}, adam, int(d["iteration"]),
-                json.loads(str(d["history"])))
-    st.__dict__["key"] = key
-    return st
+    def finish(self, run: RunState):
+        s, p = self.s, self.params
+        out_basis = Basis.from_arrays(self.cfg, {k: v for k, v in p.items() if k.startswith("m_")})
+        out_basis.meta = dict(self.basis.meta) if self.basis is not None and not self.train_net else {}
+        t_off = gaussian_periodic(p["t_off"], s.tau_off.final)  # §4.3: store the FINAL-blurred textures
+        t_rgb = gaussian_periodic(p["t_rgb"], s.tau_rgb.final)
+        history = [{"iteration": e["step"], "l1": e["l1"], "seconds": e["seconds"]} for e in run.log]
+        return out_basis, t_off, t_rgb, history
 
 
 def _run(cfg: BasisConfig, basis: Basis | None, materials: Sequence, slices: np.ndarray, s: OptimSettings,
          train_net: bool, checkpoint, desc: str, progress: bool) -> tuple[Basis, np.ndarray, np.ndarray, list]:
     s.validate()
-    vals, wi, wo = _stack(materials)
-    res = s.tex_res or vals.shape[2]
-    names = [m.meta.get("name", str(i)) for i, m in enumerate(materials)]
-    key = _settings_key(cfg, s, {"materials": names, "slices": slices.tolist(), "train_net": train_net,
-                                 "basis": None if basis is None else basis.meta.get("id", "given")})
-    lrs = {"t_off": s.lr_tex, "t_rgb": s.lr_tex, "m_off": s.lr_net, "m_rgb": s.lr_net}
-    checkpoint = Path(checkpoint) if checkpoint else None
-    state = _load_state(checkpoint, key, lrs)
-    if state is None:
-        rng = np.random.default_rng([s.seed, 2**31 - 1])
-        start = basis if basis is not None else Basis.init(cfg, s.seed)
-        params = {k: v.copy() for k, v in start.arrays().items()}
-        for t in ("t_off", "t_rgb"):
-            params[t] = (rng.standard_normal((len(materials), res, res, cfg.channels)) * s.tex_init_std).astype(np.float32)
-        state = _State(params, _Adam(lrs))
-        state.__dict__["key"] = key
-    state = _optimise(cfg, state, vals, wi, wo, slices, s, train_net, checkpoint, desc, progress)
-    p = state.params
-    out_basis = Basis.from_arrays(cfg, {k: v for k, v in p.items() if k.startswith("m_")})
-    out_basis.meta = dict(basis.meta) if basis is not None and not train_net else {}
-    t_off = gaussian_periodic(p["t_off"], s.tau_off.final)  # §4.3: store the FINAL-blurred textures
-    t_rgb = gaussian_periodic(p["t_rgb"], s.tau_rgb.final)
-    return out_basis, t_off, t_rgb, state.history
+    stage = BTFStage(cfg, basis, materials, slices, s, train_net, desc)
+    loop = LoopSettings(steps=s.iterations, checkpoint_every=s.checkpoint_every, log_every=s.log_every)
+    return run_loop(stage, loop, checkpoint=Path(checkpoint) if checkpoint else None, show_progress=progress)
+
+
+def weights_digest(basis: Basis) -> str:
+    """Short SHA-256 of the MLP weights: two bases with the same settings but other data get other ids."""
+    h = hashlib.sha256()
+    for k, a in sorted(basis.arrays().items()):
+        if k.startswith("m_"):
+            h.update(k.encode())
+            h.update(np.ascontiguousarray(a, np.float32).tobytes())
+    return h.hexdigest()[:10]
 
 
 def train_basis(materials: Sequence, cfg: BasisConfig | None = None, s: OptimSettings | None = None,
@@ -353,7 +334,7 @@ def train_basis(materials: Sequence, cfg: BasisConfig | None = None, s: OptimSet
     s = s or OptimSettings(lr_tex=1e-2)
     slices = np.arange(materials[0].values.shape[0]) if slices is None else np.asarray(slices)
     basis, _, _, hist = _run(cfg, None, materials, slices, s, True, checkpoint, "train basis", progress)
-    basis.meta = {"id": f"basis-seed{s.seed}-{len(materials)}mats-{s.iterations}it",
+    basis.meta = {"id": f"basis-seed{s.seed}-{len(materials)}mats-{s.iterations}it-{weights_digest(basis)}",
                   "materials": [m.meta.get("name", "") for m in materials], "settings": asdict(s),
                   "iterations": s.iterations}
     return basis, hist
@@ -388,7 +369,7 @@ def train_per_material(data, slices: np.ndarray, cfg: BasisConfig | None = None,
     s = s or OptimSettings()
     basis, t_off, t_rgb, hist = _run(cfg, None, [data], np.asarray(slices), s, True, checkpoint,
                                      f"NeuMIP {data.meta.get('name', '')}", progress)
-    basis.meta = {"id": f"neumip-{data.meta.get('name', '')}"}
+    basis.meta = {"id": f"neumip-{data.meta.get('name', '')}-{weights_digest(basis)}"}
     return basis, NeuralMaterial(t_off[0], t_rgb[0], {"btf": data.meta.get("name", "")}), hist
 
 

@@ -22,7 +22,6 @@ PSNR is reported beside it (``psnr_hdr``).
 from __future__ import annotations
 
 import gc
-import json
 import statistics
 import time
 from dataclasses import asdict, dataclass, field
@@ -34,19 +33,19 @@ import mi_plugins  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from inverse.btf_data import FAMILIES, BTFRenderSettings, load_dataset, render_dataset
-from inverse.btf_fit import (OptimSettings, fit_material, fit_settings, predict, psnr_pair, split_slices, train_basis,
-                             train_per_material)
+from foundation import validate
+from foundation.assets import envmap
+from foundation.errors import UsageError
+from foundation.imageio import save_figure
+from foundation.progress import progress_bar
+from inverse.btf import (FAMILIES, BTFRenderSettings, OptimSettings, fit_material, fit_settings, load_dataset, predict,
+                         psnr_pair, render_dataset, split_slices, train_basis, train_per_material)
 from mi_plugins.neural_basis import Basis, BasisConfig, CoopNet, NeuralMaterial, save_basis, save_material
-
-from .bench import ASSETS, write_json
-from .imageio import save_figure
-from .progress import progress_bar
 
 
 @dataclass
 class BTFBenchSettings:
-    data_dir: str = "out/btf"               #: train/ and heldout/ subfolders (rendered if missing)
+    data_dir: str | None = None             #: train/ and heldout/ subfolders (rendered if missing); None: OUT/btf_data
     train_per_family: int = 4               #: 8 families × 4 = 32 training materials (issue default)
     render: BTFRenderSettings = field(default_factory=BTFRenderSettings)
     widths: tuple[int, ...] = (16, 32, 64)
@@ -63,6 +62,19 @@ class BTFBenchSettings:
     render_reps: int = 3
     mlp_evals: int = 1 << 20
     seed: int = 0
+
+    def __post_init__(self):
+        validate.integer("train_per_family", self.train_per_family, 1)
+        for w in self.widths:
+            validate.integer("widths", w, 1)
+        for r in self.tex_res:
+            validate.integer("tex_res", r, 2)
+        if self.default_width not in self.widths:
+            raise UsageError(f"default_width {self.default_width} is not among widths {self.widths}")
+        for name in ("train_iterations", "train_batch", "fit_iterations", "fit_batch", "neumip_iterations",
+                     "neumip_batch", "render_resolution", "render_spp", "render_reps", "mlp_evals"):
+            validate.integer(name, getattr(self, name), 1)
+        validate.seed("seed", self.seed)
 
 
 def _score(basis: Basis, mat: NeuralMaterial, data, held) -> dict:
@@ -83,7 +95,7 @@ def timing_scene(bsdf: dict, s: BTFBenchSettings) -> dict:
                    "to_world": mi.ScalarTransform4f().look_at(origin=[0, 1.6, 4.2], target=[0, 0.7, 0], up=[0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": s.render_resolution, "height": s.render_resolution},
                    "sampler": {"type": "independent", "sample_count": s.render_spp}},
-        "env": {"type": "envmap", "filename": str(ASSETS / "hdri" / "forest.exr")},
+        "env": envmap("forest"),
         "sphere": {"type": "sphere", "center": [0, 0.8, 0], "radius": 0.8, "bsdf": bsdf},
         "floor": {"type": "rectangle", "bsdf": bsdf, "to_world": mi.ScalarTransform4f().scale(4).rotate([1, 0, 0], -90)},
     }
@@ -179,7 +191,7 @@ def _chart(result: dict, path: Path) -> Path:
 def bench_btf(s: BTFBenchSettings, out_dir: Path, show_progress: bool = True) -> dict:
     out_dir = Path(out_dir)
     work = out_dir / "btf_work"
-    data_dir = Path(s.data_dir)
+    data_dir = Path(s.data_dir) if s.data_dir else out_dir / "btf_data"
     t_start = time.perf_counter()
     render_dataset(data_dir / "heldout", per_family=1, settings=s.render, base_seed=1000 + s.seed, progress=show_progress)
     render_dataset(data_dir / "train", per_family=s.train_per_family, settings=s.render, base_seed=s.seed,

@@ -1,0 +1,215 @@
+"""Atomic writes, output-path checks, JSON results and file digests.
+
+Every writer goes through :func:`atomic_path` (or :func:`atomic_dir` for a folder): data is
+written beside the target and renamed into place, so a crash or an exception never leaves a
+half-written output. Written files get the permissions a plain ``open(path, "w")`` would give
+(``0o666`` minus the umask), not the ``0o600`` of a temporary file.
+
+Output locations are checked *before* the work starts (:func:`check_output_file`,
+:func:`check_output_dir`): an error after an hour of fitting because ``--json`` names a folder
+helps nobody. A folder output never replaces a folder it did not write: an existing non-empty
+folder is refused unless it holds the marker file of a previous output of the same command.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from .errors import UsageError
+
+_FILE_MODE: int | None = None
+
+
+def file_mode() -> int:
+    """0o666 minus the process umask (what ``open(path, "w")`` creates)."""
+    global _FILE_MODE
+    if _FILE_MODE is None:
+        old = os.umask(0)
+        os.umask(old)
+        _FILE_MODE = 0o666 & ~old
+    return _FILE_MODE
+
+
+# -- output locations ---------------------------------------------------------------------------------------------
+
+
+def _existing_ancestor(path: Path) -> Path:
+    p = path
+    while not p.exists():
+        if p.parent == p:
+            break
+        p = p.parent
+    return p
+
+
+def _check_parent(path: Path, what: str) -> None:
+    anc = _existing_ancestor(path.parent)
+    if not anc.is_dir():
+        raise UsageError(f"{what} {path}: {anc} is a file, not a folder")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise UsageError(f"{what} {path}: cannot write into {anc} (permission denied)")
+    try:  # permissions are not everything (read-only or special file systems): try it
+        fd, probe = tempfile.mkstemp(prefix=".photoreal-probe-", dir=anc)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise UsageError(f"{what} {path}: cannot write into {anc} ({exc.strerror or exc})") from None
+
+
+def check_output_file(path: str | os.PathLike, what: str = "output") -> Path:
+    """A file can be written at ``path``: it is not a folder and its folder can be created. Nothing is created."""
+    p = Path(path)
+    if str(path) == "" or p.name in ("", ".", ".."):
+        raise UsageError(f"{what} {str(path)!r}: not a file name")
+    if p.is_dir():
+        raise UsageError(f"{what} {p}: is a folder, expected a file path")
+    if p.exists() and not os.access(p, os.W_OK):
+        raise UsageError(f"{what} {p}: exists and is not writable")
+    _check_parent(p, what)
+    return p
+
+
+def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: str = "output folder") -> Path:
+    """A folder output can go to ``path``: absent, empty, or a previous output (holding ``marker``).
+
+    Never anything else: replacing a folder the program did not write would destroy the user's files.
+    """
+    p = Path(path)
+    if str(path) == "":
+        raise UsageError(f"{what}: empty path")
+    if p.exists():
+        if not p.is_dir():
+            raise UsageError(f"{what} {p}: is a file, expected a folder")
+        if any(p.iterdir()) and (marker is None or not (p / marker).is_file()):
+            hint = f" (no {marker}: not a previous output of this command)" if marker else ""
+            raise UsageError(f"{what} {p}: folder exists and is not empty{hint}; choose another path or empty it")
+        if not os.access(p, os.W_OK | os.X_OK):
+            raise UsageError(f"{what} {p}: not writable")
+    if p.resolve() == Path.cwd().resolve() or p.resolve() in Path.cwd().resolve().parents:
+        raise UsageError(f"{what} {p}: is the working folder or one of its parents")
+    _check_parent(p, what)
+    return p
+
+
+# -- atomic writes --------------------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def atomic_path(target: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path in the target's folder; rename it over the target on success."""
+    target = check_output_file(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix or target.suffix, dir=target.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.chmod(tmp, file_mode())
+        os.replace(tmp, target)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+@contextlib.contextmanager
+def atomic_dir(target: str | os.PathLike, marker: str | None = None) -> Iterator[Path]:
+    """Yield a hidden sibling folder; on success it replaces ``target``, on any error it is removed.
+
+    ``target`` must be absent, empty or a previous output holding ``marker`` (see
+    :func:`check_output_dir`); the work should write ``marker`` last.
+    """
+    target = check_output_dir(target, marker)
+    tmp = target.with_name(f".{target.name}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)  # no half-written folder
+        raise
+    old = None
+    if target.exists():
+        check_output_dir(target, marker)  # still a previous output (or empty) after the work
+        old = target.with_name(f".{target.name}.old")
+        shutil.rmtree(old, ignore_errors=True)
+        target.rename(old)
+    tmp.rename(target)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return Path(path)
+
+
+# -- JSON results -------------------------------------------------------------------------------------------------
+
+
+def jsonable(x: Any) -> Any:
+    """``json.dumps`` default: numpy scalars and arrays, paths, dataclasses."""
+    import dataclasses
+
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return dataclasses.asdict(x)
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+def to_json(data: Any) -> str:
+    return json.dumps(data, indent=2, default=jsonable) + "\n"
+
+
+def write_json(path: str | os.PathLike, data: Any) -> Path:
+    """Write ``data`` as indented JSON, atomically (numpy values, paths and dataclasses allowed)."""
+    return write_text(path, to_json(data))
+
+
+def read_json(path: str | os.PathLike, what: str = "JSON file", expect: type = dict) -> Any:
+    """Read a JSON file; a missing, empty or malformed file, or one of another shape, names the file."""
+    p = Path(path)
+    if not p.is_file():
+        raise UsageError(f"{p}: no such {what}" if not p.exists() else f"{p}: is not a file ({what} expected)")
+    try:
+        text = p.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UsageError(f"{p}: cannot read {what} ({exc})") from None
+    if not text.strip():
+        raise UsageError(f"{p}: empty file ({what} expected)")
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise UsageError(f"{p}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
+    if expect is not None and not isinstance(data, expect):
+        raise UsageError(f"{p}: expected a JSON {'object' if expect is dict else expect.__name__} "
+                         f"({what}), got {type(data).__name__}")
+    return data
+
+
+def finite_or_none(x: float | None) -> float | None:
+    """NaN/Inf → None, so that a JSON result never holds the non-standard tokens ``NaN``/``Infinity``."""
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def file_digest(path: str | os.PathLike, n: int = 16) -> str:
+    """First ``n`` hex digits of the file's SHA-256 (identifies an input independent of its path)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:n]

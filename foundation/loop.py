@@ -1,0 +1,304 @@
+"""The one resumable training loop: every optimisation and training stage of photoreal runs through it.
+
+A stage (:class:`Stage`) says how to take one step and what its state is; :func:`run_loop` owns the rest:
+
+* **budgets** — a step budget and a training-time budget (summed over resumes), plus a per-call step
+  budget (``budget_steps``: a cluster job's slice) after which it checkpoints and returns ``None``;
+* **checkpoints** — atomic (:mod:`foundation.checkpoint`), every ``checkpoint_every`` steps, at the end
+  and when a budget is used up; they hold the stage's state, the loop's counters and a fingerprint of
+  the settings and data, and a checkpoint of other settings is refused with the fields that differ;
+* **exact resume** — the stage saves everything its next step depends on (parameters, optimiser
+  state through :mod:`foundation.optim_state`, RNG states): interrupted + resumed = uninterrupted;
+* **one NaN/Inf policy** — a step whose loss or gradients are not finite is not applied (the stage's
+  :meth:`Stage.discard`), it is counted (``skipped_steps``), and ``max_nonfinite`` such steps in a row
+  stop the run with :class:`~foundation.errors.NonFiniteError` naming the stage and the step;
+* **one progress bar** and **the metrics JSON** (the stage's :meth:`Stage.finish` result, a typed
+  record that includes the loop's :class:`TrainingSummary`).
+
+Evaluation inside the run (held-out curves, model selection) happens in :meth:`Stage.after_step`,
+outside the timed part, so time budgets count training only.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .checkpoint import load_tree, save_tree
+from .errors import CheckpointError, NonFiniteError, UsageError
+from .files import finite_or_none, write_json
+from .progress import progress_bar
+from .records import to_json
+
+
+@dataclass
+class LoopSettings:
+    steps: int  #: the run ends after this many steps in all (over resumes) ...
+    max_seconds: float | None = None  #: ... or after this much training time (summed over resumes)
+    checkpoint_every: int = 20  #: steps between checkpoints (plus one at the end and at a budget's end)
+    max_nonfinite: int = 10  #: this many non-finite steps in a row stop the run with NonFiniteError
+    log_every: int = 1  #: steps between entries of the per-step log (the loss of every step is kept)
+
+    def __post_init__(self):
+        if isinstance(self.steps, bool) or not isinstance(self.steps, (int, np.integer)) or self.steps < 0:
+            raise UsageError(f"steps must be an integer ≥ 0, got {self.steps!r}")
+        if self.max_seconds is not None and not (math.isfinite(self.max_seconds) and self.max_seconds > 0):
+            raise UsageError(f"max_seconds must be > 0 (or None: no time budget), got {self.max_seconds}")
+        if self.checkpoint_every < 1 or self.max_nonfinite < 1 or self.log_every < 1:
+            raise UsageError(f"checkpoint_every, max_nonfinite and log_every must be ≥ 1, got "
+                             f"{self.checkpoint_every}, {self.max_nonfinite}, {self.log_every}")
+
+
+@dataclass
+class StepResult:
+    loss: float  #: the step's scalar loss (its history is kept)
+    finite: bool = True  #: False when the stage saw NaN/Inf in its loss or gradients
+    log: dict = field(default_factory=dict)  #: other scalars of the step, kept every ``log_every`` steps
+
+
+@dataclass
+class TrainingSummary:
+    """The loop's account of a finished run (part of every stage's result)."""
+
+    steps: int
+    train_seconds: float  #: time in steps, summed over resumes (evaluation not counted)
+    skipped_steps: int  #: non-finite steps that were not applied
+    loss_first: float | None
+    loss_last: float | None
+
+
+@dataclass
+class RunState:
+    """The loop's own counters; checkpointed with the stage's state."""
+
+    step: int = 0
+    train_seconds: float = 0.0
+    skipped_steps: int = 0
+    nonfinite_in_a_row: int = 0
+    losses: list = field(default_factory=list)
+    log: list = field(default_factory=list)
+    done: bool = False  #: a budget is used up (set before ``after_step``)
+
+    def to_tree(self) -> dict:
+        d = asdict(self)
+        d["losses"] = np.asarray(self.losses, np.float64)
+        return d
+
+    @classmethod
+    def from_tree(cls, d: dict) -> "RunState":
+        d = dict(d)
+        d["losses"] = [float(x) for x in np.asarray(d["losses"]).ravel()]
+        return cls(**d)
+
+    def summary(self) -> TrainingSummary:
+        finite = [x for x in self.losses if math.isfinite(x)]
+        return TrainingSummary(self.step, self.train_seconds, self.skipped_steps,
+                               finite_or_none(finite[0]) if finite else None,
+                               finite_or_none(finite[-1]) if finite else None)
+
+
+class Stage:
+    """What a training or optimisation stage tells :func:`run_loop`. Override :meth:`step` at least."""
+
+    name: str = "train"  #: progress bar label and error messages
+    unit: str = "it"
+
+    @property
+    def kind(self) -> str:
+        """What a checkpoint of this stage is a checkpoint of (a checkpoint of another kind is refused)."""
+        return type(self).__name__
+
+    def fingerprint(self) -> dict:
+        """What a checkpoint must match to be resumed (settings, input digests), JSON-able."""
+        return {}
+
+    def state(self) -> dict:
+        """Everything the next step depends on, as a checkpoint tree (numpy / torch / plain values)."""
+        return {}
+
+    def load_state(self, tree: dict) -> None:
+        """Restore :meth:`state`."""
+
+    def start(self, run: RunState) -> None:
+        """Once per call, after any resume and before the first step (untimed)."""
+
+    def step(self, it: int) -> StepResult:
+        """Compute step ``it``'s loss and gradients; apply nothing yet (see :meth:`apply`)."""
+        raise NotImplementedError
+
+    def apply(self, it: int) -> None:
+        """Take the optimiser step of ``it`` (only called when its result was finite)."""
+
+    def discard(self, it: int) -> None:
+        """Drop the gradients of a non-finite step ``it`` (nothing of it is applied)."""
+
+    def after_step(self, it: int, run: RunState) -> None:
+        """Bookkeeping after step ``it`` (held-out curves, selection, remeshing); not timed."""
+
+    def finish(self, run: RunState) -> Any:
+        """The run is complete: write outputs, return the result (a dataclass holding ``run.summary()``)."""
+        return run.summary()
+
+
+def all_finite(*values: Any) -> bool:
+    """True when every value (float, numpy array, torch tensor, Dr.Jit array, or None) is finite."""
+    for v in values:
+        if v is None:
+            continue
+        if isinstance(v, (int, float)):
+            if not math.isfinite(v):
+                return False
+            continue
+        mod = type(v).__module__
+        if mod.startswith("torch"):
+            import torch
+
+            if not bool(torch.isfinite(v).all()):
+                return False
+            continue
+        if mod.startswith(("drjit", "mitsuba")):
+            import drjit as dr
+
+            if not bool(dr.all(dr.isfinite(v), axis=None)):
+                return False
+            continue
+        if not np.isfinite(np.asarray(v)).all():
+            return False
+    return True
+
+
+def rng_state(rng: np.random.Generator) -> dict:
+    return {"bit_generator": rng.bit_generator.state}
+
+
+def set_rng_state(rng: np.random.Generator, state: dict) -> None:
+    rng.bit_generator.state = state["bit_generator"]
+
+
+def _differences(saved: Any, now: Any, prefix: str = "") -> list[str]:
+    if isinstance(saved, dict) and isinstance(now, dict):
+        out = []
+        for k in sorted(set(saved) | set(now), key=str):
+            if k not in saved:
+                out.append(f"{prefix}{k} (new)")
+            elif k not in now:
+                out.append(f"{prefix}{k} (gone)")
+            else:
+                out += _differences(saved[k], now[k], f"{prefix}{k}.")
+        return out
+    return [] if saved == now else [f"{prefix.rstrip('.')}: {saved!r} → {now!r}"]
+
+
+def _normalise(x: Any) -> Any:
+    import json
+
+    from .files import jsonable
+
+    return json.loads(json.dumps(x, default=jsonable))
+
+
+@dataclass
+class Checkpoint:
+    """What :func:`run_loop` saved: the stage kind, the fingerprint, the stage's state and the loop's counters."""
+
+    kind: str
+    fingerprint: dict
+    stage: dict
+    run: RunState
+
+    @property
+    def done(self) -> bool:
+        return self.run.done
+
+
+def read_checkpoint(path: str | Path) -> Checkpoint:
+    """Read a training checkpoint (e.g. to load a finished model); errors name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint")
+    tree = load_tree(path)
+    if not isinstance(tree, dict) or not {"fingerprint", "stage", "loop", "stage_name"} <= set(tree):
+        raise CheckpointError(f"{path}: not a photoreal training checkpoint; delete it to start over")
+    return Checkpoint(tree["stage_name"], tree["fingerprint"], tree["stage"], RunState.from_tree(tree["loop"]))
+
+
+def run_loop(stage: Stage, settings: LoopSettings, checkpoint: str | Path | None = None,
+             budget_steps: int | None = None, show_progress: bool = True,
+             metrics_path: str | Path | None = None) -> Any:
+    """Run ``stage`` to the end of its budgets (resuming from ``checkpoint``); see the module docstring.
+
+    Returns the stage's result (:meth:`Stage.finish`) when the run is complete, ``None`` when
+    ``budget_steps`` ended this call first (the checkpoint then holds everything to continue exactly).
+    A complete run called again returns its result again without training.
+    """
+    checkpoint = Path(checkpoint) if checkpoint is not None else None
+    if budget_steps is not None and budget_steps < 1:
+        raise UsageError(f"budget_steps must be ≥ 1, got {budget_steps}")
+    fingerprint = _normalise(stage.fingerprint())
+    run = RunState()
+    if checkpoint is not None and checkpoint.exists():
+        saved = read_checkpoint(checkpoint)
+        if saved.kind != stage.kind:
+            raise CheckpointError(f"{checkpoint}: checkpoint of a {saved.kind} run, not of a "
+                                  f"{stage.kind} run; delete it or use another output folder")
+        diff = _differences(saved.fingerprint, fingerprint)
+        if diff:
+            shown = "; ".join(diff[:4]) + ("; …" if len(diff) > 4 else "")
+            raise CheckpointError(f"{checkpoint}: checkpoint was made with other settings or data ({shown}); "
+                                  "delete it or use the same ones")
+        stage.load_state(saved.stage)
+        run = saved.run
+
+    def budgets_used() -> bool:
+        return run.step >= settings.steps or (settings.max_seconds is not None
+                                               and run.train_seconds >= settings.max_seconds)
+
+    def save() -> None:
+        if checkpoint is not None:
+            save_tree(checkpoint, {"stage_name": stage.kind, "fingerprint": fingerprint,
+                                   "stage": stage.state(), "loop": run.to_tree()})
+
+    run.done = budgets_used()
+    stop = settings.steps if budget_steps is None else min(settings.steps, run.step + budget_steps)
+    stage.start(run)
+    with progress_bar(total=settings.steps, desc=stage.name, unit=stage.unit, disable=not show_progress) as bar:
+        bar.update(run.step)
+        while not run.done and run.step < stop:
+            it = run.step
+            t0 = time.perf_counter()
+            res = stage.step(it)
+            ok = bool(res.finite) and math.isfinite(res.loss)
+            if ok:
+                stage.apply(it)
+                run.nonfinite_in_a_row = 0
+            else:
+                stage.discard(it)
+                run.skipped_steps += 1
+                run.nonfinite_in_a_row += 1
+            run.train_seconds += time.perf_counter() - t0
+            run.losses.append(float(res.loss))
+            if res.log and (it % settings.log_every == 0 or it == settings.steps - 1):
+                run.log.append({"step": it, "seconds": run.train_seconds, **{k: float(v) for k, v in res.log.items()}})
+            run.step += 1
+            bar.update(1)
+            bar.set_postfix(loss=f"{res.loss:.4g}", refresh=False)
+            if run.nonfinite_in_a_row >= settings.max_nonfinite:
+                last = f"the last checkpoint ({checkpoint}) is from before them" if checkpoint else "nothing was saved"
+                raise NonFiniteError(f"{stage.name}: {run.nonfinite_in_a_row} steps in a row gave NaN/Inf loss or "
+                                     f"gradients (steps {run.step - run.nonfinite_in_a_row}–{run.step - 1}); "
+                                     f"{last}; lower the learning rate or check the inputs")
+            run.done = budgets_used()
+            stage.after_step(it, run)
+            if run.step % settings.checkpoint_every == 0 or run.done or run.step == stop:
+                save()
+    if not run.done:
+        return None
+    result = stage.finish(run)
+    if metrics_path is not None:
+        write_json(metrics_path, to_json(result))
+    return result

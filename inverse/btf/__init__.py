@@ -1,0 +1,25 @@
+"""Universal neural BTF (seed 002): BTF data rendered from SVBRDFs, the universal basis, per-material fits.
+
+==========  ================================================================================
+module      what
+==========  ================================================================================
+``data``    seeded tileable SVBRDFs of 8 families, BTFs path traced with Mitsuba, dataset files
+``fit``     universal basis training (§4.2), per-material fitting (§4.3), NeuMIP baseline (§5.2)
+==========  ================================================================================
+
+The network maths lives in :mod:`mi_plugins.neural_basis` (the plugin runs the same weights).
+Other features use only the names below.
+"""
+
+from .data import (FAMILIES, BTFData, BTFDataError, BTFRenderSettings, SVBRDF, constant_svbrdf, load_btf,
+                   load_dataset, make_svbrdf, render_btf, render_dataset, save_btf)
+from .fit import (OptimSettings, Prefilter, fit_material, fit_prefilter, fit_settings, gaussian_periodic,
+                  heldout_psnr, predict, psnr, psnr_pair, split_slices, train_basis, train_per_material,
+                  weights_digest)
+
+__all__ = [
+    "BTFData", "BTFDataError", "BTFRenderSettings", "FAMILIES", "OptimSettings", "Prefilter", "SVBRDF",
+    "constant_svbrdf", "fit_material", "fit_prefilter", "fit_settings", "gaussian_periodic", "heldout_psnr",
+    "load_btf", "load_dataset", "make_svbrdf", "predict", "psnr", "psnr_pair", "render_btf", "render_dataset",
+    "save_btf", "split_slices", "train_basis", "train_per_material", "weights_digest",
+]

@@ -1,0 +1,31 @@
+"""Face materials in UV space (seed 003): benchmarks from scans, fitting through the UV-space GGX shader,
+and one photograph to a relightable face.
+
+=============  ===========================================================================
+module         what
+=============  ===========================================================================
+``benchmark``  ground-truth maps + Mitsuba observations from a textured scan
+``uv_bake``    UV-space geometry maps (position, normal, tangent) through Mitsuba's own parameterisation
+``fit``        the pyramid fit and the refinement through renders (stages of the shared loop), metrics
+``photo``      landmarks → template fit → unwrap → fill → delight → relight
+=============  ===========================================================================
+
+Other features use only the names below.
+"""
+
+from .benchmark import (FaceBenchmark, FaceBenchmarkMeta, FaceBenchmarkSettings, HeldoutCamera, Light,
+                        load_benchmark, make_benchmark, render_heldout)
+from .fit import (FaceFitMetrics, FaceFitReport, FaceFitResult, FaceFitSettings, RelitMetrics, RenderRefineSettings,
+                  evaluate_fit, fill_unobserved, fit_benchmark_dir, fit_face, integrate_normals, refine_through_renders,
+                  save_maps)
+from .photo import (PhotoFaceResult, PhotoFitSettings, check_landmarks, detect_landmarks, fit_template, load_landmarks,
+                    photo_to_face)
+from .uv_bake import GeometryMaps, bake_geometry, texel_uvs
+
+__all__ = [
+    "FaceBenchmark", "FaceBenchmarkMeta", "FaceBenchmarkSettings", "FaceFitMetrics", "FaceFitReport", "FaceFitResult",
+    "FaceFitSettings", "GeometryMaps", "HeldoutCamera", "Light", "PhotoFaceResult", "PhotoFitSettings", "RelitMetrics",
+    "RenderRefineSettings", "bake_geometry", "check_landmarks", "detect_landmarks", "evaluate_fit", "fill_unobserved",
+    "fit_benchmark_dir", "fit_face", "fit_template", "integrate_normals", "load_benchmark", "load_landmarks",
+    "make_benchmark", "photo_to_face", "refine_through_renders", "render_heldout", "save_maps", "texel_uvs",
+]

@@ -1,0 +1,33 @@
+"""Geometry morphing (REAL-DIBS §4): per-vertex positions and colours of a coarse mesh fitted to photos.
+
+=================  ==========================================================================
+module             what
+=================  ==========================================================================
+``benchmark``      benchmarks with ground truth: photos, degraded reconstruction, artifact masks
+``scene``          the scene a morph renders (vertex colours under the benchmark's HDRI)
+``run``            the morph (large steps, planarity prior) as a stage of the shared loop
+``prior``          edge-preserving planarity prior and plane detection
+``mesh_edit``      isotropic remeshing, undoing and repairing folds
+``gcn``            the shape-aware GCN variant, trained through the renderer (``dr.wrap``)
+``evaluate``       Chamfer, normals, spikes, folds and held-out image metrics
+=================  ==========================================================================
+
+Other features use only the names below.
+"""
+
+from .benchmark import (ARTIFACT_REGIONS, Camera, MorphBenchmark, MorphBenchmarkMeta, MorphBenchmarkSettings,
+                        artifact_masks, load_morph_benchmark, make_morph_benchmark, sensor_dict)
+from .evaluate import MorphEvaluation, evaluate_morph
+from .gcn import GCNSettings, run_gcn_morph
+from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
+from .mesh_edit import RepairReport, remesh, repair_flips
+from .run import MorphResult, MorphSettings, PlanarityDecision, run_morph, start_mesh
+from .scene import MODES, morph_scene, photo_at, render_views
+
+__all__ = [
+    "ARTIFACT_REGIONS", "Camera", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
+    "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "PlanarityDecision",
+    "RepairReport", "artifact_masks", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph",
+    "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "remesh",
+    "render_views", "repair_flips", "run_gcn_morph", "run_morph", "sensor_dict", "start_mesh",
+]

@@ -1,0 +1,109 @@
+"""Mesh surgery around the morph: isotropic remeshing, undoing and repairing folds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import mi_plugins  # noqa: F401
+import drjit as dr
+import mitsuba as mi
+
+from foundation.mesh import edge_lengths, face_normals, graph_laplacian
+
+
+def remesh(v: np.ndarray, f: np.ndarray, c: np.ndarray,
+           target_vertices: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Isotropic remeshing (pymeshlab); colours follow the nearest old vertices.
+
+    The target edge length keeps the vertex count (or aims at ``target_vertices``:
+    edge length scales with 1/sqrt(count) on a surface).
+    """
+    import pymeshlab
+    from scipy.spatial import cKDTree
+
+    edge = float(np.mean(edge_lengths(v, f)))
+    if target_vertices:
+        edge *= np.sqrt(len(v) / target_vertices)
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(v, f))
+    ms.meshing_isotropic_explicit_remeshing(iterations=4, targetlen=pymeshlab.PureValue(edge))
+    m = ms.current_mesh()
+    v2, f2 = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+    return v2, f2, c[cKDTree(v).query(v2)[1]]
+
+
+@dataclass
+class RepairReport:
+    """What :func:`repair_flips` did: the repair is reported, never silent."""
+
+    inverted_before_repair: int
+    inverted_after_repair: int
+    repaired_vertices: int
+    repair_max_move: float
+
+
+def repair_flips(v: np.ndarray, f: np.ndarray, v_ref: np.ndarray, rounds: int = 200) -> tuple[np.ndarray, RepairReport]:
+    """Unfold triangles whose normal turned against their orientation in ``v_ref`` (folds of the optimisation).
+
+    Each round, the vertices of flipped triangles first move halfway to their
+    1-ring mean (uniform Laplacian: irons out small folds in place); where that
+    does not resolve a fold within 10 rounds they are blended back towards
+    ``v_ref`` (fold-free by definition), and every 10 further rounds the set
+    widens by one ring — so the loop ends fold-free at the latest when the
+    region has returned to ``v_ref``. Only vertices of that set move. Returns the
+    mesh and a :class:`RepairReport`.
+    """
+    v = np.array(v, np.float64)
+    n_ref = face_normals(v_ref, f)
+    n = len(v)
+    lap = graph_laplacian(n, f)  # D − A, binary adjacency
+    deg = np.maximum(lap.diagonal(), 1)
+    ring_of = abs(lap)  # nonzero at a vertex and its 1-ring
+
+    def flipped(x):
+        return np.sum(face_normals(x, f) * n_ref, axis=1) < 0
+
+    bad = flipped(v)
+    before = int(bad.sum())
+    v0 = v.copy()
+    moved = np.zeros(n, bool)
+    ring = np.zeros(n, bool)
+    for r in range(rounds):
+        if not bad.any():
+            break
+        sel = np.zeros(n, bool)
+        sel[f[bad].ravel()] = True
+        if r >= 20 and r % 10 == 0:
+            ring = ring | sel
+            ring = ring | (ring_of @ ring.astype(np.float64) > 0)
+        sel |= ring
+        target = v - (lap @ v) / deg[:, None] if r < 10 else v_ref  # 1-ring mean, then the start
+        v[sel] = 0.5 * v[sel] + 0.5 * target[sel]
+        moved |= sel
+        bad = flipped(v)
+    if bad.sum() > before:  # never hand back a worse mesh
+        v, bad, moved = v0, flipped(v0), np.zeros(n, bool)
+    return v, RepairReport(before, int(bad.sum()), int(moved.sum()),
+                           float(np.linalg.norm(v - v0, axis=1).max()) if moved.any() else 0.0)
+
+
+def undo_flips(opt, key: str, v_before: np.ndarray, positions, to_param, n_start: np.ndarray,
+                faces: np.ndarray, rounds: int = 4) -> None:
+    """Keep a step everywhere except at triangles it flipped w.r.t. their starting orientation.
+
+    The vertices of flipped triangles go back to where they were before the
+    step (widening to neighbours if needed); other vertices keep their update.
+    """
+    v = np.array(dr.detach(positions()), np.float64).reshape(-1, 3)
+    changed = False
+    for _ in range(rounds):
+        bad = np.sum(face_normals(v, faces) * n_start, axis=1) < 0
+        if not bad.any():
+            break
+        idx = np.unique(faces[bad])
+        v[idx] = v_before[idx]
+        changed = True
+    if changed:
+        opt[key] = to_param(mi.Float(np.ascontiguousarray(v, np.float32).ravel()))
