@@ -306,3 +306,10 @@ def test_written_files_get_ordinary_permissions(tmp_path):
         ff._FILE_MODE = None
     for name in ("a.json", "a.png"):
         assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o644, name
+
+
+def test_flags_a_command_does_not_use_are_refused(capsys):
+    """`bench morph --resolution 64` used to be accepted and ignored: each benchmark takes only its own flags."""
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "morph", "--json", "x.json", "--resolution", "64"])
+    assert exc.value.code == 2 and "unrecognized arguments: --resolution 64" in capsys.readouterr().err

@@ -116,17 +116,34 @@ def features(v: np.ndarray, c: np.ndarray) -> torch.Tensor:
     return torch.as_tensor(np.concatenate([(v - centre) / scale, c], 1), dtype=torch.float32)
 
 
-def pretrain_identity(net: MeshGCN, x: torch.Tensor, steps: int, lr: float) -> list[float]:
-    """Identity pre-training: the network learns to output zero offsets and zero colour change."""
-    opt = torch.optim.Adam(net.parameters(), lr=lr)
-    hist = []
-    for _ in range(steps):
-        opt.zero_grad()
-        loss = net(x).pow(2).mean()
+class IdentityPretrain(Stage):
+    """The network learns to output zero offsets and zero colour change (so it starts at the input mesh)."""
+
+    name = "gcn identity pre-training"
+
+    def __init__(self, net: MeshGCN, x: torch.Tensor, lr: float):
+        self.net, self.x = net, x
+        self.opt = torch.optim.Adam(net.parameters(), lr=lr)
+
+    def step(self, it: int) -> StepResult:
+        self.opt.zero_grad()
+        loss = self.net(self.x).pow(2).mean()
         loss.backward()
-        opt.step()
-        hist.append(float(loss.detach()))
-    return hist
+        return StepResult(float(loss.detach()), all_finite(*(p.grad for p in self.net.parameters())))
+
+    def apply(self, it: int) -> None:
+        self.opt.step()
+
+    def discard(self, it: int) -> None:
+        self.opt.zero_grad()
+
+    def finish(self, run: RunState) -> list[float]:
+        return list(run.losses)
+
+
+def pretrain_identity(net: MeshGCN, x: torch.Tensor, steps: int, lr: float) -> list[float]:
+    """Identity pre-training (the shared loop, in memory: it takes a second); returns the losses."""
+    return run_loop(IdentityPretrain(net, x, lr), LoopSettings(steps=steps), show_progress=False)
 
 
 def apply_gcn(net: MeshGCN, x: torch.Tensor, v0: torch.Tensor, c0: torch.Tensor, size: float,
