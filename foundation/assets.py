@@ -1,9 +1,10 @@
 """The vendored assets (``scenes/assets``, licences in its README) and environment maps.
 
-Environment maps are handed to Mitsuba as bitmaps read here (OpenEXR's Python binding), not as
-file names: Mitsuba's own EXR reader waits forever on OpenEXR's thread pool when Dr.Jit runs
-with one thread (measured: ``dr.set_thread_count(1)`` then ``envmap`` with a ``filename``
-hangs in ``IlmThread::TaskGroup``), and one Dr.Jit thread is how runs become bit-reproducible.
+Environment maps are handed to Mitsuba as bitmaps read here, not as file names: Mitsuba's EXR reader
+waits forever on OpenEXR's thread pool when Dr.Jit runs with one thread (measured: after
+``dr.set_thread_count(1)``, an ``envmap`` with a ``filename`` hangs in ``IlmThread::TaskGroup``), and one
+Dr.Jit thread is how runs become bit-reproducible. The bitmap is read by Mitsuba itself, with two
+threads for the moment (:func:`foundation.threads.exr_safe`), so the radiance is bit-identical.
 """
 
 from __future__ import annotations
@@ -45,17 +46,23 @@ def hdri_path(name_or_path: str | os.PathLike) -> Path:
 
 
 @functools.lru_cache(maxsize=16)
-def _hdri_pixels(path: str, mtime: float) -> np.ndarray:
-    from .imageio import ImageIOError, exr_layer, read_exr
+def _hdri_bitmap(path: str, mtime: float):
+    """Mitsuba's own reader (what ``envmap`` with a file name would use: bit-identical radiance; Python's
+    OpenEXR binding differs in the last bit at a few pixels), run with two Dr.Jit threads."""
+    import mitsuba as mi
 
-    ch = read_exr(path)
+    from .imageio import ImageIOError
+    from .threads import exr_safe
+
     try:
-        rgb = exr_layer(ch, "")
-    except ImageIOError:
-        raise ImageIOError(f"{path}: HDRI has no R, G, B channels (has {', '.join(sorted(ch))})") from None
-    if rgb.shape[-1] < 3:
-        raise ImageIOError(f"{path}: HDRI needs R, G, B channels (has {', '.join(sorted(ch))})")
-    rgb = np.ascontiguousarray(rgb[..., :3], np.float32)
+        with exr_safe():
+            bmp = mi.Bitmap(path)
+    except Exception as exc:  # Mitsuba raises RuntimeError with its own wording
+        raise ImageIOError(f"{path}: not a readable HDR image ({str(exc).splitlines()[0] if str(exc) else exc})") from None
+    if bmp.channel_count() < 3:
+        raise ImageIOError(f"{path}: HDRI needs R, G, B channels (it has {bmp.channel_count()})")
+    bmp = bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+    rgb = np.array(bmp)
     if min(rgb.shape[:2]) < 2:
         raise ImageIOError(f"{path}: HDRI is {rgb.shape[1]}×{rgb.shape[0]} pixels; need at least 2×2")
     bad = ~np.isfinite(rgb)
@@ -63,18 +70,22 @@ def _hdri_pixels(path: str, mtime: float) -> np.ndarray:
         raise ImageIOError(f"{path}: HDRI has {int(bad.any(-1).sum())} pixels with NaN/Inf values")
     # Small negative values (resampling ringing, down to −0.004 in the bundled maps) are left as they are:
     # Mitsuba's own loader passes them through too, and clamping would change every render.
-    rgb.setflags(write=False)
-    return rgb
+    return bmp
 
 
 def hdri_pixels(name_or_path: str | os.PathLike) -> np.ndarray:
     """(H, W, 3) float32 linear radiance of an HDRI (validated: RGB, finite; cached)."""
+    return np.array(hdri_bitmap(name_or_path))
+
+
+def hdri_bitmap(name_or_path: str | os.PathLike):
+    """The HDRI as a validated RGB float32 ``mi.Bitmap`` (cached by path and modification time)."""
     p = hdri_path(name_or_path)
-    return _hdri_pixels(str(p.resolve()), p.stat().st_mtime)
+    return _hdri_bitmap(str(p.resolve()), p.stat().st_mtime)
 
 
 def envmap(name_or_path: str | os.PathLike, **props) -> dict:
     """Mitsuba ``envmap`` emitter dict for an HDRI (bundled name or EXR path), from a validated bitmap."""
     import mitsuba as mi
 
-    return {"type": "envmap", "bitmap": mi.Bitmap(np.array(hdri_pixels(name_or_path))), **props}
+    return {"type": "envmap", "bitmap": hdri_bitmap(name_or_path), **props}

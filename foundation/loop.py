@@ -145,8 +145,62 @@ class Stage:
         return run.summary()
 
 
+class DrJitStage(Stage):
+    """A stage whose parameters live in a Dr.Jit optimiser ``self.opt`` (``mi.ad.Adam`` / ``dr.opt``)."""
+
+    opt: Any
+
+    def grads_finite(self) -> bool:
+        import drjit as dr
+
+        return all_finite(*(dr.grad(self.opt[k]) for k in self.opt.keys()))
+
+    def result(self, loss, log: dict | None = None) -> StepResult:
+        """The step's result after ``dr.backward(loss)``: loss and gradients evaluated in one launch.
+
+        Reading the loss alone first would evaluate the forward pass on its own, and the optimiser step
+        would then run it again inside the backward kernel (measured: a face-fit step took ~15 % longer).
+        """
+        import drjit as dr
+
+        grads = [dr.grad(self.opt[k]) for k in self.opt.keys()]
+        dr.eval(loss, *grads)
+        value = float(loss.array[0]) if hasattr(loss, "array") else float(loss[0])
+        return StepResult(value, all_finite(*grads), log=log or {})
+
+    def apply(self, it: int) -> None:
+        self.opt.step()
+
+    def discard(self, it: int) -> None:
+        import drjit as dr
+
+        for k in self.opt.keys():
+            dr.set_grad(self.opt[k], 0)
+
+
+class TorchStage(Stage):
+    """A stage whose parameters live in a torch optimiser ``self.opt``."""
+
+    opt: Any
+
+    def grads_finite(self) -> bool:
+        return all_finite(*(p.grad for group in self.opt.param_groups for p in group["params"]))
+
+    def apply(self, it: int) -> None:
+        self.opt.step()
+
+    def discard(self, it: int) -> None:
+        self.opt.zero_grad()
+
+
 def all_finite(*values: Any) -> bool:
-    """True when every value (float, numpy array, torch tensor, Dr.Jit array, or None) is finite."""
+    """True when every value (float, numpy array, torch tensor, Dr.Jit array, or None) is finite.
+
+    Arrays are reduced to their sums first — a NaN or Inf anywhere makes the sum non-finite — and the
+    Dr.Jit sums are evaluated in one go, so the check costs one synchronisation per step, not one per
+    parameter (it was 30 % of a face-fit step when each gradient was checked on its own).
+    """
+    drjit_sums, torch_sums = [], []
     for v in values:
         if v is None:
             continue
@@ -156,18 +210,23 @@ def all_finite(*values: Any) -> bool:
             continue
         mod = type(v).__module__
         if mod.startswith("torch"):
-            import torch
-
-            if not bool(torch.isfinite(v).all()):
-                return False
-            continue
-        if mod.startswith(("drjit", "mitsuba")):
+            torch_sums.append(v.detach().sum())
+        elif mod.startswith(("drjit", "mitsuba")):
             import drjit as dr
 
-            if not bool(dr.all(dr.isfinite(v), axis=None)):
-                return False
-            continue
-        if not np.isfinite(np.asarray(v)).all():
+            drjit_sums.append(dr.sum(v, axis=None))
+        elif not np.isfinite(np.asarray(v)).all():
+            return False
+    if torch_sums:
+        import torch
+
+        if not bool(torch.isfinite(torch.stack(torch_sums)).all()):
+            return False
+    if drjit_sums:
+        import drjit as dr
+
+        dr.eval(*drjit_sums)
+        if not all(np.isfinite(np.asarray(x)).all() for x in drjit_sums):
             return False
     return True
 

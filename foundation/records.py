@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
+from pathlib import Path
 from typing import Any, TypeVar
 
 from .errors import UsageError
@@ -108,3 +109,23 @@ def from_json(cls: type[T], data: Any, where: str) -> T:
         raise UsageError(f"{where}: {exc}") from None
     except (TypeError, ValueError) as exc:
         raise UsageError(f"{where}: {exc}") from None
+
+
+def load_folder_record(folder: str | Path, marker: str, cls: type[T], fmt: str, what: str, maker: str) -> T:
+    """The description ``folder/marker`` of an output folder (a benchmark, a run) as a ``cls``.
+
+    A missing folder, a folder without the marker (``maker`` is the command that makes one), another
+    format, or a malformed description is named.
+    """
+    from .files import read_json
+
+    folder = Path(folder)
+    path = folder / marker
+    if not folder.is_dir():
+        raise UsageError(f"{folder}: no such {what} folder")
+    if not path.is_file():
+        raise UsageError(f"{folder}: not a {what} folder (no {marker}; make one with `{maker}`)")
+    raw = read_json(path, f"{what} description")
+    if raw.get("format") != fmt:
+        raise UsageError(f"{path}: unknown format {raw.get('format')!r} (expected {fmt!r})")
+    return from_json(cls, raw, str(path))

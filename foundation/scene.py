@@ -6,11 +6,13 @@ Also the intrinsic layers of seed 000: :func:`split_intrinsics` (I = D / A) and 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -31,6 +33,23 @@ MAX_SIDE = 16384  #: largest film side accepted (a 100000² film would need ~120
 
 class SceneError(UsageError):
     """A scene file could not be parsed or loaded; the message names the file."""
+
+
+@contextlib.contextmanager
+def mitsuba_log_level(level) -> Iterator[None]:
+    """Run with Mitsuba's log level set to ``level`` (e.g. ``mi.LogLevel.Error``), restoring it afterwards.
+
+    Remeshed or decimated meshes often have a few non-manifold vertices; Mitsuba (and its projective
+    integrators, at the first render) warns about each with a full mesh dump. Where that is expected,
+    only errors are worth showing.
+    """
+    logger = mi.logger() if hasattr(mi, "logger") else mi.Thread.thread().logger()
+    old = logger.log_level()
+    logger.set_log_level(level)
+    try:
+        yield
+    finally:
+        logger.set_log_level(old)
 
 
 @dataclass

@@ -28,6 +28,7 @@ from foundation.loop import (LoopSettings, RunState, Stage, StepResult, Training
 from foundation.mesh import read_ply_colours, write_ply
 from foundation.metrics import ImageMetrics
 from foundation.optim_state import load_optimizer_state, optimizer_state
+from foundation.scene import mitsuba_log_level
 from foundation.threads import torch_threads
 from inverse.morph import MorphBenchmark, morph_scene, remesh, sensor_dict
 
@@ -168,7 +169,8 @@ class JointStage(Stage):
         self.params["mesh.vertex_color"] = self.opt["c"]
         self.params.update()
         sensor = mi.load_dict(sensor_dict(self.bench.meta.cameras[i], self.res, self.fov, sample_border=True))
-        img = mi.render(self.scene, self.params, sensor=sensor, spp=s.spp, seed=int(s.seed * 7919 + it * 101 + i))
+        with mitsuba_log_level(mi.LogLevel.Error):  # the projective integrator's non-manifold mesh dumps
+            img = mi.render(self.scene, self.params, sensor=sensor, spp=s.spp, seed=int(s.seed * 7919 + it * 101 + i))
         m = img[..., :3]
         l_morph = dr.mean(dr.abs(m - self.photos[i]), axis=None)  # eq. 4.3
         self.opt_g.zero_grad(set_to_none=True)

@@ -40,10 +40,10 @@ import mitsuba as mi
 from foundation import imageio, validate
 from foundation.assets import envmap, hdri_path
 from foundation.errors import UsageError
-from foundation.files import atomic_dir, read_json, write_json
+from foundation.files import atomic_dir, write_json
 from foundation.mesh import MeshError, UVMesh, load_obj
 from foundation.progress import progress_bar
-from foundation.records import from_json, to_json
+from foundation.records import load_folder_record, to_json
 
 from .uv_bake import GeometryMaps, bake_geometry
 
@@ -448,16 +448,8 @@ def _layers(path: Path) -> dict[str, np.ndarray]:
 def load_benchmark(path: str | Path) -> FaceBenchmark:
     """Read a face benchmark folder; a missing file, a foreign EXR or a bad description is named."""
     path = Path(path)
-    meta_path = path / MARKER
-    if not path.is_dir():
-        raise UsageError(f"{path}: no such face benchmark folder")
-    if not meta_path.is_file():
-        raise UsageError(f"{path}: not a face benchmark folder (no {MARKER}; make one with "
-                         "`photoreal face make-benchmark`)")
-    raw = read_json(meta_path, "face benchmark description")
-    if raw.get("format") != FORMAT:
-        raise UsageError(f"{meta_path}: unknown format {raw.get('format')!r} (expected {FORMAT!r})")
-    meta = from_json(FaceBenchmarkMeta, raw, str(meta_path))
+    meta = load_folder_record(path, MARKER, FaceBenchmarkMeta, FORMAT, "face benchmark",
+                              "photoreal face make-benchmark")
     if not (path / meta.mesh).is_file():
         raise UsageError(f"{path / meta.mesh}: missing from the benchmark")
     geometry = _layers(path / "geometry.exr")

@@ -31,7 +31,7 @@ import mitsuba as mi
 
 from foundation import validate
 from foundation.errors import UsageError
-from foundation.loop import LoopSettings, RunState, Stage, StepResult, TrainingSummary, all_finite, run_loop
+from foundation.loop import DrJitStage, LoopSettings, RunState, StepResult, TrainingSummary, run_loop
 from foundation.mesh import load_obj
 from foundation.optim_state import load_optimizer_state, optimizer_state
 from mi_plugins.uv_shader import UVLight, UVMaps, UVView, shade_uv, unravel_channels
@@ -166,7 +166,7 @@ class FaceFitResult:
 _MAPS = ("albedo", "slope", "roughness", "specular")
 
 
-class FaceFitStage(Stage):
+class FaceFitStage(DrJitStage):
     """Adam through the UV-space shader over a coarse-to-fine pyramid: one loop over all levels' steps."""
 
     name = "face fit"
@@ -311,9 +311,7 @@ class FaceFitStage(Stage):
             reg += s.w_chroma * _grad_penalty(chroma, res, res)
         total = loss + reg
         dr.backward(total)
-        value = float(total.array[0]) if hasattr(total, "array") else float(total[0])
-        return StepResult(value, all_finite(*(dr.grad(opt[k]) for k in opt.keys())),
-                          log={"level": level})
+        return self.result(total, log={"level": level})
 
     def apply(self, it: int) -> None:
         opt, s = self.opt, self.s
@@ -327,10 +325,6 @@ class FaceFitStage(Stage):
             for k in range(self.n_lights):
                 opt[f"int{k}"] = dr.maximum(opt[f"int{k}"], 0.0)
             opt["ambient"] = dr.maximum(opt["ambient"], 0.0)
-
-    def discard(self, it: int) -> None:
-        for k in self.opt.keys():
-            dr.set_grad(self.opt[k], 0)
 
     def finish(self, run: RunState) -> FaceFitResult:
         s, bench, full = self.s, self.bench, self.full
@@ -532,7 +526,7 @@ class RenderRefineSettings:
         validate.seed("seed", self.seed, 1_000_000)
 
 
-class RenderRefineStage(Stage):
+class RenderRefineStage(DrJitStage):
     """L2 between ``prb`` renders of the ``ggx_uv`` scan and the benchmark's camera images, into the bitmaps."""
 
     name = "refine through renders"
@@ -583,7 +577,7 @@ class RenderRefineStage(Stage):
                 loss = dr.mean(dr.square(img[..., :3] - self.targets[f"v{v}_l{k}"]), axis=None) / n_img
                 dr.backward(loss)
                 total += float(loss.array[0])
-        return StepResult(total, all_finite(*(dr.grad(self.opt[k]) for k in self.opt.keys())))
+        return StepResult(total, self.grads_finite())
 
     def apply(self, it: int) -> None:
         opt, keys = self.opt, self.keys
@@ -592,10 +586,6 @@ class RenderRefineStage(Stage):
         opt[keys["roughness"]] = dr.clip(opt[keys["roughness"]], 0.05, 1.0)
         opt[keys["normal"]] = dr.clip(opt[keys["normal"]], 0.0, 1.0)
         self.params.update(opt)
-
-    def discard(self, it: int) -> None:
-        for k in self.opt.keys():
-            dr.set_grad(self.opt[k], 0)
 
     def finish(self, run: RunState) -> tuple[dict[str, np.ndarray], list[float]]:
         out = dict(self.maps)

@@ -41,7 +41,7 @@ from foundation import imageio, validate
 from foundation.assets import FACE, envmap, hdri_path
 from foundation.errors import FailureError, UsageError
 from foundation.files import atomic_dir, write_json
-from foundation.loop import LoopSettings, RunState, Stage, StepResult, all_finite, run_loop
+from foundation.loop import DrJitStage, LoopSettings, RunState, StepResult, run_loop
 from foundation.mesh import UVMesh, graph_laplacian, load_obj, write_obj
 from foundation.progress import progress_bar
 from foundation.records import to_json
@@ -243,7 +243,7 @@ class FittedLighting:
     loss: list[float] = field(default_factory=list)
 
 
-class LightingStage(Stage):
+class LightingStage(DrJitStage):
     """Directional lights + ambient + one skin colour explaining the unwrapped photo (UV shader, Adam)."""
 
     name = "fit lighting"
@@ -275,7 +275,7 @@ class LightingStage(Stage):
         diff = (pred - self.target) * self.w
         loss = dr.sum(diff * diff, axis=None) / self.norm
         dr.backward(loss)
-        return StepResult(float(loss.array[0]), all_finite(*(dr.grad(opt[k]) for k in opt.keys())))
+        return self.result(loss)
 
     def apply(self, it: int) -> None:
         opt = self.opt
@@ -287,10 +287,6 @@ class LightingStage(Stage):
             opt[f"dir{k}"] = mi.Vector3f(d.x, d.y, dr.maximum(d.z, 0.05))
         opt["ambient"] = dr.maximum(opt["ambient"], 0.0)
         opt["colour"] = dr.clip(opt["colour"], 0.01, 1.0)
-
-    def discard(self, it: int) -> None:
-        for k in self.opt.keys():
-            dr.set_grad(self.opt[k], 0)
 
     def finish(self, run: RunState) -> FittedLighting:
         opt, lights = self.opt, []

@@ -30,10 +30,10 @@ import mitsuba as mi
 from foundation import imageio, validate
 from foundation.assets import envmap, hdri_path
 from foundation.errors import UsageError
-from foundation.files import atomic_dir, read_json, write_json
+from foundation.files import atomic_dir, write_json
 from foundation.mesh import load_mesh_any, normalise_mesh, sample_surface, vertex_normals, write_ply
 from foundation.progress import progress_bar
-from foundation.records import from_json, to_json
+from foundation.records import load_folder_record, to_json
 
 MARKER = "morph_benchmark.json"  #: written last: a folder holding it is a complete benchmark
 FORMAT = "photoreal-morph-benchmark/1"
@@ -497,15 +497,8 @@ def load_morph_benchmark(path: str | Path) -> MorphBenchmark:
     """Read a benchmark folder; a missing or inconsistent part is named."""
     path = Path(path)
     mp = path / MARKER
-    if not path.is_dir():
-        raise UsageError(f"{path}: no such morph benchmark folder")
-    if not mp.is_file():
-        raise UsageError(f"{path}: not a morph benchmark folder (no {MARKER}; make one with "
-                         "`photoreal morph make-benchmark`)")
-    raw = read_json(mp, "morph benchmark description")
-    if raw.get("format") != FORMAT:
-        raise UsageError(f"{mp}: unknown format {raw.get('format')!r} (expected {FORMAT!r})")
-    meta = from_json(MorphBenchmarkMeta, raw, str(mp))
+    meta = load_folder_record(path, MARKER, MorphBenchmarkMeta, FORMAT, "morph benchmark",
+                              "photoreal morph make-benchmark")
     n = len(meta.cameras)
     if not meta.train or not meta.test or max(meta.train + meta.test) >= n or min(meta.train + meta.test) < 0:
         raise UsageError(f"{mp}: train/test views must be non-empty indices of the {n} cameras")

@@ -37,7 +37,7 @@ import mitsuba as mi
 from foundation import validate
 from foundation.bridge import torch_to_drjit_loss
 from foundation.files import file_digest
-from foundation.loop import LoopSettings, RunState, Stage, StepResult, all_finite, rng_state, run_loop, set_rng_state
+from foundation.loop import LoopSettings, RunState, StepResult, TorchStage, rng_state, run_loop, set_rng_state
 from foundation.mesh import read_ply_colours, write_ply
 from foundation.optim_state import load_optimizer_state, optimizer_state
 
@@ -116,7 +116,7 @@ def features(v: np.ndarray, c: np.ndarray) -> torch.Tensor:
     return torch.as_tensor(np.concatenate([(v - centre) / scale, c], 1), dtype=torch.float32)
 
 
-class IdentityPretrain(Stage):
+class IdentityPretrain(TorchStage):
     """The network learns to output zero offsets and zero colour change (so it starts at the input mesh)."""
 
     name = "gcn identity pre-training"
@@ -129,13 +129,7 @@ class IdentityPretrain(Stage):
         self.opt.zero_grad()
         loss = self.net(self.x).pow(2).mean()
         loss.backward()
-        return StepResult(float(loss.detach()), all_finite(*(p.grad for p in self.net.parameters())))
-
-    def apply(self, it: int) -> None:
-        self.opt.step()
-
-    def discard(self, it: int) -> None:
-        self.opt.zero_grad()
+        return StepResult(float(loss.detach()), self.grads_finite())
 
     def finish(self, run: RunState) -> list[float]:
         return list(run.losses)
@@ -155,7 +149,7 @@ def apply_gcn(net: MeshGCN, x: torch.Tensor, v0: torch.Tensor, c0: torch.Tensor,
     return v, c
 
 
-class GCNMorphStage(Stage):
+class GCNMorphStage(TorchStage):
     """The image loss of eq. 4.3 through Mitsuba, back into the GCN's weights (torch Adam)."""
 
     def __init__(self, bench: MorphBenchmark, out: Path, s: MorphSettings, g: GCNSettings):
@@ -217,13 +211,7 @@ class GCNMorphStage(Stage):
         v, c = apply_gcn(self.net, self.x, self.v0, self.c0, meta.scene_size, self.g)
         loss = self.loss_fn(v, c)
         loss.backward()
-        return StepResult(float(loss.detach()), all_finite(*(p.grad for p in self.net.parameters())))
-
-    def apply(self, it: int) -> None:
-        self.opt.step()
-
-    def discard(self, it: int) -> None:
-        self.opt.zero_grad()
+        return StepResult(float(loss.detach()), self.grads_finite())
 
     def finish(self, run: RunState) -> MorphResult:
         with torch.no_grad():

@@ -42,7 +42,8 @@ import mitsuba as mi
 
 from foundation import validate
 from foundation.files import file_digest
-from foundation.loop import LoopSettings, RunState, Stage, StepResult, TrainingSummary, all_finite, rng_state, run_loop, set_rng_state
+from foundation.loop import (DrJitStage, LoopSettings, RunState, StepResult, TrainingSummary, rng_state, run_loop,
+                             set_rng_state)
 from foundation.mesh import face_normals, read_ply_colours, write_ply
 from foundation.optim_state import load_optimizer_state, optimizer_state
 
@@ -148,7 +149,7 @@ def decide_planarity(v: np.ndarray, f: np.ndarray, s: MorphSettings) -> Planarit
     return PlanarityDecision(s.planarity_auto_weight if frac >= s.planarity_auto_threshold else 0.0, True, frac)
 
 
-class MorphStage(Stage):
+class MorphStage(DrJitStage):
     """Eq. 4.3 (L1 over a batch of views) + the planarity prior, large-steps Adam on (u, C)."""
 
     unit = "it"
@@ -241,8 +242,7 @@ class MorphStage(Stage):
             loss += self.planarity.weight * planarity_prior(dr.unravel(mi.Point3f, flat), self.f_mi, self.pairs,
                                                             self.sigma)
         dr.backward(loss)
-        value = float(loss.array[0])
-        return StepResult(value, all_finite(*(dr.grad(self.opt[k]) for k in self.opt.keys())))
+        return self.result(loss)
 
     def apply(self, it: int) -> None:
         s = self.s
@@ -252,10 +252,6 @@ class MorphStage(Stage):
         if v_before is not None:
             undo_flips(self.opt, self.key, v_before, self.positions,
                        self.ls.to_differential if self.ls is not None else (lambda x: x), self.n_start, self.faces)
-
-    def discard(self, it: int) -> None:
-        for k in self.opt.keys():
-            dr.set_grad(self.opt[k], 0)
 
     def after_step(self, it: int, run: RunState) -> None:
         if run.step in self.s.remesh_at and not run.done:

@@ -10,6 +10,7 @@ import mi_plugins  # noqa: F401
 import mitsuba as mi
 
 from foundation.assets import envmap
+from foundation.scene import mitsuba_log_level
 
 from .benchmark import Camera, MorphBenchmark, sensor_dict
 
@@ -31,25 +32,20 @@ def morph_scene(mesh_ply: Path, mode: str, hdri: str | Path, integrator: dict | 
                  "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": colour}}}
     else:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    # Remeshed/decimated reconstructions often have a few non-manifold vertices; Mitsuba warns about
-    # each load with a full mesh dump. They are expected here, so only errors are logged.
-    logger = mi.logger() if hasattr(mi, "logger") else mi.Thread.thread().logger()
-    level = logger.log_level()
-    logger.set_log_level(mi.LogLevel.Error)
-    try:
+    # Remeshed/decimated reconstructions often have a few non-manifold vertices (expected here).
+    with mitsuba_log_level(mi.LogLevel.Error):
         return mi.load_dict({"type": "scene", "integrator": integrator or {"type": "direct_projective", "sppi": 0},
                              "env": envmap(hdri), "mesh": shape})
-    finally:
-        logger.set_log_level(level)
 
 
 def render_views(scene: mi.Scene, params, cameras: list[Camera], ids, res: int, fov: float, spp: int,
                  seed: int) -> list[mi.TensorXf]:
     """Differentiable renders of cameras ``ids`` (seed + view index each), films that sample their border."""
     out = []
-    for i in ids:
-        sensor = mi.load_dict(sensor_dict(cameras[int(i)], res, fov, sample_border=True))
-        out.append(mi.render(scene, params, sensor=sensor, spp=spp, seed=int(seed + i)))
+    with mitsuba_log_level(mi.LogLevel.Error):  # projective integrators dump non-manifold meshes at first render
+        for i in ids:
+            sensor = mi.load_dict(sensor_dict(cameras[int(i)], res, fov, sample_border=True))
+            out.append(mi.render(scene, params, sensor=sensor, spp=spp, seed=int(seed + i)))
     return out
 
 
