@@ -86,6 +86,5 @@ def hdri_bitmap(name_or_path: str | os.PathLike):
 
 def envmap(name_or_path: str | os.PathLike, **props) -> dict:
     """Mitsuba ``envmap`` emitter dict for an HDRI (bundled name or EXR path), from a validated bitmap."""
-    import mitsuba as mi
 
     return {"type": "envmap", "bitmap": hdri_bitmap(name_or_path), **props}

@@ -167,7 +167,8 @@ class JointStage(Stage):
         i = int(self.rng.choice(self.train))
         self.params["mesh.vertex_positions"] = dr.ravel(self.ls.from_differential(self.opt["u"]))
         self.params["mesh.vertex_color"] = self.opt["c"]
-        self.params.update()
+        with mitsuba_log_level(mi.LogLevel.Error):  # non-manifold vertices of remeshed inputs: expected
+            self.params.update()
         sensor = mi.load_dict(sensor_dict(self.bench.meta.cameras[i], self.res, self.fov, sample_border=True))
         with mitsuba_log_level(mi.LogLevel.Error):  # the projective integrator's non-manifold mesh dumps
             img = mi.render(self.scene, self.params, sensor=sensor, spp=s.spp, seed=int(s.seed * 7919 + it * 101 + i))

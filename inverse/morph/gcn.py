@@ -40,6 +40,7 @@ from foundation.files import file_digest
 from foundation.loop import LoopSettings, RunState, StepResult, TorchStage, rng_state, run_loop, set_rng_state
 from foundation.mesh import read_ply_colours, write_ply
 from foundation.optim_state import load_optimizer_state, optimizer_state
+from foundation.scene import mitsuba_log_level
 
 from .benchmark import MorphBenchmark
 from .evaluate import evaluate_morph
@@ -182,7 +183,8 @@ class GCNMorphStage(TorchStage):
         meta, s = self.bench.meta, self.s
         self.params["mesh.vertex_positions"] = v.array
         self.params["mesh.vertex_color"] = c.array
-        self.params.update()
+        with mitsuba_log_level(mi.LogLevel.Error):  # non-manifold vertices: expected in reconstructions
+            self.params.update()
         views = self.batch["views"]
         imgs = render_views(self.scene, self.params, meta.cameras, views, self.res, meta.fov, s.spp, self.batch["seed"])
         loss = 0
