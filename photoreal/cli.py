@@ -29,6 +29,13 @@ def _default(cls: type, name: str) -> Any:
     raise KeyError(f"{cls.__name__}.{name} has no default")
 
 
+def _arg(func, name: str) -> Any:
+    """The default of a library function's parameter (for options that fill a function argument)."""
+    import inspect
+
+    return inspect.signature(func).parameters[name].default
+
+
 def _opt(p: argparse.ArgumentParser, cls: type, name: str, *flags: str, help: str = "", **kw) -> None:
     """``--flag`` filling ``cls.name``; its default (shown in --help) is the dataclass's."""
     default = _default(cls, name)
@@ -358,7 +365,7 @@ def _cmd_demo(a) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     from foundation.scene import RenderSettings
-    from inverse.btf import BTFRenderSettings, OptimSettings
+    from inverse.btf import BTFRenderSettings, OptimSettings, fit_settings, render_dataset, split_slices
     from inverse.face import FaceBenchmarkSettings, FaceFitSettings, PhotoFitSettings, RenderRefineSettings
     from inverse.morph import MorphBenchmarkSettings, MorphSettings
     from mi_plugins.neural_basis import BasisConfig
@@ -471,7 +478,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr = tsub.add_parser("render-data", help="render BTFs from procedural/photo SVBRDFs (resumes: skips finished files)")
     tr.add_argument("--out", required=True, help="dataset folder")
     tr.add_argument("--families", nargs="+", default=None, help="subset of the material families (default: all 8)")
-    tr.add_argument("--per-family", type=int, default=4, help="materials per family (default: 4)")
+    tr.add_argument("--per-family", type=int, default=_arg(render_dataset, "per_family"),
+                    help=f"materials per family (default: {_arg(render_dataset, 'per_family')})")
     for name in ("tex_res", "slices", "spp", "max_depth", "seed"):
         _opt(tr, BTFRenderSettings, name)
     tr.set_defaults(func=_cmd_btf_render_data)
@@ -490,11 +498,13 @@ def build_parser() -> argparse.ArgumentParser:
     tf.add_argument("btf", help="a BTF .npz from render-data")
     tf.add_argument("--basis", required=True)
     tf.add_argument("--out", required=True, help="material .npz for the neural_btf plugin")
-    tf.add_argument("--iterations", type=int, default=600, help="Adam steps (default: 600)")
+    tf.add_argument("--iterations", type=int, default=_arg(fit_settings, "iterations"),
+                    help=f"Adam steps (default: {_arg(fit_settings, 'iterations')})")
     tf.add_argument("--batch", type=int, default=_default(OptimSettings, "batch"),
                     help=f"samples per step (default: {_default(OptimSettings, 'batch')})")
     _opt(tf, OptimSettings, "tex_res", help="feature texture resolution (0 = the BTF's)")
-    tf.add_argument("--heldout-fraction", type=float, default=0.25, help="slices held out for the PSNR (default: 0.25)")
+    tf.add_argument("--heldout-fraction", type=float, default=_arg(split_slices, "heldout_fraction"),
+                    help=f"slices held out for the PSNR (default: {_arg(split_slices, 'heldout_fraction')})")
     tf.add_argument("--checkpoint", default=None, help="default: OUT with .ckpt.npz")
     tf.add_argument("--json", default=None)
     _opt(tf, OptimSettings, "seed")
@@ -527,7 +537,8 @@ def _add_gan_parser(sub) -> None:
     gt.add_argument("benchmark", help="folder made by `photoreal morph make-benchmark`")
     gt.add_argument("--morph", default=None, help="morph run folder with morphed.ply (default BENCHMARK/morph)")
     gt.add_argument("--model", choices=["pix2pix", "cyclegan", "morph_gan_partial", "morph_gan", "joint"],
-                    default="morph_gan", help="default: morph_gan")
+                    default=_default(GanTrainSettings, "model"),
+                    help=f"default: {_default(GanTrainSettings, 'model')}; joint: mesh and Morph-GAN together")
     gt.add_argument("--out", required=True, help="training folder (checkpoint.npz, metrics.json)")
     _opt(gt, GanTrainSettings, "steps")
     _opt(gt, GanTrainSettings, "max_seconds", "--seconds", type=float, help="wall-time budget (summed over resumes)")

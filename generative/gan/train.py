@@ -42,7 +42,7 @@ MODELS: tuple[str, ...] = ("pix2pix", "cyclegan", "morph_gan_partial", "morph_ga
 
 @dataclass
 class GanTrainSettings:
-    model: str = "pix2pix"  #: one of MODELS
+    model: str = "morph_gan"  #: one of MODELS
     steps: int = 5000  #: upper bound; ``max_seconds`` usually ends the run first
     max_seconds: float | None = 120.0  #: training wall-time budget (summed over resumes); None = steps only
     batch: int = 4

@@ -735,7 +735,7 @@ def material_seed(base_seed: int, family: str, k: int) -> int:
     return int(np.random.SeedSequence([int(base_seed), FAMILIES.index(family), int(k)]).generate_state(1)[0] >> 1)
 
 
-def render_dataset(out_dir: str | Path, families: Sequence[str] = FAMILIES, per_family: int = 1,
+def render_dataset(out_dir: str | Path, families: Sequence[str] = FAMILIES, per_family: int = 4,
                    settings: BTFRenderSettings | None = None, base_seed: int = 0, progress: bool = True,
                    svbrdf_res: int = 256) -> list[Path]:
     """Render ``{family}_{k:03d}.npz`` for every family and k < per_family into out_dir, plus index.json.
