@@ -59,6 +59,7 @@ class RenderSettings:
     aovs: bool = False  #: swap in the ``intrinsic`` integrator and write A, I, S, ...
     seed: int = 0
     pass_spp: int = 16  #: samples per progress step
+    sensor: int = 0  #: which of the scene's sensors (cameras, frames) to render
 
     def __post_init__(self):
         if self.spp is not None and self.spp < 1:
@@ -70,6 +71,8 @@ class RenderSettings:
             raise UsageError(f"seed must be in [0, {SEED_MAX}], got {self.seed}")
         if self.pass_spp < 1:
             raise UsageError(f"pass_spp must be >= 1, got {self.pass_spp}")
+        if self.sensor < 0:
+            raise UsageError(f"sensor must be >= 0, got {self.sensor}")
 
 
 def _set_child(parent: ET.Element, tag: str, name: str, value: str) -> None:
@@ -117,17 +120,58 @@ def prepare_scene_xml(path: Path, settings: RenderSettings) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
+_PFM_CACHE: dict[tuple[str, float], str] = {}
+
+
+def _exr_as_pfm(exr: Path) -> str:
+    """A lossless float32 PFM copy of an EXR (read by Mitsuba itself), cached for this process.
+
+    Mitsuba's EXR reader hangs with one Dr.Jit thread (:mod:`foundation.assets`), and loading a scene with more
+    threads is not reproducible: under load, 2 of ~100 loads of the armadillo scene rendered differently
+    (the parser instantiates objects in parallel). PFM goes through no thread pool, so scenes load with the
+    caller's thread count; the radiance is bit-identical (tested).
+    """
+    import atexit
+    import shutil
+    import tempfile
+
+    key = (str(exr.resolve()), exr.stat().st_mtime)
+    if key not in _PFM_CACHE or not Path(_PFM_CACHE[key]).is_file():
+        with exr_safe():
+            bmp = mi.Bitmap(str(exr))
+        folder = tempfile.mkdtemp(prefix="photoreal-pfm-")
+        atexit.register(shutil.rmtree, folder, True)
+        target = Path(folder) / (exr.stem + ".pfm")
+        bmp.write(str(target))
+        _PFM_CACHE[key] = str(target)
+    return _PFM_CACHE[key]
+
+
+def _substitute_exr(root: ET.Element, folder: Path) -> None:
+    """Point every ``filename`` ending in .exr at its PFM copy (see :func:`_exr_as_pfm`)."""
+    for el in root.iter("string"):
+        value = el.get("value", "")
+        if el.get("name") == "filename" and value.lower().endswith(".exr"):
+            exr = Path(value) if Path(value).is_absolute() else folder / value
+            if exr.is_file():
+                el.set("value", _exr_as_pfm(exr))
+
+
 def load_scene(path: str | os.PathLike, settings: RenderSettings | None = None) -> mi.Scene:
     """Load an XML scene (relative asset paths resolve against its folder)."""
     path = Path(path)
     settings = settings or RenderSettings()
-    xml = prepare_scene_xml(path, settings)
+    root = ET.fromstring(prepare_scene_xml(path, settings))
+    try:
+        _substitute_exr(root, path.parent.resolve())
+    except Exception as exc:  # a damaged EXR: name it
+        raise SceneError(f"{path}: {' '.join(str(exc).split())[:200]}") from None
+    xml = ET.tostring(root, encoding="unicode")
     resolver = mi.file_resolver()
     saved = [resolver[i] for i in range(len(resolver))]
     resolver.prepend(str(path.parent.resolve()))
     try:
-        with exr_safe():  # Mitsuba's EXR reader needs ≥ 2 Dr.Jit threads (foundation.threads)
-            scene = mi.load_string(xml)
+        scene = mi.load_string(xml)
     except Exception as exc:
         msg = str(exc).strip()
         # Python plugin constructors report through a traceback; keep its last line.
@@ -174,7 +218,10 @@ def render_scene(scene: mi.Scene, settings: RenderSettings, show_progress: bool 
 
     Returns (rgb (H, W, 3), {aov group: (H, W, C)}) as float32 numpy arrays.
     """
-    sensor = scene.sensors()[0]
+    sensors = scene.sensors()
+    if settings.sensor >= len(sensors):
+        raise SceneError(f"{label}: sensor {settings.sensor} asked for, the scene has {len(sensors)}")
+    sensor = sensors[settings.sensor]
     spp = settings.spp or sensor.sampler().sample_count()
     n_pass = max(1, math.ceil(spp / settings.pass_spp))
     per = [spp // n_pass + (1 if i < spp % n_pass else 0) for i in range(n_pass)]
@@ -190,7 +237,7 @@ def render_scene(scene: mi.Scene, settings: RenderSettings, show_progress: bool 
             # The sampler seed is 32-bit: wrap (seeds < 42950 give the same passes as before the wrap).
             seed = (settings.seed * 100_003 + i) % 2**32
             try:
-                img = np.array(mi.render(scene, spp=k, seed=seed), dtype=np.float64)
+                img = np.array(mi.render(scene, sensor=settings.sensor, spp=k, seed=seed), dtype=np.float64)
             except RuntimeError as exc:  # Ctrl-C inside a Python plugin arrives wrapped by Dr.Jit
                 if "KeyboardInterrupt" in str(exc):
                     raise KeyboardInterrupt from None
@@ -218,10 +265,22 @@ def render_file(
     scene = load_scene(scene_path, settings)
     rgb, aovs = render_scene(scene, settings, show_progress, label=Path(scene_path).name)
     layers = {"": rgb, **{k: v for k, v in aovs.items()}}
-    imageio.write_exr(out, layers)
     png = out.with_suffix(".png")
     imageio.write_png(png, rgb)
-    return {"exr": str(out), "png": str(png), "shape": list(rgb.shape), "layers": sorted(aovs)}
+    imageio.write_exr(out, layers)  # last: the EXR's presence marks a finished render (batches resume on it)
+    return {"exr": str(out), "png": str(png), "shape": list(rgb.shape), "layers": sorted(aovs),
+            "sensor": settings.sensor}
+
+
+def sensor_count(scene_path: str | os.PathLike) -> int:
+    """How many sensors (cameras, frames) a scene file has (parsed, not loaded)."""
+    root = ET.fromstring(prepare_scene_xml(Path(scene_path), RenderSettings()))
+    return len(root.findall("sensor"))
+
+
+def render_item(scene_path: str, out: str, settings: RenderSettings) -> dict:
+    """One scene, or one of its sensors, to ``out`` (EXR + PNG): the unit a batch of renders fans out."""
+    return render_file(scene_path, out, settings, show_progress=False)
 
 
 __all__ = [
@@ -231,6 +290,8 @@ __all__ = [
     "load_scene",
     "recompose",
     "render_file",
+    "render_item",
     "render_scene",
+    "sensor_count",
     "split_intrinsics",
 ]

@@ -68,16 +68,88 @@ def _print(d: dict) -> None:
     print(json.dumps(d, indent=2, default=str))
 
 
+# -- batches of items (foundation.pool) -----------------------------------------------------------------------------
+
+
+def _pool_opts(p: argparse.ArgumentParser) -> None:
+    from foundation.pool import default_workers
+
+    p.add_argument("--workers", type=int, default=None,
+                   help=f"worker processes for the items (default: the cores here, {default_workers()}; 0: one after "
+                        "another in this process)")
+    p.add_argument("--ray", default=None, metavar="ADDRESS",
+                   help="run the items as Ray tasks: 'local' starts Ray on this machine, 'auto' or HOST:PORT joins "
+                        "a running cluster (README: beyond one machine)")
+
+
+def _pool(a):
+    from foundation.pool import PoolSettings, default_workers
+
+    cores = default_workers()
+    workers = a.workers if a.workers is not None else cores
+    # One Dr.Jit thread per worker when the workers fill the cores: results are then bit-identical to a serial
+    # run with one thread, wherever an item ran; fewer workers get the cores' share each.
+    threads = 1 if a.ray else (max(1, cores // workers) if workers >= 1 else 0)
+    return PoolSettings(workers=max(workers, 1) if a.ray else workers, ray=a.ray, threads=threads)
+
+
+def _run_batch(items, a, desc: str) -> int:
+    from foundation.pool import ray_shutdown, run_items
+
+    try:
+        report = run_items(items, _pool(a), desc=desc)
+    finally:
+        ray_shutdown()
+    print(json.dumps({"items": len(report.results), "done": len(report.ran), "skipped": len(report.skipped),
+                      "failed": [{"item": r.key, "error": r.error} for r in report.failed],
+                      "seconds": report.seconds}, indent=2))
+    for r in report.failed:
+        print(f"photoreal: error: {r.key}: {r.error}", file=sys.stderr)
+    return 1 if report.failed else 0
+
+
+def _out_dir(path: str, flag: str = "--out-dir") -> Path:
+    """A folder for many outputs: absent or a folder (items already in it are skipped, so a batch resumes)."""
+    from foundation.files import check_output_file
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise _usage(f"{flag} {p}: is a file, expected a folder")
+    check_output_file(p / ".probe", flag)
+    return p
+
+
 # -- render ---------------------------------------------------------------------------------------------------------
 
 
 def _cmd_render(a: argparse.Namespace) -> int:
-    from foundation.scene import RenderSettings, render_file
+    from foundation.pool import Item
+    from foundation.scene import RenderSettings, prepare_scene_xml, render_file, sensor_count
 
     settings = RenderSettings(spp=a.spp, resolution=tuple(a.resolution) if a.resolution else None, aovs=a.aovs,
                               seed=a.seed)
-    print(json.dumps(render_file(a.scene, a.output, settings)))
-    return 0
+    many = len(a.scene) > 1 or a.all_sensors
+    if a.output and many:
+        raise _usage("-o names one output; give --out-dir for several scenes or --all-sensors")
+    if not a.output and not a.out_dir:
+        raise _usage("give -o FILE.exr (one scene) or --out-dir DIR (several)")
+    if a.output:
+        print(json.dumps(render_file(a.scene[0], a.output, settings)))
+        return 0
+    out = _out_dir(a.out_dir)
+    stems = [Path(sc).stem for sc in a.scene]
+    if len(set(stems)) != len(stems):
+        raise _usage("two scenes share a file name; their renders would overwrite each other in --out-dir")
+    items = []
+    for sc in a.scene:
+        prepare_scene_xml(Path(sc), settings)  # a missing or malformed scene is named before any work
+        n = sensor_count(sc) if a.all_sensors else 1
+        for k in range(n):
+            key = Path(sc).stem + (f"_s{k}" if a.all_sensors else "")
+            exr = out / f"{key}.exr"
+            items.append(Item(key, "foundation.scene:render_item",
+                              (str(sc), str(exr), dataclasses.replace(settings, sensor=k)), output=str(exr)))
+    return _run_batch(items, a, "render")
 
 
 # -- bench ----------------------------------------------------------------------------------------------------------
@@ -106,8 +178,13 @@ def _cmd_bench_morph(a) -> int:
 
     from .benchmarks.morph import MorphBenchSettings, bench_morph
 
+    from foundation.pool import ray_shutdown
+
     out = _bench_out(a)
-    result = bench_morph(_settings(MorphBenchSettings, a), out_dir=out.parent)
+    try:
+        result = bench_morph(_settings(MorphBenchSettings, a), out_dir=out.parent, pool=_pool(a))
+    finally:
+        ray_shutdown()
     write_json(out, result)
     _print({k: result[k] for k in ("chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input",
                                    "psnr_heldout_morphed", "spikes", "s_per_iter_10k_4views_128",
@@ -144,6 +221,19 @@ def _cmd_bench_face(a) -> int:
     return 0
 
 
+def _cmd_bench_scale(a) -> int:
+    from foundation.files import write_json
+
+    from .benchmarks.scale import ScaleBenchSettings, bench_scale
+
+    out = _bench_out(a)
+    result = bench_scale(_settings(ScaleBenchSettings, a), out_dir=out.parent)
+    write_json(out, result)
+    _print({k: result.get(k) for k in ("items", "serial_s", "pool_s", "ray_s", "speedup_pool_2",
+                                       "ray_overhead_per_item_s", "identical")})
+    return 0
+
+
 def _cmd_bench_gan(a) -> int:
     from foundation.files import write_json
 
@@ -174,12 +264,41 @@ def _cmd_face_make_benchmark(a) -> int:
     return 0
 
 
+def _benchmarks(paths: list[str], marker: str) -> list[Path]:
+    """The benchmark folders named, a folder of benchmarks standing for the benchmarks inside it."""
+    out = []
+    for p in map(Path, paths):
+        if p.is_dir() and not (p / marker).is_file():
+            inside = sorted(q.parent for q in p.glob(f"*/{marker}"))
+            out += inside or [p]  # nothing inside: keep it, so that loading names it
+        else:
+            out.append(p)
+    return out
+
+
 def _cmd_face_fit(a) -> int:
+    from foundation.pool import Item
     from inverse.face import FaceFitSettings, RenderRefineSettings, fit_benchmark_dir
 
     fs = _settings(FaceFitSettings, a)
     refine = RenderRefineSettings(iterations=a.refine_renders, seed=a.seed) if a.refine_renders else None
-    r = fit_benchmark_dir(a.benchmark, a.json, a.maps, fs, refine=refine)
+    benches = _benchmarks(a.benchmark, "benchmark.json")
+    if len(benches) > 1 or a.out_dir:
+        if a.json or a.maps:
+            raise _usage("--json and --maps name one benchmark's outputs; several go to --out-dir")
+        if not a.out_dir:
+            raise _usage("several benchmarks: give --out-dir DIR (DIR/NAME/fit.json and DIR/NAME/maps each)")
+        out = _out_dir(a.out_dir)
+        names = [b.name for b in benches]
+        if len(set(names)) != len(names):
+            raise _usage("two benchmarks share a folder name; their fits would overwrite each other in --out-dir")
+        items = [Item(b.name, "inverse.face:fit_benchmark_item",
+                      (str(b), str(out / b.name / "fit.json"), str(out / b.name / "maps"), fs, refine),
+                      output=str(out / b.name / "fit.json")) for b in benches]
+        return _run_batch(items, a, "face fits")
+    if not a.json:
+        raise _usage("give --json FILE (or --out-dir for several benchmarks)")
+    r = fit_benchmark_dir(benches[0], a.json, a.maps, fs, refine=refine)
     m = r.metrics
     _print({"albedo_psnr": m.albedo_psnr, "normal_err_deg": m.normal_err_deg, "relit_psnr": m.relit_psnr,
             "seconds": m.seconds})
@@ -217,15 +336,34 @@ def _cmd_morph_make_benchmark(a) -> int:
 
 def _cmd_morph_run(a) -> int:
     from foundation.files import check_output_file, write_json
+    from foundation.pool import Item
     from foundation.records import to_json
     from inverse.morph import MorphSettings, load_morph_benchmark, run_gcn_morph, run_morph
 
     s = _settings(MorphSettings, a, parameterisation="plain" if a.plain_adam else "large_steps",
                   repair_flips=not a.no_repair, min_vertices=a.min_vertices or None)
+    benches = _benchmarks(a.benchmark, "morph_benchmark.json")
+    if len(benches) > 1:
+        if a.out or a.json:
+            raise _usage("--out and --json name one run; several benchmarks go to --out-dir (or BENCHMARK/morph)")
+        for b in benches:
+            load_morph_benchmark(b)  # a missing or damaged benchmark is named before any work
+        base = _out_dir(a.out_dir) if a.out_dir else None
+        names = [b.name for b in benches]
+        if base is not None and len(set(names)) != len(names):
+            raise _usage("two benchmarks share a folder name; their runs would overwrite each other in --out-dir")
+        items = []
+        for b in benches:
+            out = base / b.name if base is not None else b / "morph"
+            items.append(Item(b.name, "inverse.morph:run_item", (str(b), str(out), s, a.gcn), {"json_path": None},
+                              output=str(out / "metrics.json")))
+        return _run_batch(items, a, "morph runs")
+    if a.out_dir:
+        raise _usage("--out-dir is for several benchmarks; one run goes to --out (default BENCHMARK/morph)")
     if a.json:
         check_output_file(a.json, "--json")
-    bench = load_morph_benchmark(a.benchmark)
-    out = Path(a.out) if a.out else Path(a.benchmark) / "morph"
+    bench = load_morph_benchmark(benches[0])
+    out = Path(a.out) if a.out else benches[0] / "morph"
     if out.exists() and not out.is_dir():
         raise _usage(f"--out {out}: is a file, expected a folder")
     m = run_gcn_morph(bench, out, s) if a.gcn else run_morph(bench, out, s)
@@ -250,9 +388,14 @@ def _checkpoint_path(a) -> Path:
 def _cmd_btf_render_data(a) -> int:
     from inverse.btf import FAMILIES, BTFRenderSettings, render_dataset
 
+    from foundation.pool import ray_shutdown
+
     s = _settings(BTFRenderSettings, a)
-    paths = render_dataset(a.out, families=tuple(a.families) if a.families else FAMILIES, per_family=a.per_family,
-                           settings=s, base_seed=a.seed)
+    try:
+        paths = render_dataset(a.out, families=tuple(a.families) if a.families else FAMILIES,
+                               per_family=a.per_family, settings=s, base_seed=a.seed, pool=_pool(a))
+    finally:
+        ray_shutdown()
     print(json.dumps({"materials": len(paths), "out": str(a.out)}))
     return 0
 
@@ -275,27 +418,39 @@ def _cmd_btf_train_basis(a) -> int:
 
 
 def _cmd_btf_fit(a) -> int:
-    from foundation.files import check_output_file, write_json
-    from inverse.btf import fit_material, fit_settings, heldout_psnr, load_btf, split_slices
-    from mi_plugins.neural_basis import load_basis, save_material
-
     from foundation import validate
+    from foundation.files import check_output_file, write_json
+    from foundation.pool import Item
+    from inverse.btf import fit_file, fit_settings
 
     validate.in_range("heldout_fraction", a.heldout_fraction, 0.0, 1.0, lo_open=True, hi_open=True)
-    s = fit_settings(a.iterations, batch=a.batch, seed=a.seed, tex_res=a.tex_res)
+    fit_settings(a.iterations, batch=a.batch, seed=a.seed, tex_res=a.tex_res)  # flags checked before any work
+    kw = dict(iterations=a.iterations, batch=a.batch, tex_res=a.tex_res, heldout_fraction=a.heldout_fraction,
+              seed=a.seed)
+    if len(a.btf) > 1 or a.out_dir:
+        if a.out or a.json or a.checkpoint:
+            raise _usage("--out, --json and --checkpoint name one material; several go to --out-dir")
+        if not a.out_dir:
+            raise _usage("several BTFs: give --out-dir DIR (DIR/NAME.npz each)")
+        out = _out_dir(a.out_dir)
+        names = [Path(b).stem for b in a.btf]
+        if len(set(names)) != len(names):
+            raise _usage("two BTFs share a file name; their materials would overwrite each other in --out-dir")
+        for b in a.btf:
+            if not Path(b).is_file():
+                raise _usage(f"{b}: no such BTF file")
+        if not Path(a.basis).is_file():
+            raise _usage(f"--basis {a.basis}: no such file")
+        items = [Item(n, "inverse.btf:fit_file", (str(b), str(a.basis), str(out / f"{n}.npz")), kw,
+                      output=str(out / f"{n}.npz")) for n, b in zip(names, a.btf)]
+        return _run_batch(items, a, "fit materials")
+    if not a.out:
+        raise _usage("give --out MATERIAL.npz (or --out-dir for several BTFs)")
     check_output_file(a.out, "--out")
     if a.json:
         check_output_file(a.json, "--json")
     ck = _checkpoint_path(a)
-    basis = load_basis(a.basis)
-    data = load_btf(a.btf)
-    fit, held = split_slices(data.values.shape[0], a.heldout_fraction)
-    mat, hist = fit_material(basis, data, fit, s, checkpoint=ck)
-    mat.meta["psnr_heldout"] = heldout_psnr(basis, mat, data, held)
-    save_material(a.out, mat)
-    m = {"material": str(a.out), "btf": str(a.btf), "basis": basis.meta.get("id"),
-         "psnr_heldout": mat.meta["psnr_heldout"], "heldout_slices": len(held), "final_l1": hist[-1]["l1"],
-         "seconds": hist[-1]["seconds"]}
+    m = fit_file(a.btf[0], a.basis, a.out, checkpoint=str(ck), progress=True, **kw)
     if a.json:
         write_json(a.json, m)
     print(json.dumps(m))
@@ -373,14 +528,20 @@ def build_parser() -> argparse.ArgumentParser:
     from .benchmarks.face import FaceBenchSettings
     from .benchmarks.gan import GanBenchSettings
     from .benchmarks.plugins import PluginBenchSettings
+    from .benchmarks.scale import ScaleBenchSettings
     from .demo import DemoSettings
 
     p = argparse.ArgumentParser(prog="photoreal", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
-    r = sub.add_parser("render", help="render a Mitsuba XML scene (our plugins register themselves)")
-    r.add_argument("scene", help="scene .xml file")
-    r.add_argument("-o", "--output", required=True, help="output .exr (a .png preview is written beside it)")
+    r = sub.add_parser("render", help="render Mitsuba XML scenes (our plugins register themselves)")
+    r.add_argument("scene", nargs="+", help="scene .xml file(s)")
+    r.add_argument("-o", "--output", default=None, help="output .exr of one scene (a .png preview is written beside it)")
+    r.add_argument("--out-dir", default=None,
+                   help="folder for several renders: DIR/SCENE.exr (DIR/SCENE_s<k>.exr with --all-sensors); "
+                        "renders already there are kept, so a killed batch resumes")
+    r.add_argument("--all-sensors", action="store_true", help="render every sensor (camera, frame) of each scene")
+    _pool_opts(r)
     _opt(r, RenderSettings, "spp", type=int, help="samples per pixel (default: the scene's)")
     r.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), default=None,
                    help="film size (default: the scene's)")
@@ -396,6 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
         _opt(bp, PluginBenchSettings, name)
     bp.set_defaults(func=_cmd_bench_plugins)
     bm = bsub.add_parser("morph", help="geometry morphing: accuracy vs time, speed vs the tutorial recipe, stability")
+    _pool_opts(bm)
     bm.set_defaults(func=_cmd_bench_morph)
     bb = bsub.add_parser("btf", help="neural BTF: universal vs NeuMIP, width × texture sweep, render time")
     bb.set_defaults(func=_cmd_bench_btf)
@@ -407,7 +569,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"training budget per GAN (default: {_default(GanBenchSettings, 'seconds_per_model')} s; "
                          "the joint, CycleGAN and fine-tune budgets keep their proportions)")
     bg.set_defaults(func=_cmd_bench_gan)
-    for q in (bp, bm, bb, bf, bg):
+    bs = bsub.add_parser("scale", help="a batch of renders serially, on a process pool and on Ray (identical?)")
+    for name in ("items", "resolution", "spp"):
+        _opt(bs, ScaleBenchSettings, name)
+    _opt(bs, ScaleBenchSettings, "ray", "--no-ray", help="leave out the Ray configuration")
+    _opt(bs, ScaleBenchSettings, "material_item", "--no-material", help="leave out timing one BTF material")
+    bs.set_defaults(func=_cmd_bench_scale)
+    for q in (bp, bm, bb, bf, bg, bs):
         q.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
 
     f = sub.add_parser("face", help="face material fitting in UV space (seed 003)")
@@ -419,9 +587,10 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(fm, FaceBenchmarkSettings, "n_lights", "--lights", help="directional training lights")
     _opt(fm, FaceBenchmarkSettings, "seed")
     fm.set_defaults(func=_cmd_face_make_benchmark)
-    ff = fsub.add_parser("fit", help="fit UV maps to a benchmark and score them (resumes from a checkpoint)")
-    ff.add_argument("benchmark", help="folder made by make-benchmark")
-    ff.add_argument("--json", required=True, help="metrics JSON (the checkpoint goes beside it)")
+    ff = fsub.add_parser("fit", help="fit UV maps to benchmarks and score them (resumes from a checkpoint)")
+    ff.add_argument("benchmark", nargs="+", help="folder(s) made by make-benchmark, or a folder of them")
+    ff.add_argument("--json", default=None, help="metrics JSON of one benchmark (the checkpoint goes beside it)")
+    ff.add_argument("--out-dir", default=None, help="several benchmarks: DIR/NAME/fit.json and DIR/NAME/maps")
     ff.add_argument("--maps", default=None, help="folder for the fitted maps (EXR + PNG)")
     _opt(ff, FaceFitSettings, "fit_lights", help="treat lighting as unknown and fit it jointly")
     _opt(ff, FaceFitSettings, "iterations", type=int, help="Adam steps per pyramid level")
@@ -429,6 +598,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"then refine N Adam steps through full camera renders (prb through ggx_uv; "
                          f"suggested {_default(RenderRefineSettings, 'iterations')}; default: 0, off)")
     _opt(ff, FaceFitSettings, "seed")
+    _pool_opts(ff)
     ff.set_defaults(func=_cmd_face_fit)
     fp = fsub.add_parser("from-photo", help="one photograph -> relightable face (landmarks, unwrap, delight, relight)")
     fp.add_argument("image", help="image file, or 'astronaut' for scikit-image's photograph")
@@ -448,9 +618,10 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mm, MorphBenchmarkSettings, "spp")
     _opt(mm, MorphBenchmarkSettings, "seed")
     mm.set_defaults(func=_cmd_morph_make_benchmark)
-    mr = msub.add_parser("run", help="morph the benchmark's coarse mesh (resumes from its checkpoint)")
-    mr.add_argument("benchmark")
-    mr.add_argument("--out", default=None, help="output folder (default BENCHMARK/morph)")
+    mr = msub.add_parser("run", help="morph benchmarks' coarse meshes (resumes from their checkpoints)")
+    mr.add_argument("benchmark", nargs="+", help="benchmark folder(s), or a folder of them")
+    mr.add_argument("--out", default=None, help="output folder of one benchmark (default BENCHMARK/morph)")
+    mr.add_argument("--out-dir", default=None, help="several benchmarks: DIR/NAME (default: each BENCHMARK/morph)")
     mr.add_argument("--json", default=None, help="metrics JSON")
     _opt(mr, MorphSettings, "iterations")
     _opt(mr, MorphSettings, "views_per_step")
@@ -471,6 +642,7 @@ def build_parser() -> argparse.ArgumentParser:
     mr.add_argument("--no-repair", action="store_true",
                     help="keep folds: skip the final unfolding of triangles flipped w.r.t. the start (reported)")
     _opt(mr, MorphSettings, "seed")
+    _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)
 
     t = sub.add_parser("btf", help="universal neural BTF: data, basis training, per-material fitting (seed 002)")
@@ -482,6 +654,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"materials per family (default: {_arg(render_dataset, 'per_family')})")
     for name in ("tex_res", "slices", "spp", "max_depth", "seed"):
         _opt(tr, BTFRenderSettings, name)
+    _pool_opts(tr)
     tr.set_defaults(func=_cmd_btf_render_data)
     tb = tsub.add_parser("train-basis", help="train the universal MLPs on a dataset (resumes from --checkpoint)")
     tb.add_argument("data", help="folder made by render-data")
@@ -494,10 +667,11 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--checkpoint", default=None, help="default: OUT with .ckpt.npz")
     _opt(tb, OptimSettings, "seed")
     tb.set_defaults(func=_cmd_btf_train_basis)
-    tf = tsub.add_parser("fit", help="fit one material's feature textures with the basis frozen (resumes)")
-    tf.add_argument("btf", help="a BTF .npz from render-data")
+    tf = tsub.add_parser("fit", help="fit materials' feature textures with the basis frozen (resumes)")
+    tf.add_argument("btf", nargs="+", help="BTF .npz file(s) from render-data")
     tf.add_argument("--basis", required=True)
-    tf.add_argument("--out", required=True, help="material .npz for the neural_btf plugin")
+    tf.add_argument("--out", default=None, help="material .npz for the neural_btf plugin (one BTF)")
+    tf.add_argument("--out-dir", default=None, help="folder for several materials: DIR/NAME.npz")
     tf.add_argument("--iterations", type=int, default=_arg(fit_settings, "iterations"),
                     help=f"Adam steps (default: {_arg(fit_settings, 'iterations')})")
     tf.add_argument("--batch", type=int, default=_default(OptimSettings, "batch"),
@@ -508,6 +682,7 @@ def build_parser() -> argparse.ArgumentParser:
     tf.add_argument("--checkpoint", default=None, help="default: OUT with .ckpt.npz")
     tf.add_argument("--json", default=None)
     _opt(tf, OptimSettings, "seed")
+    _pool_opts(tf)
     tf.set_defaults(func=_cmd_btf_fit)
 
     _add_gan_parser(sub)

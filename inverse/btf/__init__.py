@@ -12,14 +12,14 @@ Other features use only the names below.
 """
 
 from .data import (FAMILIES, BTFData, BTFDataError, BTFRenderSettings, SVBRDF, constant_svbrdf, load_btf,
-                   load_dataset, make_svbrdf, render_btf, render_dataset, save_btf)
-from .fit import (OptimSettings, Prefilter, fit_material, fit_prefilter, fit_settings, gaussian_periodic,
+                   load_dataset, make_svbrdf, render_btf, render_dataset, render_material, save_btf)
+from .fit import (OptimSettings, Prefilter, fit_file, fit_material, fit_prefilter, fit_settings, gaussian_periodic,
                   heldout_psnr, predict, psnr, psnr_pair, split_slices, train_basis, train_per_material,
                   weights_digest)
 
 __all__ = [
     "BTFData", "BTFDataError", "BTFRenderSettings", "FAMILIES", "OptimSettings", "Prefilter", "SVBRDF",
-    "constant_svbrdf", "fit_material", "fit_prefilter", "fit_settings", "gaussian_periodic", "heldout_psnr",
-    "load_btf", "load_dataset", "make_svbrdf", "predict", "psnr", "psnr_pair", "render_btf", "render_dataset",
+    "constant_svbrdf", "fit_file", "fit_material", "fit_prefilter", "fit_settings", "gaussian_periodic", "heldout_psnr",
+    "load_btf", "load_dataset", "make_svbrdf", "predict", "psnr", "psnr_pair", "render_btf", "render_dataset", "render_material",
     "save_btf", "split_slices", "train_basis", "train_per_material", "weights_digest",
 ]

@@ -735,14 +735,28 @@ def material_seed(base_seed: int, family: str, k: int) -> int:
     return int(np.random.SeedSequence([int(base_seed), FAMILIES.index(family), int(k)]).generate_state(1)[0] >> 1)
 
 
+def render_material(path: str, family: str, seed: int, settings: BTFRenderSettings, svbrdf_res: int = 256) -> dict:
+    """Render one dataset material to ``path`` (the unit :func:`render_dataset` fans out); returns its index entry."""
+    path = Path(path)
+    sv = dataclasses.replace(make_svbrdf(family, seed, svbrdf_res), name=path.stem)
+    data = render_btf(sv, settings, progress=False)
+    save_btf(path, data)
+    return {"file": path.name, "name": data.meta["name"], "family": family, "seed": seed,
+            "render_seconds": data.meta["render_seconds"]}
+
+
 def render_dataset(out_dir: str | Path, families: Sequence[str] = FAMILIES, per_family: int = 4,
                    settings: BTFRenderSettings | None = None, base_seed: int = 0, progress: bool = True,
-                   svbrdf_res: int = 256) -> list[Path]:
+                   svbrdf_res: int = 256, pool=None) -> list[Path]:
     """Render ``{family}_{k:03d}.npz`` for every family and k < per_family into out_dir, plus index.json.
 
     Checkpoint/resume: a file that already exists and loads is skipped, so a killed run continues
     where it stopped; one rendered with other settings raises (mixing would corrupt the dataset).
+    ``pool`` (:class:`foundation.pool.PoolSettings`) renders the materials on worker processes or Ray;
+    None renders them here, one after another. A material that fails is reported after the others finished.
     """
+    from foundation.pool import Item, PoolSettings, run_items
+
     s = settings or BTFRenderSettings()
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -751,35 +765,36 @@ def render_dataset(out_dir: str | Path, families: Sequence[str] = FAMILIES, per_
         check_output_dir(out, "index.json", "--out")  # a folder of other things is not a dataset to add to
     bad = [f for f in families if f not in FAMILIES]
     if bad:
-        raise ValueError(f"render_dataset: unknown families {bad}; valid: {', '.join(FAMILIES)}")
-    if int(per_family) < 1:
-        raise ValueError(f"render_dataset: 'per_family' = {per_family} must be >= 1")
+        raise UsageError(f"families: unknown {bad}; valid: {', '.join(FAMILIES)}")
+    if isinstance(per_family, bool) or int(per_family) < 1:
+        raise UsageError(f"per_family must be ≥ 1, got {per_family}")
+    out.mkdir(parents=True, exist_ok=True)
     jobs = [(f, k) for f in families for k in range(int(per_family))]
-    paths: list[Path] = []
-    index: list[dict] = []
-    with progress_bar(len(jobs), desc="BTF dataset", unit="material", disable=not progress) as bar:
-        for family, k in jobs:
-            path = out / f"{family}_{k:03d}.npz"
-            seed = material_seed(base_seed, family, k)
-            meta = None
-            if path.exists():
-                try:
-                    meta = load_btf(path).meta
-                except BTFDataError:
-                    meta = None  # half-written or corrupt: render it again
-                if meta is not None and (meta.get("settings") != asdict(s) or meta.get("seed") != seed):
-                    raise ValueError(f"{path}: rendered with other settings or seed; use a fresh out_dir")
-            if meta is None:
-                sv = dataclasses.replace(make_svbrdf(family, seed, svbrdf_res), name=path.stem)
-                data = render_btf(sv, s, progress=progress)
-                save_btf(path, data)
-                meta = data.meta
-            paths.append(path)
-            index.append({"file": path.name, "name": meta["name"], "family": family, "seed": seed,
-                          "render_seconds": meta["render_seconds"]})
-            _write_index(out, s, base_seed, index)  # after every material: progress is visible
-            bar.update(1)
-    return paths
+    entries: dict[str, dict] = {}
+    items = []
+    for family, k in jobs:
+        path = out / f"{family}_{k:03d}.npz"
+        seed = material_seed(base_seed, family, k)
+        meta = None
+        if path.exists():
+            try:
+                meta = load_btf(path).meta
+            except BTFDataError:
+                meta = None  # half-written or corrupt: render it again
+            if meta is not None and (meta.get("settings") != asdict(s) or meta.get("seed") != seed):
+                raise UsageError(f"{path}: rendered with other settings or seed; use a fresh --out folder")
+        if meta is not None:
+            entries[path.name] = {"file": path.name, "name": meta["name"], "family": family, "seed": seed,
+                                  "render_seconds": meta["render_seconds"]}
+        else:
+            items.append(Item(path.stem, "inverse.btf.data:render_material", (str(path), family, seed, s, svbrdf_res)))
+    report = run_items(items, pool or PoolSettings(workers=0, threads=0), desc="BTF dataset", show_progress=progress)
+    for r in report.ran:
+        entries[r.value["file"]] = r.value
+    order = [f"{f}_{k:03d}.npz" for f, k in jobs]
+    _write_index(out, s, base_seed, [entries[n] for n in order if n in entries])
+    report.raise_if_failed()
+    return [out / n for n in order]
 
 
 def _write_index(out: Path, s: BTFRenderSettings, base_seed: int, materials: list[dict]) -> None:

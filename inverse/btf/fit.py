@@ -33,7 +33,7 @@ from mi_plugins.neural_basis import (Basis, BasisConfig, NeuralBTFError, NeuralM
                                      evaluate_tensor, mlp_tensor, offset, rows)
 
 __all__ = ["Prefilter", "OptimSettings", "train_basis", "fit_material", "fit_settings", "fit_prefilter", "train_per_material", "predict",
-           "heldout_psnr", "psnr", "psnr_pair", "split_slices", "gaussian_periodic"]
+           "heldout_psnr", "psnr", "psnr_pair", "split_slices", "gaussian_periodic", "fit_file"]
 
 
 @dataclass
@@ -396,3 +396,26 @@ def predict(basis: Basis, mat: NeuralMaterial, data, slices: np.ndarray, chunk: 
 def heldout_psnr(basis: Basis, mat: NeuralMaterial, data, slices: np.ndarray) -> float:
     """Unclipped held-out PSNR (the second of :func:`psnr_pair`)."""
     return psnr_pair(predict(basis, mat, data, slices), np.asarray(data.values, np.float32)[slices])[1]
+
+
+def fit_file(btf: str, basis_path: str, out: str, iterations: int = 600, batch: int = 1 << 15, tex_res: int = 0,
+             heldout_fraction: float = 0.25, seed: int = 0, checkpoint: str | None = None,
+             progress: bool = False) -> dict:
+    """`photoreal btf fit` for one BTF file: fit, score on held-out slices, write the material; returns a summary.
+
+    The unit that fitting many materials fans out (on worker processes or Ray); resumable through ``checkpoint``.
+    """
+    from mi_plugins.neural_basis import load_basis, save_material
+
+    from .data import load_btf
+
+    s = fit_settings(iterations, batch=batch, seed=seed, tex_res=tex_res)
+    basis = load_basis(basis_path)
+    data = load_btf(btf)
+    fit, held = split_slices(data.values.shape[0], heldout_fraction)
+    ck = checkpoint or str(Path(out).with_suffix(".ckpt.npz"))
+    mat, hist = fit_material(basis, data, fit, s, checkpoint=ck, progress=progress)
+    mat.meta["psnr_heldout"] = heldout_psnr(basis, mat, data, held)
+    save_material(out, mat)
+    return {"material": str(out), "btf": str(btf), "basis": basis.meta.get("id"), "psnr_heldout": mat.meta["psnr_heldout"],
+            "heldout_slices": len(held), "final_l1": hist[-1]["l1"], "seconds": hist[-1]["seconds"]}

@@ -16,7 +16,7 @@ Other features use only the names below.
 from .benchmark import (FaceBenchmark, FaceBenchmarkMeta, FaceBenchmarkSettings, HeldoutCamera, Light,
                         load_benchmark, make_benchmark, render_heldout)
 from .fit import (FaceFitMetrics, FaceFitReport, FaceFitResult, FaceFitSettings, RelitMetrics, RenderRefineSettings,
-                  evaluate_fit, fill_unobserved, fit_benchmark_dir, fit_face, integrate_normals, refine_through_renders,
+                  evaluate_fit, fill_unobserved, fit_benchmark_dir, fit_benchmark_item, fit_face, integrate_normals, refine_through_renders,
                   save_maps)
 from .photo import (PhotoFaceResult, PhotoFitSettings, check_landmarks, detect_landmarks, fit_template, load_landmarks,
                     photo_to_face)
@@ -26,6 +26,6 @@ __all__ = [
     "FaceBenchmark", "FaceBenchmarkMeta", "FaceBenchmarkSettings", "FaceFitMetrics", "FaceFitReport", "FaceFitResult",
     "FaceFitSettings", "GeometryMaps", "HeldoutCamera", "Light", "PhotoFaceResult", "PhotoFitSettings", "RelitMetrics",
     "RenderRefineSettings", "bake_geometry", "check_landmarks", "detect_landmarks", "evaluate_fit", "fill_unobserved",
-    "fit_benchmark_dir", "fit_face", "fit_template", "integrate_normals", "load_benchmark", "load_landmarks",
+    "fit_benchmark_dir", "fit_benchmark_item", "fit_face", "fit_template", "integrate_normals", "load_benchmark", "load_landmarks",
     "make_benchmark", "photo_to_face", "refine_through_renders", "render_heldout", "save_maps", "texel_uvs",
 ]

@@ -674,3 +674,12 @@ def fit_benchmark_dir(bench_dir: str | Path, json_path: str | Path | None, maps_
     if json_path is not None:
         write_json(json_path, to_json(report))
     return report
+
+
+def fit_benchmark_item(bench_dir: str, json_path: str, maps_out: str | None, settings: FaceFitSettings,
+                       refine: RenderRefineSettings | None = None) -> dict:
+    """:func:`fit_benchmark_dir` by paths, quietly (the unit that fitting a folder of benchmarks fans out)."""
+    r = fit_benchmark_dir(bench_dir, json_path, maps_out, settings, show_progress=False, refine=refine)
+    m = r.metrics
+    return {"benchmark": str(bench_dir), "albedo_psnr": m.albedo_psnr, "normal_err_deg": m.normal_err_deg,
+            "relit_psnr": m.relit_psnr, "seconds": m.seconds}

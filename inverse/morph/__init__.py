@@ -21,7 +21,7 @@ from .evaluate import MorphEvaluation, evaluate_morph
 from .gcn import GCNSettings, run_gcn_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import RepairReport, remesh, repair_flips
-from .run import MorphResult, MorphSettings, PlanarityDecision, run_morph, start_mesh
+from .run import MorphResult, MorphSettings, PlanarityDecision, run_item, run_morph, start_mesh
 from .scene import MODES, morph_scene, photo_at, render_views
 
 __all__ = [
@@ -29,5 +29,5 @@ __all__ = [
     "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "PlanarityDecision",
     "RepairReport", "artifact_masks", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph",
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "remesh",
-    "render_views", "repair_flips", "run_gcn_morph", "run_morph", "sensor_dict", "start_mesh",
+    "render_views", "repair_flips", "run_gcn_morph", "run_item", "run_morph", "sensor_dict", "start_mesh",
 ]

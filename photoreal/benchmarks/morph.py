@@ -3,17 +3,16 @@
 from __future__ import annotations
 
 import shutil
-import tempfile
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from foundation import validate
 from foundation.assets import ARMADILLO
-from foundation.progress import progress_bar
+from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
 from inverse.morph import (MorphBenchmarkSettings, MorphResult, MorphSettings, load_morph_benchmark,
-                           make_morph_benchmark, run_gcn_morph, run_morph)
+                           make_morph_benchmark, run_morph)
 
 
 @dataclass
@@ -59,53 +58,51 @@ def _summary(m: MorphResult) -> dict:
     return out
 
 
-def bench_case(case: str, work: Path, s: MorphBenchSettings, bar) -> dict:
+def bench_case(case: str, work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
+    """One case. The main run and the speed comparison run here, alone (their seconds are headline figures and a
+    ratio); the sweep and the stability runs are independent and go to ``pool`` (seconds of those runs are per-run
+    seconds with the pool's threads per run, comparable among themselves)."""
     bench = load_morph_benchmark(make_morph_benchmark(source(case), work / f"bench_{case}",
                                                       MorphBenchmarkSettings(seed=s.seed), show_progress=False))
     main = run_morph(bench, work / f"{case}_main", MorphSettings(iterations=s.iterations, seed=s.seed),
-                     show_progress=False)
-    bar.update(1)
-    sweep = []
-    for n in s.sweep_vertices:
-        m = run_morph(bench, work / f"{case}_v{n}", MorphSettings(iterations=s.sweep_iterations, target_vertices=n,
-                                                                  seed=s.seed), show_progress=False)
-        sweep.append({"mesh_vertices": m.vertices, "target_vertices": n, "chamfer": m.chamfer_morphed,
-                      "psnr": m.psnr_heldout_morphed, "seconds": m.seconds})
-        bar.update(1)
-    best = min(r["chamfer"] for r in sweep)
-    chosen = min(r["mesh_vertices"] for r in sweep if r["chamfer"] <= 1.05 * best)
-
+                     show_progress=show_progress)
     # Speed: our recipe vs the tutorial's, same mesh (~10k vertices), views, resolution.
     base = MorphSettings(iterations=s.speed_iterations, views_per_step=s.speed_views,
                          resolution=s.speed_resolution, target_vertices=s.speed_vertices, seed=s.seed)
-    ours = run_morph(bench, work / f"{case}_speed_ours", base, show_progress=False)
+    ours = run_morph(bench, work / f"{case}_speed_ours", base, show_progress=show_progress)
     tutorial = run_morph(bench, work / f"{case}_speed_tutorial",
                          replace(base, spp=s.baseline_spp, lambda_=25.0, lr=0.05 * 10 / 2, lr_final=1.0,
                                  repair_flips=False, planarity_weight=0.0),
-                         show_progress=False)
-    bar.update(2)
-    # Stability (shorter runs): batch sizes, plain Adam vs large steps, few views, GCN image-only.
-    stab = {}
-    # raw method behaviour: no final unfolding, so folds and spikes show as they are
+                         show_progress=show_progress)
+
+    def item(key: str, settings: MorphSettings, **kw) -> Item:
+        out = work / f"{case}_{key}"
+        return Item(key, "inverse.morph:run_item", (str(bench.path), str(out), settings), kw,
+                    output=str(out / "metrics.json"))
+
+    # Sweep over mesh resolution; stability (shorter runs): batch sizes, plain Adam vs large steps, few views,
+    # GCN image-only — raw method behaviour: no final unfolding, so folds and spikes show as they are.
     short = MorphSettings(iterations=s.stability_iterations, seed=s.seed, repair_flips=False)
-    for name, st in {"batch_1": replace(short, views_per_step=1), "batch_3": short,
-                     "batch_6": replace(short, views_per_step=6),
-                     "plain_adam": replace(short, parameterisation="plain", lr=0.05),
-                     "large_steps_lambda25": replace(short, lambda_=25.0)}.items():
-        stab[name] = _summary(run_morph(bench, work / f"{case}_stab_{name}", st, show_progress=False))
-        bar.update(1)
+    items = [item(f"v{n}", MorphSettings(iterations=s.sweep_iterations, target_vertices=n, seed=s.seed))
+             for n in s.sweep_vertices]
+    stab_runs = {"batch_1": replace(short, views_per_step=1), "batch_3": short,
+                 "batch_6": replace(short, views_per_step=6),
+                 "plain_adam": replace(short, parameterisation="plain", lr=0.05),
+                 "large_steps_lambda25": replace(short, lambda_=25.0)}
     if main.planarity and main.planarity.weight:  # the prior's ablation, where the auto rule switched it on
-        stab["no_planarity_prior"] = _summary(run_morph(bench, work / f"{case}_stab_noplan",
-                                                        replace(short, planarity_weight=0.0), show_progress=False))
-    bar.update(1)
-    few = load_morph_benchmark(bench.path)
-    few.meta = replace(few.meta, train=few.meta.train[:4])  # four neighbouring views only: border regions unseen
-    stab["few_views_4"] = _summary(run_morph(few, work / f"{case}_stab_few", short, show_progress=False))
-    bar.update(1)
-    stab["gcn_image_loss_only"] = _summary(run_gcn_morph(bench, work / f"{case}_stab_gcn",
-                                                         replace(short, iterations=min(60, short.iterations)),
-                                                         show_progress=False))
-    bar.update(1)
+        stab_runs["no_planarity_prior"] = replace(short, planarity_weight=0.0)
+    items += [item(f"stab_{k}", v) for k, v in stab_runs.items()]
+    # four neighbouring views only: border regions unseen
+    items.append(item("stab_few_views_4", short, train=bench.meta.train[:4]))
+    items.append(item("stab_gcn_image_loss_only", replace(short, iterations=min(60, short.iterations)), gcn=True))
+    report = run_items(items, pool, desc=f"bench morph {case}", show_progress=show_progress)
+    report.raise_if_failed()
+    runs = {r.key: r.value for r in report.results}
+    sweep = [{"mesh_vertices": runs[f"v{n}"].vertices, "target_vertices": n, "chamfer": runs[f"v{n}"].chamfer_morphed,
+              "psnr": runs[f"v{n}"].psnr_heldout_morphed, "seconds": runs[f"v{n}"].seconds} for n in s.sweep_vertices]
+    best = min(r["chamfer"] for r in sweep)
+    chosen = min(r["mesh_vertices"] for r in sweep if r["chamfer"] <= 1.05 * best)
+    stab = {k[5:]: _summary(v) for k, v in runs.items() if k.startswith("stab_")}
     for row in stab.values():
         row["converged"] = bool(row["chamfer_morphed"] < row["chamfer_input"]
                                 and row["psnr_heldout_morphed"] > row["psnr_heldout_input"])
@@ -118,27 +115,28 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, bar) -> dict:
         "speed_vertices": ours.vertices,
         "sweep": sweep, "chosen_vertices": chosen, "stability": stab,
         "degradation": to_json(bench.meta.degradation),
+        "pool": {"workers": pool.workers, "threads_per_run": pool.threads, "ray": pool.ray},
     }
 
 
-def bench_morph(s: MorphBenchSettings, out_dir: Path | None = None, show_progress: bool = True) -> dict:
-    work = Path(tempfile.mkdtemp(prefix="photoreal_morph_bench_"))
-    per_case = 1 + len(s.sweep_vertices) + 2 + 8
+def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True,
+                pool: PoolSettings | None = None) -> dict:
+    """Run the bench in ``out_dir/morph_work`` (kept while it runs: a killed bench resumes; removed at the end)."""
+    from foundation.pool import default_workers
+
+    cores = default_workers()
+    pool = pool or PoolSettings(workers=cores, threads=1)
+    work = Path(out_dir) / "morph_work"
     t0 = time.perf_counter()
-    try:
-        with progress_bar(total=per_case * len(s.cases), desc="bench morph", unit="run",
-                          disable=not show_progress) as bar:
-            cases = {c: bench_case(c, work, s, bar) for c in s.cases}
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+    cases = {c: bench_case(c, work, s, pool, show_progress) for c in s.cases}
+    shutil.rmtree(work, ignore_errors=True)
     first = cases[s.cases[0]]
     result = {**{k: first[k] for k in ("chamfer_input", "chamfer_morphed", "psnr_heldout_input",
                                         "psnr_heldout_morphed", "spikes", "s_per_iter_10k_4views_128",
                                         "s_per_iter_baseline", "sweep", "chosen_vertices")},
               "chamfer_reduction": first["chamfer_reduction"], "cases": cases, "settings": asdict(s),
               "seconds": time.perf_counter() - t0}
-    if out_dir is not None:
-        result["chart"] = str(morph_chart(result, Path(out_dir) / "morph_speed_accuracy.png"))
+    result["chart"] = str(morph_chart(result, Path(out_dir) / "morph_speed_accuracy.png"))
     return result
 
 

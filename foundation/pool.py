@@ -1,0 +1,330 @@
+"""Many independent items — materials, benchmarks, scenes, frames, sweep points — on a local process pool or a Ray
+cluster, with results identical to a serial run.
+
+A feature only describes its items (:class:`Item`: a key, an importable ``module:function``, plain arguments, and
+the file whose existence means the item is done); :func:`run_items` owns the rest:
+
+* **where** — ``workers = 0``: in this process, one after another; ``workers ≥ 1``: a local process pool started
+  with ``spawn`` (Dr.Jit/LLVM state is not fork-safe); ``ray`` set: the same items as Ray tasks (``"local"`` starts a
+  Ray instance on this machine, ``"auto"`` or an address joins a running cluster);
+* **the same result anywhere** — every worker imports :mod:`mi_plugins` (Mitsuba's plugin registry is per process
+  and per variant; Ray reuses worker processes, so it is done once per process) and sets its own Dr.Jit and torch
+  thread counts (Dr.Jit reads no environment variable for it; Ray's ``OMP_NUM_THREADS`` does not reach it). With one
+  Dr.Jit thread per item, renders and fits are bit-identical wherever they ran;
+* **failures** — an item that raises (or whose worker dies) is retried ``retries`` times, then reported with its
+  key and a one-line error; the other items finish; :class:`BatchReport` summarises;
+* **resume** — an item whose ``output`` file exists is skipped (a killed batch continues where it stopped);
+* **one progress bar** over all items.
+
+Items run in any order on a pool; results come back in the items' order.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import importlib
+import multiprocessing as mp
+import os
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+from . import validate
+from .errors import FailureError, UsageError
+from .progress import progress_bar
+
+
+@dataclass(frozen=True)
+class Item:
+    """One independent unit of work. ``fn`` is ``"module:function"``, called as ``fn(*args, **kwargs)``.
+
+    Arguments must be picklable and mean the same on every machine (paths on storage the workers share).
+    The function returns something JSON-able (a summary); its real output goes to files.
+    """
+
+    key: str  #: names the item in progress, errors and the summary
+    fn: str
+    args: tuple = ()
+    kwargs: dict = field(default_factory=dict)
+    output: str | None = None  #: a file that exists once the item is done (resume skips the item then)
+
+
+@dataclass
+class PoolSettings:
+    workers: int = 0  #: 0: this process, serially; n ≥ 1: n worker processes (or n Ray tasks at a time)
+    ray: str | None = None  #: None: local processes; "local": start Ray here; "auto" or an address: join a cluster
+    threads: int = 1  #: Dr.Jit and torch threads per item (1: bit-reproducible wherever the item runs)
+    retries: int = 1  #: extra attempts for a failing item
+
+    def __post_init__(self):
+        validate.integer("workers", self.workers, 0, 4096)
+        validate.integer("threads", self.threads, 0, 4096)
+        validate.integer("retries", self.retries, 0, 100)
+        if self.ray is not None and self.workers < 1:
+            raise UsageError("workers must be ≥ 1 with ray (how many tasks run at a time)")
+
+
+def default_workers() -> int:
+    """The cores this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:
+        return max(1, os.cpu_count() or 1)
+
+
+@dataclass
+class ItemResult:
+    key: str
+    ok: bool
+    value: Any = None
+    error: str | None = None  #: one line: the exception's type and message
+    seconds: float = 0.0  #: of the last attempt, in the worker
+    attempts: int = 0
+    skipped: bool = False  #: done before (its output existed)
+    where: str = ""  #: "serial", "pool pid N" or "ray node …"
+
+
+@dataclass
+class BatchReport:
+    results: list[ItemResult]
+    seconds: float  #: wall time of the batch
+
+    @property
+    def failed(self) -> list[ItemResult]:
+        return [r for r in self.results if not r.ok]
+
+    @property
+    def ran(self) -> list[ItemResult]:
+        return [r for r in self.results if r.ok and not r.skipped]
+
+    @property
+    def skipped(self) -> list[ItemResult]:
+        return [r for r in self.results if r.skipped]
+
+    def summary(self) -> str:
+        s = (f"{len(self.results)} items: {len(self.ran)} done, {len(self.skipped)} skipped (done before), "
+             f"{len(self.failed)} failed in {self.seconds:.1f} s")
+        return s + "".join(f"\n  failed: {r.key}: {r.error}" for r in self.failed)
+
+    def raise_if_failed(self) -> None:
+        """A batch with a failed item is a failure (exit code 1), after every other item finished."""
+        if self.failed:
+            raise FailureError(self.summary().replace("\n", "; "))
+
+
+# -- the worker side ---------------------------------------------------------------------------------------------
+
+_WORKER_THREADS: int | None = None
+
+
+def _prepare(threads: int) -> None:
+    """Once per worker process (and again when the thread count changes)."""
+    global _WORKER_THREADS
+    if _WORKER_THREADS == threads:
+        return
+    import mi_plugins  # noqa: F401  (libLLVM, variant, plugin registry of this process)
+    import drjit as dr
+
+    if threads:
+        dr.set_thread_count(threads)
+        try:
+            import torch
+
+            torch.set_num_threads(threads)
+        except ImportError:
+            pass
+    _WORKER_THREADS = threads
+
+
+def _resolve(fn: str):
+    module, _, name = fn.partition(":")
+    if not module or not name:
+        raise UsageError(f"item function {fn!r} must be 'module:function'")
+    return getattr(importlib.import_module(module), name)
+
+
+def execute(item: Item, threads: int, where: str = "") -> ItemResult:
+    """Run one item in this process (the pool's and Ray's worker body); exceptions become the result's error."""
+    t0 = time.perf_counter()
+    try:
+        _prepare(threads)
+        value = _resolve(item.fn)(*item.args, **item.kwargs)
+        return ItemResult(item.key, True, value, seconds=time.perf_counter() - t0, where=where or f"pid {os.getpid()}")
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:  # an item's failure is data, not the batch's end
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        if os.environ.get("PHOTOREAL_DEBUG", "") not in ("", "0"):
+            msg += "\n" + traceback.format_exc()
+        return ItemResult(item.key, False, error=f"{type(exc).__name__}: {msg}",
+                          seconds=time.perf_counter() - t0, where=where or f"pid {os.getpid()}")
+
+
+def _pool_init(threads: int) -> None:
+    _prepare(threads)
+
+
+# -- the driver side ---------------------------------------------------------------------------------------------
+
+
+def _done(item: Item) -> bool:
+    return item.output is not None and Path(item.output).is_file()
+
+
+def run_items(items: Sequence[Item], s: PoolSettings | None = None, desc: str = "items",
+              show_progress: bool = True) -> BatchReport:
+    """Run every item not done yet (see the module docstring); never raises for an item's failure."""
+    s = s or PoolSettings()
+    keys = [it.key for it in items]
+    if len(set(keys)) != len(keys):
+        raise UsageError(f"{desc}: item keys must be unique")
+    t0 = time.perf_counter()
+    results: dict[str, ItemResult] = {}
+    todo = []
+    for it in items:
+        if _done(it):
+            results[it.key] = ItemResult(it.key, True, skipped=True, where="done before")
+        else:
+            todo.append(it)
+    with progress_bar(total=len(items), desc=desc, unit="item", disable=not show_progress) as bar:
+        bar.update(len(items) - len(todo))
+        if todo:
+            if s.ray is not None:
+                runner = _run_ray
+            elif s.workers >= 1:
+                runner = _run_pool
+            else:
+                runner = _run_serial
+            for r in runner(todo, s):
+                results[r.key] = r
+                bar.update(1)
+                bar.set_postfix(failed=sum(not x.ok for x in results.values()), refresh=False)
+    return BatchReport([results[k] for k in keys], time.perf_counter() - t0)
+
+
+def _run_serial(items: list[Item], s: PoolSettings):
+    from .threads import drjit_threads, torch_threads
+
+    with drjit_threads(s.threads or None), torch_threads(s.threads or None):
+        import mi_plugins  # noqa: F401
+
+        for it in items:
+            for attempt in range(1, s.retries + 2):
+                r = _serial_one(it)
+                r.attempts = attempt
+                if r.ok:
+                    break
+            yield r
+
+
+def _serial_one(item: Item) -> ItemResult:
+    t0 = time.perf_counter()
+    try:
+        value = _resolve(item.fn)(*item.args, **item.kwargs)
+        return ItemResult(item.key, True, value, seconds=time.perf_counter() - t0, where="serial")
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        return ItemResult(item.key, False, error=f"{type(exc).__name__}: {msg}", seconds=time.perf_counter() - t0,
+                          where="serial")
+
+
+def _run_pool(items: list[Item], s: PoolSettings):
+    """A spawn pool. A worker that dies (crash, out of memory) takes the whole pool down, and the items it held
+    cannot tell which one killed it: those run again one at a time, each in a process of its own, so that a
+    crash is charged to its own item and the others finish."""
+    ctx = mp.get_context("spawn")
+    attempts = {it.key: 0 for it in items}
+    queue, suspects = list(items), []
+    while queue:
+        with cf.ProcessPoolExecutor(max_workers=min(s.workers, len(queue)), mp_context=ctx,
+                                    initializer=_pool_init, initargs=(s.threads,)) as ex:
+            futures = {ex.submit(execute, it, s.threads): it for it in queue}
+            queue = []
+            for fut in cf.as_completed(futures):
+                it = futures[fut]
+                try:
+                    r = fut.result()
+                except cf.process.BrokenProcessPool:
+                    suspects.append(it)
+                    continue
+                attempts[it.key] += 1
+                r.attempts = attempts[it.key]
+                if not r.ok and attempts[it.key] <= s.retries:
+                    queue.append(it)
+                    continue
+                yield r
+    for it in suspects:
+        while True:
+            attempts[it.key] += 1
+            with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_pool_init,
+                                        initargs=(s.threads,)) as ex:
+                try:
+                    r = ex.submit(execute, it, s.threads).result()
+                except cf.process.BrokenProcessPool:
+                    r = ItemResult(it.key, False, error="its worker process died (a crash or out of memory)")
+            r.attempts = attempts[it.key]
+            if r.ok or attempts[it.key] > s.retries:
+                yield r
+                break
+
+
+_RAY_STARTED = False
+
+
+def _ray_connect(address: str, workers: int):
+    import ray
+
+    global _RAY_STARTED
+    if not ray.is_initialized():
+        if address == "local":
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+            _RAY_STARTED = True
+        else:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+    return ray
+
+
+def ray_shutdown() -> None:
+    """Stop the Ray instance this process started with ``ray="local"`` (a joined cluster keeps running)."""
+    global _RAY_STARTED
+    if _RAY_STARTED:
+        import ray
+
+        ray.shutdown()
+        _RAY_STARTED = False
+
+
+def _ray_task(item: Item, threads: int) -> ItemResult:
+    import socket
+
+    return execute(item, threads, where=f"ray {socket.gethostname()} pid {os.getpid()}")
+
+
+def _run_ray(items: list[Item], s: PoolSettings):
+    try:
+        ray = _ray_connect(s.ray, s.workers)
+    except ImportError:
+        raise UsageError("--ray needs Ray: pip install 'ray==2.60.0'") from None
+    except Exception as exc:  # ConnectionError and friends: name the address
+        raise UsageError(f"--ray {s.ray}: cannot connect ({' '.join(str(exc).split())[:200]})") from None
+    # One CPU per task: at most `workers` run at a time on the cluster's CPUs; Ray retries tasks whose worker died.
+    task = ray.remote(num_cpus=1, max_retries=s.retries)(_ray_task)
+    attempts = {it.key: 1 for it in items}
+    refs = {task.remote(it, s.threads): it for it in items}
+    while refs:
+        done, _ = ray.wait(list(refs), num_returns=1)
+        it = refs.pop(done[0])
+        try:
+            r = ray.get(done[0])
+        except Exception as exc:  # the worker died more often than max_retries allows
+            r = ItemResult(it.key, False, error=f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}")
+        r.attempts = attempts[it.key]
+        if not r.ok and attempts[it.key] <= s.retries:
+            attempts[it.key] += 1
+            refs[task.remote(it, s.threads)] = it
+            continue
+        yield r

@@ -1,0 +1,109 @@
+"""Scale-out: the same items serially, on a spawn process pool and on a local Ray instance give the same bits;
+a failing item or a dying worker is reported while the rest finish; a rerun skips what is done."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from foundation import imageio
+from foundation.pool import Item, PoolSettings, ray_shutdown, run_items
+from foundation.scene import RenderSettings
+from photoreal.cli import main
+
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+
+
+def _renders(out: Path, names=("material_test", "josie", "armadillo", "neural_materials")) -> list[Item]:
+    items = []
+    for k, name in enumerate(names):
+        exr = out / f"{k}_{name}.exr"
+        items.append(Item(f"{k}_{name}", "foundation.scene:render_item",
+                          (str(SCENES / f"{name}.xml"), str(exr), RenderSettings(spp=4, resolution=(16, 12), seed=k)),
+                          output=str(exr)))
+    return items
+
+
+def _same(a: Path, b: Path) -> bool:
+    files = sorted(p.name for p in a.glob("*.exr"))
+    assert files == sorted(p.name for p in b.glob("*.exr")) and files
+    for f in files:
+        x, y = imageio.read_exr(a / f), imageio.read_exr(b / f)
+        if sorted(x) != sorted(y) or any(not np.array_equal(x[c], y[c]) for c in x):
+            return False
+    return True
+
+
+@pytest.mark.slow
+def test_pool_and_ray_equal_serial_bit_for_bit(tmp_path):
+    """Oracle: the serial run (this process, one Dr.Jit thread). Same items, same seeds, one thread per item:
+    renders from two spawned workers and from two Ray workers must be identical to the last bit."""
+    serial = run_items(_renders(tmp_path / "serial"), PoolSettings(workers=0, threads=1), show_progress=False)
+    pool = run_items(_renders(tmp_path / "pool"), PoolSettings(workers=2, threads=1), show_progress=False)
+    try:
+        ray = run_items(_renders(tmp_path / "ray"), PoolSettings(workers=2, ray="local", threads=1),
+                        show_progress=False)
+    finally:
+        ray_shutdown()
+    for rep in (serial, pool, ray):
+        assert not rep.failed and len(rep.ran) == 4, rep.summary()
+    assert {r.where.split()[0] for r in pool.results} == {"pid"} and len({r.where for r in pool.results}) == 2
+    assert all(r.where.startswith("ray ") for r in ray.results)
+    assert _same(tmp_path / "serial", tmp_path / "pool") and _same(tmp_path / "serial", tmp_path / "ray")
+    # the check can fail: another seed changes the bits
+    other = _renders(tmp_path / "other")[:1]
+    other = [Item(other[0].key, other[0].fn, (other[0].args[0], str(tmp_path / "other" / "0_material_test.exr"),
+                                              RenderSettings(spp=4, resolution=(16, 12), seed=99)))]
+    run_items(other, PoolSettings(workers=0, threads=1), show_progress=False)
+    x = imageio.read_exr(tmp_path / "other" / "0_material_test.exr")
+    y = imageio.read_exr(tmp_path / "serial" / "0_material_test.exr")
+    assert not np.array_equal(x["R"], y["R"])
+
+
+def test_failures_are_reported_the_rest_finish_and_reruns_resume(tmp_path):
+    items = _renders(tmp_path / "out", ("material_test", "josie"))
+    bad = tmp_path / "broken.xml"
+    bad.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="no_such_bsdf"/></shape></scene>')
+    items.append(Item("broken", "foundation.scene:render_item",
+                      (str(bad), str(tmp_path / "out" / "broken.exr"), RenderSettings(spp=1)),
+                      output=str(tmp_path / "out" / "broken.exr")))
+    items.append(Item("dies", "os:_exit", (3,)))  # takes its worker process down with it
+    rep = run_items(items, PoolSettings(workers=2, threads=1, retries=1), show_progress=False)
+    by = {r.key: r for r in rep.results}
+    assert by["0_material_test"].ok and by["1_josie"].ok
+    assert not by["broken"].ok and "broken.xml" in by["broken"].error and by["broken"].attempts == 2
+    assert not by["dies"].ok and "worker process died" in by["dies"].error and by["dies"].attempts == 2
+    assert "2 failed" in rep.summary() and "failed: broken:" in rep.summary()
+    with pytest.raises(Exception, match="failed: broken"):
+        rep.raise_if_failed()
+    # rerun: what is done is skipped; a deleted output is made again
+    (tmp_path / "out" / "1_josie.exr").unlink()
+    again = run_items(items[:2], PoolSettings(workers=0, threads=1), show_progress=False)
+    assert [r.skipped for r in again.results] == [True, False] and not again.failed
+
+
+def test_cli_renders_many_scenes_and_names_a_bad_one(tmp_path, capsys):
+    scenes = [str(SCENES / "material_test.xml"), str(SCENES / "josie.xml")]
+    out = tmp_path / "renders"
+    code = main(["render", *scenes, "--out-dir", str(out), "--spp", "2", "--resolution", "12", "8", "--workers", "0"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    summary = json.loads(cap.out)
+    assert summary["done"] == 2 and summary["failed"] == [] and (out / "josie.exr").is_file()
+    assert imageio.read_exr(out / "josie.exr")["R"].shape == (8, 12)
+    code = main(["render", *scenes, "--out-dir", str(out), "--spp", "2", "--resolution", "12", "8", "--workers", "0"])
+    assert code == 0 and json.loads(capsys.readouterr().out)["skipped"] == 2  # a rerun resumes
+    bad = tmp_path / "bad.xml"
+    bad.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="no_such_bsdf"/></shape>'
+                   '<sensor type="perspective"/></scene>')
+    code = main(["render", scenes[0], str(bad), "--out-dir", str(tmp_path / "r2"), "--spp", "1", "--workers", "0"])
+    cap = capsys.readouterr()
+    assert code == 1 and "bad: SceneError" in cap.err and "no_such_bsdf" in cap.err
+    assert (tmp_path / "r2" / "material_test.exr").is_file() and not (tmp_path / "r2" / "bad.exr").exists()
+    code = main(["render", scenes[0], str(tmp_path / "nope.xml"), "--out-dir", str(tmp_path / "r3")])
+    assert code == 2 and "nope.xml: scene file not found" in capsys.readouterr().err
+    assert main(["render", *scenes, "-o", str(tmp_path / "x.exr")]) == 2
+    assert "-o names one output" in capsys.readouterr().err
