@@ -16,6 +16,8 @@ module                    what
 ``checkpoint``            checkpoint files (npz + JSON tree, no pickle)
 ``optim_state``           save/restore Dr.Jit and torch optimiser state (exact resume)
 ``loop``                  the one resumable training loop (budgets, NaN policy, metrics JSON)
+``pool``                  many independent items on a spawn process pool or a Ray cluster (same results)
+``records``               typed dataclasses ↔ JSON with the bad field named
 ``bridge``                every ``dr.wrap`` crossing between torch and Dr.Jit
 ``validate``              checks of settings values (finite, ranges) that name the parameter
 ========================  =============================================================

@@ -328,6 +328,7 @@ def run_demo(out_dir: str | Path, s: DemoSettings, bench_dir: str | Path | None 
     if s.btf:
         results["btf"] = demo_btf(out_dir, s, bench_dir=bench_dir)
     results["gan"] = demo_gan(out_dir, bench_dir)  # reads the bench's gan.json when present; trains nothing
+    results["scale"] = demo_scale(out_dir, bench_dir)
     if s.plugin_bench:
         bench = bench_plugins(PluginBenchSettings(resolution=128, spp=32, repetitions=3, rounds=2))
         write_json(out_dir / "bench_plugins.json", bench)
@@ -386,3 +387,24 @@ def demo_gan(out_dir: Path, bench_dir: Path | None = None) -> dict | None:
     add_section(out_dir, "45_gan", "GAN refinement: pix2pix, CycleGAN, Morph-GAN, joint training (REAL-DIBS §3, §5, §6)",
                 body)
     return {k: v.get("mse") for k, v in b["heldout"].items()}
+
+
+def demo_scale(out_dir: Path, bench_dir: Path | None = None) -> dict | None:
+    """The `photoreal bench scale` table and chart (serial vs process pool vs Ray), when that JSON exists."""
+    b = _bench_json(bench_dir, "scale.json")
+    if b is None:
+        return None
+    rows = [{"run": "serial, one thread per item", "seconds": b["serial_s"]},
+            {"run": "serial, all threads to Dr.Jit", "seconds": b["serial_all_threads_s"]},
+            *({"run": f"process pool, {w} worker(s)", "seconds": t} for w, t in b["pool_s"].items()),
+            *({"run": f"Ray, {w} CPUs", "seconds": t} for w, t in b.get("ray_s", {}).items())]
+    for r in rows:
+        r["items_per_s"] = b["items"] / r["seconds"]
+    body = (f"<p>{b['items']} items ({html.escape(b['item'])}) on {b['cores']} cores: speed-up of the 2-worker pool "
+            f"<b>{b['speedup_pool_2']:.2f}×</b>, Ray overhead {b.get('ray_overhead_per_item_s', float('nan')):.3f} s per "
+            f"item, outputs identical to the serial run: <b>{b['identical']}</b>.</p>"
+            + _table(rows, ["run", "seconds", "items_per_s"]))
+    if _copy_chart(b, bench_dir, Path(out_dir) / "scale_throughput.png"):
+        body += "<img src='scale_throughput.png'>"
+    add_section(out_dir, "60_scale", "Many items: process pool and Ray (same results, measured throughput)", body)
+    return {k: b[k] for k in ("speedup_pool_2", "identical")}

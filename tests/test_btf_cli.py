@@ -118,3 +118,17 @@ def test_bench_btf_writes_the_promised_json(tmp_path):
     # same weights, two code paths: CoopVec (plugin) and torch agree
     assert r["mlp"]["max_abs_diff_drjit_vs_torch"] < 1e-3
     json.dumps(r)
+
+
+def test_fitting_many_materials_is_a_resumable_batch(tiny_data, tmp_path, capsys):
+    basis = tmp_path / "basis.npz"
+    assert main(["btf", "train-basis", str(tiny_data), "--out", str(basis), "--iterations", "5", "--batch", "512",
+                 "--width", "8"]) == 0
+    capsys.readouterr()
+    argv = ["btf", "fit", str(tiny_data / "fabric_000.npz"), str(tiny_data / "leather_000.npz"), "--basis", str(basis),
+            "--out-dir", str(tmp_path / "fitted"), "--iterations", "4", "--batch", "512", "--workers", "0"]
+    assert main(argv) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["done"] == 2 and summary["failed"] == []
+    assert load_material(tmp_path / "fitted" / "leather_000.npz").t_rgb.shape == (8, 8, 8)
+    assert main(argv) == 0 and json.loads(capsys.readouterr().out)["skipped"] == 2  # done before: skipped

@@ -357,3 +357,23 @@ def test_planarity_prior_is_wired_into_the_morph(small_armadillo, tmp_path):
                    show_progress=False)
     assert m0.planarity.weight == 0.0 and m1.planarity.weight == 10.0 and not m1.planarity.auto
     assert rho(tmp_path / "on" / "morphed.ply") < 0.98 * rho(tmp_path / "off" / "morphed.ply")
+
+
+def test_morphing_many_benchmarks_is_a_resumable_batch(small_armadillo, tmp_path, capsys):
+    import shutil
+
+    from photoreal.cli import main
+
+    for name in ("a", "b"):
+        shutil.copytree(small_armadillo.path, tmp_path / "sites" / name, ignore=shutil.ignore_patterns("morph"))
+    argv = ["morph", "run", str(tmp_path / "sites"), "--iterations", "2", "--resolution", "32", "--min-vertices", "0",
+            "--workers", "0"]  # the spawn pool itself is tested in test_pool.py and test_face.py
+    assert main(argv) == 0
+    assert json.loads(capsys.readouterr().out)["done"] == 2
+    ma = json.loads((tmp_path / "sites" / "a" / "morph" / "metrics.json").read_text())
+    mb = json.loads((tmp_path / "sites" / "b" / "morph" / "metrics.json").read_text())
+    assert ma["chamfer_morphed"] == mb["chamfer_morphed"]  # same input, one thread: the same result
+    (tmp_path / "sites" / "b" / "morph" / "metrics.json").unlink()  # as if the batch had been killed there
+    assert main(argv) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["skipped"] == 1 and out["done"] == 1

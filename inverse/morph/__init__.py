@@ -10,6 +10,7 @@ module             what
 ``mesh_edit``      isotropic remeshing, undoing and repairing folds
 ``gcn``            the shape-aware GCN variant, trained through the renderer (``dr.wrap``)
 ``evaluate``       Chamfer, normals, spikes, folds and held-out image metrics
+``batch``          a morph run by paths (the unit batches fan out to workers)
 =================  ==========================================================================
 
 Other features use only the names below.
@@ -21,7 +22,8 @@ from .evaluate import MorphEvaluation, evaluate_morph
 from .gcn import GCNSettings, run_gcn_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import RepairReport, remesh, repair_flips
-from .run import MorphResult, MorphSettings, PlanarityDecision, run_item, run_morph, start_mesh
+from .batch import run_item
+from .run import MorphResult, MorphSettings, PlanarityDecision, run_morph, start_mesh
 from .scene import MODES, morph_scene, photo_at, render_views
 
 __all__ = [

@@ -300,26 +300,3 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
     finally:
         stage.close()
 
-
-def run_item(bench_dir: str, out: str, s: MorphSettings, gcn: bool = False, train: list[int] | None = None,
-             json_path: str | None = None) -> MorphResult:
-    """One morph run by paths (the unit that morphing many benchmarks, or a bench's sweep, fans out).
-
-    ``train`` replaces the benchmark's training views (e.g. a few-views stability case); ``json_path`` also
-    writes the metrics there. Resumable like :func:`run_morph`.
-    """
-    import dataclasses
-
-    from foundation.files import write_json
-    from foundation.records import to_json
-
-    from .benchmark import load_morph_benchmark
-    from .gcn import run_gcn_morph
-
-    bench = load_morph_benchmark(bench_dir)
-    if train is not None:
-        bench.meta = dataclasses.replace(bench.meta, train=list(train))
-    r = (run_gcn_morph if gcn else run_morph)(bench, out, s, show_progress=False)
-    if json_path:
-        write_json(json_path, to_json(r))
-    return r
