@@ -36,6 +36,7 @@ bench: $(STAMP)
 	$(BIN)/photoreal bench morph --json out/bench/morph.json
 	$(BIN)/photoreal bench btf --json out/bench/btf.json
 	$(BIN)/photoreal bench gan --json out/bench/gan.json
+	$(BIN)/photoreal bench scale --json out/bench/scale.json
 
 clean:
 	rm -rf out .pytest_cache

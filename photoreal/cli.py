@@ -197,8 +197,13 @@ def _cmd_bench_btf(a) -> int:
 
     from .benchmarks.btf import BTFBenchSettings, bench_btf
 
+    from foundation.pool import ray_shutdown
+
     out = _bench_out(a)
-    result = bench_btf(_settings(BTFBenchSettings, a), out_dir=out.parent)
+    try:
+        result = bench_btf(_settings(BTFBenchSettings, a), out_dir=out.parent, pool=_pool(a))
+    finally:
+        ray_shutdown()
     write_json(out, result)
     _print({k: result[k] for k in ("psnr_universal_mean", "psnr_per_material_mean", "neural_btf_ms", "principled_ms",
                                    "neural_btf_vs_principled", "mlp_evals_per_s_drjit", "mlp_evals_per_s_torch",
@@ -560,6 +565,7 @@ def build_parser() -> argparse.ArgumentParser:
     _pool_opts(bm)
     bm.set_defaults(func=_cmd_bench_morph)
     bb = bsub.add_parser("btf", help="neural BTF: universal vs NeuMIP, width × texture sweep, render time")
+    _pool_opts(bb)
     bb.set_defaults(func=_cmd_bench_btf)
     bf = bsub.add_parser("face", help="face fitting: accuracy vs time over UV resolution, stability")
     _opt(bf, FaceBenchSettings, "scan", help="josie, paul, or an OBJ path")

@@ -105,7 +105,9 @@ def test_bench_btf_writes_the_promised_json(tmp_path):
                          widths=(16, 32), tex_res=(4, 8), default_width=32, train_iterations=15, train_batch=2048,
                          fit_iterations=8, fit_batch=1024, neumip_iterations=8, neumip_batch=1024,
                          render_resolution=16, render_spp=2, render_reps=1, mlp_evals=1 << 12)
-    r = bench_btf(s, tmp_path / "bench", show_progress=False)
+    from foundation.pool import PoolSettings
+
+    r = bench_btf(s, tmp_path / "bench", show_progress=False, pool=PoolSettings(workers=0, threads=0))
     for k in ("psnr_universal_mean", "psnr_per_material_mean", "neural_btf_ms", "principled_ms",
               "neural_btf_vs_principled", "mlp_evals_per_s_drjit", "mlp_evals_per_s_torch"):
         assert np.isfinite(r[k]) and r[k] > 0, k

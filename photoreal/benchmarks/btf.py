@@ -38,9 +38,10 @@ from foundation.assets import envmap
 from foundation.errors import UsageError
 from foundation.imageio import save_figure
 from foundation.progress import progress_bar
-from inverse.btf import (FAMILIES, BTFRenderSettings, OptimSettings, fit_material, fit_settings, load_dataset, predict,
+from inverse.btf import (FAMILIES, BTFRenderSettings, OptimSettings, load_dataset, predict,
                          psnr_pair, render_dataset, split_slices, train_basis, train_per_material)
-from mi_plugins.neural_basis import Basis, BasisConfig, CoopNet, NeuralMaterial, save_basis, save_material
+from foundation.pool import Item, PoolSettings, default_workers, run_items
+from mi_plugins.neural_basis import Basis, BasisConfig, CoopNet, NeuralMaterial, load_material, save_basis, save_material
 
 
 @dataclass
@@ -188,14 +189,18 @@ def _chart(result: dict, path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def bench_btf(s: BTFBenchSettings, out_dir: Path, show_progress: bool = True) -> dict:
+def bench_btf(s: BTFBenchSettings, out_dir: Path, show_progress: bool = True, pool: PoolSettings | None = None) -> dict:
+    """The whole bench (see the module docstring). ``pool`` renders the dataset and runs the held-out fits
+    (independent items) on worker processes or Ray; trainings and every timing run here, alone."""
     out_dir = Path(out_dir)
     work = out_dir / "btf_work"
     data_dir = Path(s.data_dir) if s.data_dir else out_dir / "btf_data"
+    pool = pool or PoolSettings(workers=default_workers(), threads=1)
     t_start = time.perf_counter()
-    render_dataset(data_dir / "heldout", per_family=1, settings=s.render, base_seed=1000 + s.seed, progress=show_progress)
+    render_dataset(data_dir / "heldout", per_family=1, settings=s.render, base_seed=1000 + s.seed,
+                   progress=show_progress, pool=pool)
     render_dataset(data_dir / "train", per_family=s.train_per_family, settings=s.render, base_seed=s.seed,
-                   progress=show_progress)
+                   progress=show_progress, pool=pool)
     train, held_mats = load_dataset(data_dir / "train"), load_dataset(data_dir / "heldout")
     n_slices = train[0].values.shape[0]
     fit_sl, held_sl = split_slices(n_slices)
@@ -215,19 +220,25 @@ def bench_btf(s: BTFBenchSettings, out_dir: Path, show_progress: bool = True) ->
     fits: dict[tuple[int, int], list[dict]] = {}
     mats: dict[tuple[int, int], list[NeuralMaterial]] = {}
     configs = [(w, r) for w in s.widths for r in s.tex_res]
-    with progress_bar(total=len(configs) * len(held_mats), desc="fit held-out", disable=not show_progress) as bar:
-        for w, r in configs:
-            fits[(w, r)], mats[(w, r)] = [], []
-            for d in held_mats:
-                fs = fit_settings(s.fit_iterations, batch=s.fit_batch, seed=s.seed, tex_res=r)
-                t0 = time.perf_counter()
-                mat, _ = fit_material(bases[w], d, fit_sl, fs, progress=False,
-                                      checkpoint=work / f"fit_w{w}_r{r}_{d.meta['name']}.ckpt.npz")
-                row = {"material": d.meta["name"], "family": d.meta["family"], **_score(bases[w], mat, d, held_sl),
-                       "fit_seconds": time.perf_counter() - t0}
-                fits[(w, r)].append(row)
-                mats[(w, r)].append(mat)
-                bar.update(1)
+    # independent fits: items for the pool (each resumes from its checkpoint; a finished one is skipped)
+    items = [Item(f"w{w}_r{r}_{d.meta['name']}", "inverse.btf:fit_file",
+                  (str(data_dir / "heldout" / f"{d.meta['name']}.npz"), str(work / f"basis_w{w}.npz"),
+                   str(work / f"fit_w{w}_r{r}_{d.meta['name']}.npz")),
+                  {"iterations": s.fit_iterations, "batch": s.fit_batch, "tex_res": r, "seed": s.seed},
+                  output=str(work / f"fit_w{w}_r{r}_{d.meta['name']}.npz"))
+             for w, r in configs for d in held_mats]
+    report = run_items(items, pool, desc="fit held-out", show_progress=show_progress)
+    report.raise_if_failed()
+    done = {r.key: r for r in report.results}
+    for w, r in configs:
+        fits[(w, r)], mats[(w, r)] = [], []
+        for d in held_mats:
+            key = f"w{w}_r{r}_{d.meta['name']}"
+            mat = load_material(work / f"fit_{key}.npz")
+            value = done[key].value or {}
+            fits[(w, r)].append({"material": d.meta["name"], "family": d.meta["family"],
+                                 **_score(bases[w], mat, d, held_sl), "fit_seconds": value.get("seconds")})
+            mats[(w, r)].append(mat)
 
     # NeuMIP-style per-material networks (same architecture, default width, full texture res).
     neumip = []
