@@ -79,10 +79,25 @@ def check_output_file(path: str | os.PathLike, what: str = "output") -> Path:
     return p
 
 
-def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: str = "output folder") -> Path:
+MANIFEST = ".photoreal-manifest.json"  #: what an :func:`atomic_dir` output holds (written by it, last)
+
+
+def _foreign_entries(p: Path) -> list[str]:
+    """Entries of a previous :func:`atomic_dir` output that it did not write (added later by a user or a run)."""
+    try:
+        own = set(json.loads((p / MANIFEST).read_text()))
+    except (OSError, ValueError, TypeError):
+        return ["(no readable manifest: made by an older photoreal or by hand)"]
+    return sorted(e.name for e in p.iterdir() if e.name not in own)
+
+
+def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: str = "output folder",
+                     replace: bool = False) -> Path:
     """A folder output can go to ``path``: absent, empty, or a previous output (holding ``marker``).
 
-    Never anything else: replacing a folder the program did not write would destroy the user's files.
+    Never anything else: replacing a folder the program did not write would destroy the user's files. With
+    ``replace`` (the folder will be swapped for a new one, :func:`atomic_dir`), a previous output must also hold
+    nothing it did not write itself — a morph run or notes saved inside a benchmark would go with it.
     """
     p = Path(path)
     if str(path) == "":
@@ -93,6 +108,11 @@ def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: s
         if any(p.iterdir()) and (marker is None or not (p / marker).is_file()):
             hint = f" (no {marker}: not a previous output of this command)" if marker else ""
             raise UsageError(f"{what} {p}: folder exists and is not empty{hint}; choose another path or empty it")
+        foreign = _foreign_entries(p) if replace and any(p.iterdir()) else []
+        if foreign:
+            shown = ", ".join(foreign[:4]) + (", …" if len(foreign) > 4 else "")
+            raise UsageError(f"{what} {p}: a previous output, but it also holds what this command did not write "
+                             f"({shown}); it would be replaced with the folder: move those or choose another path")
         if not os.access(p, os.W_OK | os.X_OK):
             raise UsageError(f"{what} {p}: not writable")
     if p.resolve() == Path.cwd().resolve() or p.resolve() in Path.cwd().resolve().parents:
@@ -114,6 +134,11 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None) -> Iterato
     try:
         yield Path(tmp)
         os.chmod(tmp, file_mode())
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)  # the data is on disk before the name points at it (a power cut leaves the old file)
+        finally:
+            os.close(fd)
         os.replace(tmp, target)
     finally:
         if os.path.exists(tmp):
@@ -127,7 +152,7 @@ def atomic_dir(target: str | os.PathLike, marker: str | None = None) -> Iterator
     ``target`` must be absent, empty or a previous output holding ``marker`` (see
     :func:`check_output_dir`); the work should write ``marker`` last.
     """
-    target = check_output_dir(target, marker)
+    target = check_output_dir(target, marker, replace=True)
     tmp = target.with_name(f".{target.name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -136,9 +161,11 @@ def atomic_dir(target: str | os.PathLike, marker: str | None = None) -> Iterator
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)  # no half-written folder
         raise
+    (tmp / MANIFEST).write_text(json.dumps(sorted([e.name for e in tmp.iterdir()] + [MANIFEST])))
+    os.chmod(tmp / MANIFEST, file_mode())
     old = None
     if target.exists():
-        check_output_dir(target, marker)  # still a previous output (or empty) after the work
+        check_output_dir(target, marker, replace=True)  # still only a previous output (or empty) after the work
         old = target.with_name(f".{target.name}.old")
         shutil.rmtree(old, ignore_errors=True)
         target.rename(old)

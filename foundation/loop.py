@@ -317,10 +317,14 @@ def run_loop(stage: Stage, settings: LoopSettings, checkpoint: str | Path | None
         return run.step >= settings.steps or (settings.max_seconds is not None
                                                and run.train_seconds >= settings.max_seconds)
 
+    saved_step = run.step
+
     def save() -> None:
+        nonlocal saved_step
         if checkpoint is not None:
             save_tree(checkpoint, {"stage_name": stage.kind, "fingerprint": fingerprint,
                                    "stage": stage.state(), "loop": run.to_tree()})
+            saved_step = run.step
 
     run.done = budgets_used()
     stop = settings.steps if budget_steps is None else min(settings.steps, run.step + budget_steps)
@@ -347,10 +351,11 @@ def run_loop(stage: Stage, settings: LoopSettings, checkpoint: str | Path | None
             bar.update(1)
             bar.set_postfix(loss=f"{res.loss:.4g}", refresh=False)
             if run.nonfinite_in_a_row >= settings.max_nonfinite:
-                last = f"the last checkpoint ({checkpoint}) is from before them" if checkpoint else "nothing was saved"
+                where = (f"the checkpoint {checkpoint} holds the run up to step {saved_step} and would replay them; "
+                         "delete it to start over with other settings" if checkpoint else "nothing was saved")
                 raise NonFiniteError(f"{stage.name}: {run.nonfinite_in_a_row} steps in a row gave NaN/Inf loss or "
-                                     f"gradients (steps {run.step - run.nonfinite_in_a_row}–{run.step - 1}); "
-                                     f"{last}; lower the learning rate or check the inputs")
+                                     f"gradients (steps {run.step - run.nonfinite_in_a_row}–{run.step - 1}); {where}; "
+                                     "lower the learning rate or check the inputs")
             run.done = budgets_used()
             stage.after_step(it, run)
             if run.step % settings.checkpoint_every == 0 or run.done or run.step == stop:

@@ -13,7 +13,9 @@ the file whose existence means the item is done); :func:`run_items` owns the res
   Dr.Jit thread per item, renders and fits are bit-identical wherever they ran;
 * **failures** — an item that raises (or whose worker dies) is retried ``retries`` times, then reported with its
   key and a one-line error; the other items finish; :class:`BatchReport` summarises;
-* **resume** — an item whose ``output`` file exists is skipped (a killed batch continues where it stopped);
+* **resume** — an item whose ``output`` file exists, stamped by a finished run of the very same item (function and
+  arguments, settings included), is skipped: a killed batch continues where it stopped, and a batch run again with
+  other settings runs again (the item's own checkpoint then decides whether it can continue);
 * **one progress bar** over all items.
 
 Items run in any order on a pool; results come back in the items' order.
@@ -49,6 +51,7 @@ class Item:
     args: tuple = ()
     kwargs: dict = field(default_factory=dict)
     output: str | None = None  #: a file that exists once the item is done (resume skips the item then)
+    loader: str | None = None  #: "module:function" that reads ``output`` back as the value of a skipped item
 
 
 @dataclass
@@ -145,8 +148,13 @@ def _resolve(fn: str):
     return getattr(importlib.import_module(module), name)
 
 
-def execute(item: Item, threads: int, where: str = "") -> ItemResult:
-    """Run one item in this process (the pool's and Ray's worker body); exceptions become the result's error."""
+def execute(item: Item, threads: int, where: str = "", started: str | None = None) -> ItemResult:
+    """Run one item in this process (the pool's and Ray's worker body); exceptions become the result's error.
+
+    ``started``: a file to create first, so that the driver knows which items a dying worker had begun.
+    """
+    if started:
+        Path(started).touch()
     t0 = time.perf_counter()
     try:
         _prepare(threads)
@@ -169,8 +177,40 @@ def _pool_init(threads: int) -> None:
 # -- the driver side ---------------------------------------------------------------------------------------------
 
 
+def _digest(item: Item) -> str:
+    import hashlib
+    import json
+
+    from .records import to_json
+
+    text = json.dumps([item.fn, to_json(list(item.args)), to_json(item.kwargs)], sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _stamp(item: Item) -> Path:
+    out = Path(item.output)
+    return out.with_name(f".{out.name}.item")
+
+
 def _done(item: Item) -> bool:
-    return item.output is not None and Path(item.output).is_file()
+    """Its output exists and was made by this very item (same function, arguments and settings)."""
+    if item.output is None or not Path(item.output).is_file():
+        return False
+    try:
+        return _stamp(item).read_text() == _digest(item)
+    except OSError:
+        return False
+
+
+def _mark_done(item: Item) -> None:
+    if item.output is not None and Path(item.output).is_file():
+        from .files import write_text
+
+        write_text(_stamp(item), _digest(item))
+
+
+def _load(item: Item):
+    return _resolve(item.loader)(item.output) if item.loader else None
 
 
 def run_items(items: Sequence[Item], s: PoolSettings | None = None, desc: str = "items",
@@ -185,7 +225,7 @@ def run_items(items: Sequence[Item], s: PoolSettings | None = None, desc: str = 
     todo = []
     for it in items:
         if _done(it):
-            results[it.key] = ItemResult(it.key, True, skipped=True, where="done before")
+            results[it.key] = ItemResult(it.key, True, _load(it), skipped=True, where="done before")
         else:
             todo.append(it)
     with progress_bar(total=len(items), desc=desc, unit="item", disable=not show_progress) as bar:
@@ -197,8 +237,11 @@ def run_items(items: Sequence[Item], s: PoolSettings | None = None, desc: str = 
                 runner = _run_pool
             else:
                 runner = _run_serial
+            by_key = {it.key: it for it in todo}
             for r in runner(todo, s):
                 results[r.key] = r
+                if r.ok:
+                    _mark_done(by_key[r.key])
                 bar.update(1)
                 bar.set_postfix(failed=sum(not x.ok for x in results.values()), refresh=False)
     return BatchReport([results[k] for k in keys], time.perf_counter() - t0)
@@ -226,37 +269,43 @@ def _serial_one(item: Item) -> ItemResult:
         return ItemResult(item.key, True, value, seconds=time.perf_counter() - t0, where="serial")
     except KeyboardInterrupt:
         raise
-    except Exception as exc:
+    except BaseException as exc:  # as in a worker: SystemExit from an item fails that item, not the batch
         msg = " ".join(str(exc).split()) or type(exc).__name__
         return ItemResult(item.key, False, error=f"{type(exc).__name__}: {msg}", seconds=time.perf_counter() - t0,
                           where="serial")
 
 
 def _run_pool(items: list[Item], s: PoolSettings):
-    """A spawn pool. A worker that dies (crash, out of memory) takes the whole pool down, and the items it held
-    cannot tell which one killed it: those run again one at a time, each in a process of its own, so that a
-    crash is charged to its own item and the others finish."""
+    """A spawn pool. A worker that dies (crash, out of memory) takes the whole pool down, failing every pending
+    item with it. Items that had not begun go to a fresh pool; those that had (each marks its start in a file)
+    run again one at a time, each in a process of its own, so that a crash is charged to its own item."""
+    import tempfile
+
     ctx = mp.get_context("spawn")
     attempts = {it.key: 0 for it in items}
     queue, suspects = list(items), []
-    while queue:
-        with cf.ProcessPoolExecutor(max_workers=min(s.workers, len(queue)), mp_context=ctx,
-                                    initializer=_pool_init, initargs=(s.threads,)) as ex:
-            futures = {ex.submit(execute, it, s.threads): it for it in queue}
-            queue = []
-            for fut in cf.as_completed(futures):
-                it = futures[fut]
-                try:
-                    r = fut.result()
-                except cf.process.BrokenProcessPool:
-                    suspects.append(it)
-                    continue
-                attempts[it.key] += 1
-                r.attempts = attempts[it.key]
-                if not r.ok and attempts[it.key] <= s.retries:
-                    queue.append(it)
-                    continue
-                yield r
+    with tempfile.TemporaryDirectory(prefix="photoreal-pool-") as marks:
+        round_no = 0
+        while queue:
+            round_no += 1
+            with cf.ProcessPoolExecutor(max_workers=min(s.workers, len(queue)), mp_context=ctx,
+                                        initializer=_pool_init, initargs=(s.threads,)) as ex:
+                started = {it.key: str(Path(marks) / f"{round_no}-{k}") for k, it in enumerate(queue)}
+                futures = {ex.submit(execute, it, s.threads, "", started[it.key]): it for it in queue}
+                queue = []
+                for fut in cf.as_completed(futures):
+                    it = futures[fut]
+                    try:
+                        r = fut.result()
+                    except cf.process.BrokenProcessPool:
+                        (suspects if Path(started[it.key]).exists() else queue).append(it)
+                        continue
+                    attempts[it.key] += 1
+                    r.attempts = attempts[it.key]
+                    if not r.ok and attempts[it.key] <= s.retries:
+                        queue.append(it)
+                        continue
+                    yield r
     for it in suspects:
         while True:
             attempts[it.key] += 1
@@ -311,20 +360,24 @@ def _run_ray(items: list[Item], s: PoolSettings):
         raise UsageError("--ray needs Ray: pip install 'ray==2.60.0'") from None
     except Exception as exc:  # ConnectionError and friends: name the address
         raise UsageError(f"--ray {s.ray}: cannot connect ({' '.join(str(exc).split())[:200]})") from None
-    # One CPU per task: at most `workers` run at a time on the cluster's CPUs; Ray retries tasks whose worker died.
-    task = ray.remote(num_cpus=1, max_retries=s.retries)(_ray_task)
-    attempts = {it.key: 1 for it in items}
-    refs = {task.remote(it, s.threads): it for it in items}
-    while refs:
+    # One CPU per task and at most `workers` tasks in flight; retries are ours (max_retries=0), the same for an
+    # item that raised and for one whose worker died.
+    task = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
+    attempts = {it.key: 0 for it in items}
+    waiting, refs = list(items), {}
+    while waiting or refs:
+        while waiting and len(refs) < s.workers:
+            it = waiting.pop(0)
+            attempts[it.key] += 1
+            refs[task.remote(it, s.threads)] = it
         done, _ = ray.wait(list(refs), num_returns=1)
         it = refs.pop(done[0])
         try:
             r = ray.get(done[0])
-        except Exception as exc:  # the worker died more often than max_retries allows
+        except Exception as exc:  # the task's worker died
             r = ItemResult(it.key, False, error=f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}")
         r.attempts = attempts[it.key]
         if not r.ok and attempts[it.key] <= s.retries:
-            attempts[it.key] += 1
-            refs[task.remote(it, s.threads)] = it
+            waiting.append(it)
             continue
         yield r

@@ -263,7 +263,7 @@ def _cmd_face_make_benchmark(a) -> int:
     from foundation.files import check_output_dir
     from inverse.face import FaceBenchmarkSettings, make_benchmark
 
-    check_output_dir(a.out, "benchmark.json", "--out")
+    check_output_dir(a.out, "benchmark.json", "--out", replace=True)
     out = make_benchmark(a.scan, a.out, _settings(FaceBenchmarkSettings, a))
     print(f"benchmark: {out}")
     return 0
@@ -316,7 +316,7 @@ def _cmd_face_from_photo(a) -> int:
     from inverse.face import PhotoFitSettings, load_landmarks, photo_to_face
 
     s = _settings(PhotoFitSettings, a)
-    check_output_dir(a.out, "photo_face.json", "--out")
+    check_output_dir(a.out, "photo_face.json", "--out", replace=True)
     image = read_photo(a.image)
     lm = load_landmarks(a.landmarks) if a.landmarks else None
     r = photo_to_face(image, a.out, s, landmarks=lm)
@@ -334,7 +334,7 @@ def _cmd_morph_make_benchmark(a) -> int:
     from inverse.morph import MorphBenchmarkSettings, make_morph_benchmark
 
     s = _settings(MorphBenchmarkSettings, a)
-    check_output_dir(a.out, "morph_benchmark.json", "--out")
+    check_output_dir(a.out, "morph_benchmark.json", "--out", replace=True)
     print(f"benchmark: {make_morph_benchmark(a.mesh, a.out, s)}")
     return 0
 
@@ -360,7 +360,8 @@ def _cmd_morph_run(a) -> int:
         items = []
         for b in benches:
             out = base / b.name if base is not None else b / "morph"
-            items.append(Item(b.name, "inverse.morph:run_item", (str(b), str(out), s, a.gcn), {"json_path": None},
+            key = b.name if base is not None else str(b)
+            items.append(Item(key, "inverse.morph:run_item", (str(b), str(out), s, a.gcn), {"json_path": None},
                               output=str(out / "metrics.json")))
         return _run_batch(items, a, "morph runs")
     if a.out_dir:
@@ -792,15 +793,17 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("photoreal: interrupted", file=sys.stderr)
         return 130
-    except (PhotorealError, ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
-            FloatingPointError, ImportError, OSError, RuntimeError) as exc:
+    except Exception as exc:
         if debug:
             raise
         code = getattr(exc, "exit_code", None)
         if code is None:  # plain errors: a bad value or a missing file is the user's input; the rest, a failure
             code = 2 if isinstance(exc, (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError,
                                          ImportError)) else 1
-        print(f"photoreal: error: {_message(exc, _flags(parser, argv))}", file=sys.stderr)
+        msg = _message(exc, _flags(parser, argv))
+        if not isinstance(exc, (PhotorealError, ValueError, OSError, ImportError, RuntimeError, FloatingPointError)):
+            msg = f"internal error, {type(exc).__name__}: {msg} (PHOTOREAL_DEBUG=1 shows the traceback)"
+        print(f"photoreal: error: {msg}", file=sys.stderr)
         return code
 
 

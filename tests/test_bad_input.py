@@ -313,3 +313,15 @@ def test_flags_a_command_does_not_use_are_refused(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["bench", "morph", "--json", "x.json", "--resolution", "64"])
     assert exc.value.code == 2 and "unrecognized arguments: --resolution 64" in capsys.readouterr().err
+
+
+def test_remaking_a_benchmark_never_takes_a_run_stored_inside_it(tmp_path, capsys):
+    argv = ["morph", "make-benchmark", "--mesh", ARMADILLO, "--views", "4", "--resolution", "16", "--spp", "1",
+            "--out", tmp_path / "b"]
+    assert run(argv, capsys)[0] == 0
+    assert run(argv, capsys)[0] == 0  # its own previous output: replaced
+    (tmp_path / "b" / "morph").mkdir()
+    (tmp_path / "b" / "morph" / "checkpoint.npz").write_bytes(b"hours of work")
+    code, err = run(argv, capsys)
+    assert code == 2 and "also holds what this command did not write (morph)" in err
+    assert (tmp_path / "b" / "morph" / "checkpoint.npz").read_bytes() == b"hours of work"

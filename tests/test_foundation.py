@@ -209,7 +209,12 @@ def test_atomic_writes_leave_nothing_on_error_and_folders_only_replace_their_own
     with atomic_dir(tmp_path / "out", marker="done.json") as d:  # a previous output: replaced
         (d / "b.txt").write_text("2")
         (d / "done.json").write_text("{}")
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["b.txt", "done.json"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [".photoreal-manifest.json", "b.txt", "done.json"]
+    (tmp_path / "out" / "notes.txt").write_text("mine")  # something the command did not write: never replaced
+    with pytest.raises(UsageError, match=r"also holds what this command did not write \(notes.txt\)"):
+        with atomic_dir(tmp_path / "out", marker="done.json"):
+            pass
+    assert (tmp_path / "out" / "notes.txt").read_text() == "mine"
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep")
     with pytest.raises(UsageError, match="folder exists and is not empty .*no done.json"):

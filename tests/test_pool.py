@@ -83,6 +83,11 @@ def test_failures_are_reported_the_rest_finish_and_reruns_resume(tmp_path):
     (tmp_path / "out" / "1_josie.exr").unlink()
     again = run_items(items[:2], PoolSettings(workers=0, threads=1), show_progress=False)
     assert [r.skipped for r in again.results] == [True, False] and not again.failed
+    # the same outputs asked for with other settings are not "done": they are made again
+    other = [Item(it.key, it.fn, (it.args[0], it.args[1], RenderSettings(spp=2, resolution=(16, 12))),
+                  output=it.output) for it in items[:2]]
+    third = run_items(other, PoolSettings(workers=0, threads=1), show_progress=False)
+    assert [r.skipped for r in third.results] == [False, False] and not third.failed
 
 
 def test_cli_renders_many_scenes_and_names_a_bad_one(tmp_path, capsys):

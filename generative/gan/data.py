@@ -60,6 +60,16 @@ class PairedViews:
     def resolution(self) -> int:
         return int(self.photos.shape[1])
 
+    def digest(self) -> str:
+        """SHA-256 (16 hex digits) of the images and the split: what a checkpoint trained on them must match."""
+        import hashlib
+
+        h = hashlib.sha256()
+        for a in (self.photos, self.rendered, self.morphed):
+            h.update(np.ascontiguousarray(a, np.float32).tobytes())
+        h.update(json.dumps([list(map(int, self.train)), list(map(int, self.test))]).encode())
+        return h.hexdigest()[:16]
+
 
 def render_mesh_views(mesh_ply: Path, bench: MorphBenchmark, ids: list[int], s: GanDataSettings,
                       desc: str = "render", show_progress: bool = True) -> np.ndarray:

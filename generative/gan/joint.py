@@ -106,7 +106,7 @@ class JointStage(Stage):
         else:
             v0, f0, c0 = remesh(*read_ply_colours(bench.coarse))
         self.v0, self.f0 = v0, f0
-        self.digests = {"coarse": file_digest(bench.coarse),
+        self.digests = {"coarse": file_digest(bench.coarse), "data": data.digest(),
                         "init_mesh": file_digest(s.init_mesh) if s.init_mesh else None}
         self.model = build_model(s.gan)
         self.opt_g, self.opt_d = _optimisers(self.model, s.gan)

@@ -266,7 +266,7 @@ class GANStage(Stage):
         return f"GANStage/{self.s.model}"
 
     def fingerprint(self) -> dict:
-        return {"settings": self.s}
+        return {"settings": self.s, "data": self.data.digest()}
 
     def state(self) -> dict:
         return {"model": self.model.state_dict(), "opt_g": optimizer_state(self.opt_g),

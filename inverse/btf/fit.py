@@ -27,6 +27,7 @@ import mitsuba as mi
 import numpy as np
 
 from foundation import validate
+from foundation.errors import CheckpointError
 from foundation.loop import LoopSettings, RunState, Stage, StepResult, all_finite, run_loop
 from foundation.optim_state import load_optimizer_state, optimizer_state
 from mi_plugins.neural_basis import (Basis, BasisConfig, NeuralBTFError, NeuralMaterial, _to_tensor_layers, bilinear,
@@ -251,6 +252,11 @@ class BTFStage(Stage):
     # the iteration count is not part of the fingerprint.
     def fingerprint(self) -> dict:
         return self.key
+
+    def start(self, run: RunState) -> None:
+        if run.step > self.s.iterations:
+            raise CheckpointError(f"{self.name}: the checkpoint has run {run.step} iterations, more than the "
+                                  f"{self.s.iterations} asked for; ask for at least {run.step} or delete it")
 
     def state(self) -> dict:
         return {"params": dict(self.params), "adam": optimizer_state(self.adam)}

@@ -166,6 +166,17 @@ class FaceFitResult:
 _MAPS = ("albedo", "slope", "roughness", "specular")
 
 
+def benchmark_digest(bench: FaceBenchmark) -> str:
+    """Digest of the benchmark's files (its content, not its path: a benchmark re-made in place is another one)."""
+    import hashlib
+
+    from foundation.files import file_digest
+
+    names = sorted(p.name for p in bench.path.iterdir() if p.suffix in (".exr", ".obj", ".json") and
+                   not p.name.startswith("."))
+    return hashlib.sha256("".join(f"{n}:{file_digest(bench.path / n)}" for n in names).encode()).hexdigest()[:16]
+
+
 class FaceFitStage(DrJitStage):
     """Adam through the UV-space shader over a coarse-to-fine pyramid: one loop over all levels' steps."""
 
@@ -252,7 +263,7 @@ class FaceFitStage(DrJitStage):
     # -- the loop's interface -------------------------------------------------------------------------------------
 
     def fingerprint(self) -> dict:
-        return {"settings": self.s, "benchmark": str(self.bench.path.resolve())}
+        return {"settings": self.s, "benchmark": benchmark_digest(self.bench)}
 
     def state(self) -> dict:
         if self.opt is None:
@@ -555,7 +566,13 @@ class RenderRefineStage(DrJitStage):
         self.params.update(self.opt)
 
     def fingerprint(self) -> dict:
-        return {"settings": self.s, "benchmark": str(self.bench.path.resolve())}
+        import hashlib
+
+        h = hashlib.sha256()
+        for k in sorted(self.maps):
+            h.update(k.encode())
+            h.update(np.ascontiguousarray(self.maps[k], np.float32).tobytes())
+        return {"settings": self.s, "benchmark": benchmark_digest(self.bench), "start_maps": h.hexdigest()[:16]}
 
     def state(self) -> dict:
         return {"optimizer": optimizer_state(self.opt)}

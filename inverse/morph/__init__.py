@@ -22,14 +22,14 @@ from .evaluate import MorphEvaluation, evaluate_morph
 from .gcn import GCNSettings, run_gcn_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import RepairReport, remesh, repair_flips
-from .batch import run_item
+from .batch import load_result, run_item
 from .run import MorphResult, MorphSettings, PlanarityDecision, run_morph, start_mesh
 from .scene import MODES, morph_scene, photo_at, render_views
 
 __all__ = [
     "ARTIFACT_REGIONS", "Camera", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
     "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "PlanarityDecision",
-    "RepairReport", "artifact_masks", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph",
+    "RepairReport", "artifact_masks", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "remesh",
     "render_views", "repair_flips", "run_gcn_morph", "run_item", "run_morph", "sensor_dict", "start_mesh",
 ]

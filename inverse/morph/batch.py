@@ -26,3 +26,11 @@ def run_item(bench_dir: str, out: str, s: MorphSettings, gcn: bool = False, trai
     if json_path:
         write_json(json_path, to_json(r))
     return r
+
+
+def load_result(metrics_path: str) -> MorphResult:
+    """A finished run's ``metrics.json`` as a :class:`MorphResult` (the value of a batch item done before)."""
+    from foundation.files import read_json
+    from foundation.records import from_json
+
+    return from_json(MorphResult, read_json(metrics_path, "morph metrics"), str(metrics_path))

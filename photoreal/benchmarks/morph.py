@@ -78,7 +78,7 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, pool: PoolSettings,
     def item(key: str, settings: MorphSettings, **kw) -> Item:
         out = work / f"{case}_{key}"
         return Item(key, "inverse.morph:run_item", (str(bench.path), str(out), settings), kw,
-                    output=str(out / "metrics.json"))
+                    output=str(out / "metrics.json"), loader="inverse.morph:load_result")
 
     # Sweep over mesh resolution; stability (shorter runs): batch sizes, plain Adam vs large steps, few views,
     # GCN image-only — raw method behaviour: no final unfolding, so folds and spikes show as they are.
