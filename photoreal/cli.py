@@ -509,6 +509,86 @@ def _cmd_gan(a) -> int:
     return 0
 
 
+# -- diffrender -----------------------------------------------------------------------------------------------------
+
+
+def _cmd_diffrender(a) -> int:
+    from foundation.files import check_output_dir, check_output_file, write_json
+    from foundation.records import to_json
+    from generative.diffusion import (DiffRenderSettings, SampleSettings, load_intrinsic_views, render_benchmark,
+                                      render_scene_file, train_diffrender)
+    from inverse.morph import load_morph_benchmark
+
+    if a.json:
+        check_output_file(a.json, "--json")
+    if a.dr_cmd == "train":
+        morphs = a.morph or [str(Path(b) / "morph") for b in a.benchmarks]
+        if len(morphs) != len(a.benchmarks):
+            raise _usage(f"--morph: {len(morphs)} folders for {len(a.benchmarks)} benchmarks (one each, in order)")
+        s = _settings(DiffRenderSettings, a)
+        benches = [load_morph_benchmark(b) for b in a.benchmarks]  # all validated before any rendering
+        cases = [load_intrinsic_views(b, m) for b, m in zip(benches, morphs)]
+        r = train_diffrender(cases, a.out, s)
+        m = to_json(r)
+        if a.json:
+            write_json(a.json, m)
+        _print({"train_seconds": r.training.train_seconds, "steps": r.training.steps, "parameters": r.parameters,
+                "loss_first": r.training.loss_first, "loss_last": r.training.loss_last, "skipped": r.training.skipped_steps})
+        return 0
+    ss = _settings(SampleSettings, a)
+    check_output_dir(a.out, "diffrender.json", "--out")
+    target = Path(a.target)
+    if target.suffix.lower() == ".xml":
+        r = render_scene_file(a.run, target, a.out, spp=a.spp, sample_s=ss)
+    else:
+        bench = load_morph_benchmark(target)
+        r = render_benchmark(a.run, bench, a.morph or target / "morph", a.out, a.source, a.views, ss)
+    m = to_json(r)
+    write_json(Path(a.out) / "diffrender.json", m)  # also marks the folder as this command's output
+    if a.json:
+        write_json(a.json, m)
+    _print({k: v for k, v in m.items() if k != "files"} | {"files": len(r.files), "out": str(a.out)})
+    return 0
+
+
+def _add_diffrender_parser(sub) -> None:
+    from generative.diffusion import DiffRenderSettings, SampleSettings
+
+    g = sub.add_parser("diffrender", help="intrinsic-conditioned diffusion renderer: G-buffers (A, I, S, N) → photo "
+                                          "(seed 000)")
+    gs = g.add_subparsers(dest="dr_cmd", required=True)
+    t = gs.add_parser("train", help="train on morph benchmarks (coarse and morphed G-buffers → photos); resumes from OUT")
+    t.add_argument("benchmarks", nargs="+", help="folders made by `photoreal morph make-benchmark`")
+    t.add_argument("--morph", nargs="+", default=None, help="their morph run folders, in order (default BENCHMARK/morph)")
+    t.add_argument("--out", required=True, help="training folder (checkpoint.npz, metrics.json)")
+    _opt(t, DiffRenderSettings, "steps")
+    _opt(t, DiffRenderSettings, "max_seconds", "--seconds", type=float, help="training wall-time budget (summed over resumes)")
+    _opt(t, DiffRenderSettings, "batch")
+    _opt(t, DiffRenderSettings, "crop")
+    _opt(t, DiffRenderSettings, "lr")
+    _opt(t, DiffRenderSettings, "widths", type=int, help="UNet channels per level")
+    _opt(t, DiffRenderSettings, "attention_levels")
+    _opt(t, DiffRenderSettings, "global_source", choices=["R", "AIS", "none"],
+         help="global tokens from the recomposition R (seed 000), from A, I, S separately, or none")
+    _opt(t, DiffRenderSettings, "p_uncond")
+    _opt(t, DiffRenderSettings, "threads", help="torch threads (0: all cores)")
+    _opt(t, DiffRenderSettings, "seed")
+    t.add_argument("--json", default=None)
+    r = gs.add_parser("render", help="diffusion renders of a benchmark's views or of a scene's sensors (EXR + PNG)")
+    r.add_argument("target", help="a morph benchmark folder, or a Mitsuba scene .xml (every sensor is rendered)")
+    r.add_argument("--run", required=True, help="training folder of `diffrender train`")
+    r.add_argument("--out", required=True, help="output folder")
+    r.add_argument("--morph", default=None, help="benchmark: morph run folder (default BENCHMARK/morph)")
+    r.add_argument("--source", choices=["morphed", "coarse"], default="morphed", help="benchmark: whose G-buffers")
+    r.add_argument("--views", choices=["test", "all"], default="test", help="benchmark: held-out views or all")
+    r.add_argument("--spp", type=int, default=16, help="scene: samples per pixel of the G-buffers (default: 16)")
+    _opt(r, SampleSettings, "steps", "--ddim-steps", help="DDIM steps")
+    _opt(r, SampleSettings, "guidance", help="classifier-free guidance weight on the global condition")
+    _opt(r, SampleSettings, "seed")
+    r.add_argument("--json", default=None)
+    g.set_defaults(func=_cmd_diffrender)
+
+
 # -- demo -----------------------------------------------------------------------------------------------------------
 
 
@@ -693,6 +773,7 @@ def build_parser() -> argparse.ArgumentParser:
     tf.set_defaults(func=_cmd_btf_fit)
 
     _add_gan_parser(sub)
+    _add_diffrender_parser(sub)
 
     d = sub.add_parser("demo", help="render the built-in scenes and write an HTML report")
     d.add_argument("--out", default="out/demo", help="report folder (default: out/demo)")

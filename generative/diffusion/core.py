@@ -1,0 +1,213 @@
+"""The diffusion core every diffusion stage of photoreal shares (seed 000 §3.2–3.3; reused by seeds 002, 003).
+
+* :class:`DiffusionConfig` — the architecture and noise schedule as a typed record (it is stored in
+  checkpoints, and a checkpoint of another architecture is refused with the fields that differ);
+* :class:`ConditionalDiffusion` — a ``diffusers`` ``UNet2DConditionModel`` in pixel space (no Stable
+  Diffusion VAE: its weights do not exist offline) whose input is the noisy image concatenated with a
+  *local* condition (seed 000: A, I, S, normal, eq. 5's channel concatenation), and whose
+  cross-attention reads *global* tokens (pretrained-encoder features projected to the UNet's width)
+  or, for classifier-free guidance, a learned null token set;
+* :func:`diffusion_loss` — v-prediction (Salimans & Ho 2022): target v = α_t ε − σ_t x₀ through
+  ``DDIMScheduler.get_velocity``; the global condition is dropped with probability ``p_uncond``
+  (CFG training, Ho & Salimans 2022);
+* :func:`sample` — DDIM (η = 0, deterministic given the seed) with classifier-free guidance
+  ε̂ = u + w (c − u) applied to the v output, which is linear in (x₀, ε).
+
+The schedulers are diffusers' own; nothing here re-implements one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+from foundation import validate
+from foundation.errors import UsageError
+
+PREDICTIONS = ("v_prediction", "epsilon")
+SCHEDULES = ("squaredcos_cap_v2", "linear", "scaled_linear")
+
+
+@dataclass
+class DiffusionConfig:
+    """Architecture and noise schedule of a conditional pixel-space diffusion model."""
+
+    image_channels: int = 3  #: channels of the generated image
+    cond_channels: int = 12  #: local condition channels concatenated with the noisy image (0 = none)
+    widths: tuple[int, ...] = (32, 64, 96)  #: UNet channels per level (the image divides by 2^(levels−1))
+    layers_per_block: int = 1
+    attention_levels: int = 2  #: the deepest levels with cross-attention (and the middle block)
+    head_dim: int = 16
+    norm_groups: int = 8
+    global_dim: int = 1280  #: width of the global tokens (MobileNetV2 features); 0 = no global condition
+    global_tokens: int = 16  #: tokens per image (a 4×4 feature map)
+    cross_dim: int = 64  #: width the global tokens are projected to
+    prediction: str = "v_prediction"
+    schedule: str = "squaredcos_cap_v2"  #: cosine schedule (Nichol & Dhariwal 2021)
+    train_timesteps: int = 1000
+
+    def __post_init__(self):
+        self.widths = tuple(int(w) for w in self.widths)
+        validate.integer("image_channels", self.image_channels, 1)
+        validate.integer("cond_channels", self.cond_channels, 0)
+        if not self.widths or any(w < 1 for w in self.widths):
+            raise UsageError(f"widths must be positive integers, got {self.widths}")
+        if any(w % self.norm_groups for w in self.widths):
+            raise UsageError(f"every width in {self.widths} must divide by norm_groups = {self.norm_groups}")
+        validate.integer("layers_per_block", self.layers_per_block, 1)
+        validate.integer("attention_levels", self.attention_levels, 0, len(self.widths))
+        validate.integer("head_dim", self.head_dim, 1)
+        validate.integer("global_dim", self.global_dim, 0)
+        validate.integer("global_tokens", self.global_tokens, 1)
+        validate.integer("cross_dim", self.cross_dim, 1)
+        validate.one_of("prediction", self.prediction, PREDICTIONS)
+        validate.one_of("schedule", self.schedule, SCHEDULES)
+        validate.integer("train_timesteps", self.train_timesteps, 10)
+
+    def heads(self, width: int) -> int:
+        """Attention heads of a level: ``width // head_dim`` (at least one)."""
+        return max(1, width // self.head_dim)
+
+    @property
+    def multiple(self) -> int:
+        """Image sides must divide by this."""
+        return 1 << (len(self.widths) - 1)
+
+
+def make_scheduler(cfg: DiffusionConfig):
+    """diffusers' DDIM scheduler for ``cfg`` (used for the training noise and for sampling)."""
+    from diffusers import DDIMScheduler
+
+    return DDIMScheduler(num_train_timesteps=cfg.train_timesteps, beta_schedule=cfg.schedule,
+                         prediction_type=cfg.prediction, clip_sample=False, set_alpha_to_one=True,
+                         timestep_spacing="trailing")  # "trailing": the last step starts at pure noise
+
+
+class ConditionalDiffusion(nn.Module):
+    """UNet2DConditionModel over [noisy image ‖ local condition], cross-attending to global tokens."""
+
+    def __init__(self, cfg: DiffusionConfig, seed: int = 0):
+        super().__init__()
+        from diffusers import UNet2DConditionModel
+
+        self.cfg = cfg
+        torch.manual_seed(seed)
+        n = len(cfg.widths)
+        attn = [i >= n - cfg.attention_levels for i in range(n)]
+        down = tuple("CrossAttnDownBlock2D" if a else "DownBlock2D" for a in attn)
+        up = tuple("CrossAttnUpBlock2D" if a else "UpBlock2D" for a in reversed(attn))
+        self.unet = UNet2DConditionModel(
+            in_channels=cfg.image_channels + cfg.cond_channels, out_channels=cfg.image_channels,
+            block_out_channels=cfg.widths, down_block_types=down, up_block_types=up,
+            mid_block_type="UNetMidBlock2DCrossAttn" if cfg.attention_levels else None,
+            layers_per_block=cfg.layers_per_block, norm_num_groups=cfg.norm_groups,
+            # diffusers reads ``attention_head_dim`` as the number of heads (its documented naming quirk)
+            cross_attention_dim=cfg.cross_dim, attention_head_dim=tuple(cfg.heads(w) for w in cfg.widths))
+        self.project = nn.Linear(cfg.global_dim, cfg.cross_dim) if cfg.global_dim else None
+        # The unconditional branch of CFG attends to these learned tokens (also the "global off" input).
+        self.null_tokens = nn.Parameter(torch.randn(1, cfg.global_tokens, cfg.cross_dim) * 0.02)
+
+    def tokens(self, global_cond: torch.Tensor | None, batch: int, drop: torch.Tensor | None = None) -> torch.Tensor:
+        """Global condition (B, T, global_dim) → cross-attention tokens (B, T, cross_dim); None or ``drop``
+        (a (B,) bool mask) → the null tokens."""
+        null = self.null_tokens.expand(batch, -1, -1)
+        if global_cond is None or self.project is None:
+            return null
+        if global_cond.shape[1:] != (self.cfg.global_tokens, self.cfg.global_dim):
+            raise UsageError(f"global condition must be (B, {self.cfg.global_tokens}, {self.cfg.global_dim}), "
+                             f"got {tuple(global_cond.shape)}")
+        tok = self.project(global_cond)
+        if drop is not None:
+            tok = torch.where(drop.view(-1, 1, 1), null, tok)
+        return tok
+
+    def forward(self, noisy: torch.Tensor, t: torch.Tensor, local: torch.Tensor | None, tokens: torch.Tensor):
+        x = noisy if local is None or self.cfg.cond_channels == 0 else torch.cat([noisy, local], 1)
+        if x.shape[1] != self.cfg.image_channels + self.cfg.cond_channels:
+            raise UsageError(f"model input has {x.shape[1]} channels, the model takes "
+                             f"{self.cfg.image_channels} + {self.cfg.cond_channels}")
+        return self.unet(x, t, encoder_hidden_states=tokens, return_dict=False)[0]
+
+
+def check_size(cfg: DiffusionConfig, h: int, w: int) -> None:
+    if h % cfg.multiple or w % cfg.multiple:
+        raise UsageError(f"image size {h}×{w} must divide by {cfg.multiple} (2^(levels−1) of widths {cfg.widths})")
+
+
+def diffusion_loss(model: ConditionalDiffusion, scheduler, x0: torch.Tensor, local: torch.Tensor | None,
+                   global_cond: torch.Tensor | None, generator: torch.Generator, p_uncond: float = 0.1) -> torch.Tensor:
+    """One Monte-Carlo estimate of the training loss: MSE to the v (or ε) target at uniform t."""
+    b = x0.shape[0]
+    check_size(model.cfg, *x0.shape[-2:])
+    t = torch.randint(0, model.cfg.train_timesteps, (b,), generator=generator)
+    noise = torch.randn(x0.shape, generator=generator, dtype=x0.dtype)
+    drop = torch.rand(b, generator=generator) < p_uncond
+    noisy = scheduler.add_noise(x0, noise, t)
+    target = scheduler.get_velocity(x0, noise, t) if model.cfg.prediction == "v_prediction" else noise
+    pred = model(noisy, t, local, model.tokens(global_cond, b, drop))
+    return torch.mean((pred - target) ** 2)
+
+
+@torch.no_grad()
+def sample(model: ConditionalDiffusion, local: torch.Tensor | None, global_cond: torch.Tensor | None,
+           shape: tuple[int, int, int, int], steps: int = 20, guidance: float = 1.0, seed: int = 0,
+           progress=None) -> torch.Tensor:
+    """DDIM sampling (η = 0) with classifier-free guidance ``guidance`` (1 = conditional only, 0 = unconditional).
+
+    ``shape`` = (B, C, H, W); returns x₀ in the model's space. Deterministic given ``seed``.
+    """
+    validate.integer("steps", steps, 1, model.cfg.train_timesteps)
+    validate.non_negative("guidance", guidance)
+    check_size(model.cfg, shape[2], shape[3])
+    was = model.training
+    model.eval()
+    sch = make_scheduler(model.cfg)
+    sch.set_timesteps(steps)
+    g = torch.Generator().manual_seed(int(seed))
+    x = torch.randn(shape, generator=g)
+    b = shape[0]
+    cond = model.tokens(global_cond, b)
+    use_cfg = global_cond is not None and model.project is not None and guidance != 1.0
+    uncond = model.tokens(None, b) if use_cfg else None
+    for t in sch.timesteps:
+        tt = torch.full((b,), int(t), dtype=torch.long)
+        if use_cfg:  # one batched pass for both branches
+            out = model(torch.cat([x, x]), torch.cat([tt, tt]), None if local is None else torch.cat([local, local]),
+                        torch.cat([cond, uncond]))
+            c, u = out.chunk(2)
+            out = u + guidance * (c - u)
+        else:
+            out = model(x, tt, local, cond)
+        x = sch.step(out, t, x, eta=0.0).prev_sample
+        if progress is not None:
+            progress(1)
+    model.train(was)
+    return x
+
+
+def count_parameters(model: nn.Module) -> int:
+    return int(sum(p.numel() for p in model.parameters()))
+
+
+def training_flops(model: ConditionalDiffusion, batch: int, size: int) -> float:
+    """FLOPs of one training step (forward + backward) counted by torch's FlopCounterMode."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    cfg = model.cfg
+    x = torch.randn(batch, cfg.image_channels, size, size)
+    local = torch.randn(batch, cfg.cond_channels, size, size) if cfg.cond_channels else None
+    g = torch.randn(batch, cfg.global_tokens, cfg.global_dim) if cfg.global_dim else None
+    t = torch.randint(0, cfg.train_timesteps, (batch,))
+    with FlopCounterMode(display=False) as fc:
+        out = model(x, t, local, model.tokens(g, batch))
+        out.square().mean().backward()
+    model.zero_grad(set_to_none=True)
+    return float(fc.get_total_flops())
+
+
+__all__ = ["ConditionalDiffusion", "DiffusionConfig", "PREDICTIONS", "SCHEDULES", "check_size", "count_parameters",
+           "diffusion_loss", "make_scheduler", "sample", "training_flops"]

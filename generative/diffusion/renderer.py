@@ -1,0 +1,511 @@
+"""Intrinsic-conditioned diffusion renderer (seed 000): G-buffers (A, I, S, normal) of a mesh → a photo.
+
+Paired data from 3D (§3.1): for every camera of a morph benchmark, the intrinsic layers of the
+**coarse** and of the **morphed** mesh (Mitsuba's ``intrinsic`` integrator: albedo A, irradiance
+I = D / A, specular-and-emission S, world normal N), beside the benchmark's path-traced photos.
+Both meshes' layers are training inputs for the same photo (a coarse model and a better one of the
+same object); held-out views are never trained on.
+
+The model (§3.2–3.3, :mod:`generative.diffusion.core`): local condition [A ‖ I ‖ S ‖ N] concatenated
+with the noisy image (12 channels); global condition = MobileNetV2 tokens of the recomposition
+R = A·I + S (seed 000 eq. 4) of the whole view — ``global_source`` "R" (the seed), "AIS" (the three
+layers encoded separately: the recomposition ablation) or "none" (global features off). Training is
+a stage of :mod:`foundation.loop` (budgets, checkpoints, exact resume, NaN policy, metrics JSON).
+
+Value spaces: the photo is generated in sRGB mapped to [−1, 1] (linear ↔ sRGB at the boundary);
+A in sRGB, I and S through x / (1 + x) (they exceed 1), N as is.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import mi_plugins  # noqa: F401
+import mitsuba as mi
+
+from foundation import validate
+from foundation.errors import CheckpointError, UsageError
+from foundation.features import FEATURE_DIM, feature_maps, load_mobilenet, normalise
+from foundation.files import atomic_path, file_digest
+from foundation.loop import (LoopSettings, RunState, Stage, StepResult, TrainingSummary, all_finite, read_checkpoint,
+                             rng_state, run_loop, set_rng_state)
+from foundation.optim_state import load_optimizer_state, optimizer_state
+from foundation.progress import progress_bar
+from foundation.records import from_json
+from foundation.scene import split_intrinsics
+from foundation.threads import torch_threads
+from inverse.morph import MorphBenchmark, morph_scene, sensor_dict
+
+from .core import ConditionalDiffusion, DiffusionConfig, check_size, diffusion_loss, make_scheduler, sample
+
+LAYERS = ("albedo", "irradiance", "specular", "normal")
+SOURCES = ("coarse", "morphed")
+GLOBAL_SOURCES = ("R", "AIS", "none")
+TOKEN_GRID = 4  #: the encoder's last feature map is 4×4 at its 128² input: 16 tokens per encoded image
+ENCODER_SIZE = 128
+
+
+@dataclass
+class GBufferSettings:
+    spp: int = 16
+    max_depth: int = 3  #: intrinsic integrator path depth (the photos' scene uses 3 too)
+
+    def __post_init__(self):
+        validate.integer("spp", self.spp, 1)
+        validate.integer("max_depth", self.max_depth, 2)
+
+
+@dataclass
+class IntrinsicViews:
+    """One benchmark's views: photos and the coarse/morphed G-buffers, (V, H, W, 3) float32 each."""
+
+    photos: np.ndarray
+    layers: dict  #: source ("coarse"/"morphed") → layer name → (V, H, W, 3)
+    train: list[int]
+    test: list[int]
+    case: str = ""
+
+    @property
+    def resolution(self) -> int:
+        return int(self.photos.shape[1])
+
+    def recomposed(self, source: str) -> np.ndarray:
+        """R = A·I + S of every view (the PBR recomposition baseline, seed 000 eq. 4)."""
+        L = self.layers[source]
+        return L["albedo"] * L["irradiance"] + L["specular"]
+
+    def digest(self) -> str:
+        h = hashlib.sha256()
+        h.update(np.ascontiguousarray(self.photos, np.float32).tobytes())
+        for src in SOURCES:
+            for name in LAYERS:
+                h.update(np.ascontiguousarray(self.layers[src][name], np.float32).tobytes())
+        h.update(json.dumps([list(map(int, self.train)), list(map(int, self.test))]).encode())
+        return h.hexdigest()[:16]
+
+
+def render_gbuffers(mesh_ply: Path, bench: MorphBenchmark, ids: list[int], s: GBufferSettings,
+                    desc: str = "G-buffers", show_progress: bool = True) -> dict[str, np.ndarray]:
+    """Intrinsic layers of a coloured PLY at cameras ``ids`` under the benchmark's HDRI → layer → (N, H, W, 3)."""
+    from foundation.scene import AOV_GROUPS
+
+    meta = bench.meta
+    res = meta.resolution
+    scene = morph_scene(Path(mesh_ply), "lit", meta.hdri, integrator={"type": "intrinsic", "max_depth": s.max_depth})
+    names = [f"{g}.{c}" for g, chans in AOV_GROUPS.items() for c in chans]
+    out = {k: np.empty((len(ids), res, res, 3), np.float32) for k in LAYERS}
+    with progress_bar(total=len(ids), desc=desc, unit="view", disable=not show_progress) as bar:
+        for k, i in enumerate(ids):
+            sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, meta.fov))
+            img = np.array(mi.render(scene, sensor=sensor, spp=s.spp, seed=int(i)), np.float32)
+            base = img.shape[-1] - len(names)  # RGB (+ alpha/weight) first, then the AOVs in their order
+            aov = split_intrinsics({g: img[..., base + names.index(f"{g}.{ch[0]}"):][..., :len(ch)]
+                                    for g, ch in AOV_GROUPS.items()})
+            for name in LAYERS:
+                out[name][k] = aov[name]
+            bar.update(1)
+    del scene
+    for name, a in out.items():
+        if not np.isfinite(a).all():
+            raise FloatingPointError(f"{mesh_ply}: the {name} G-buffer has {int((~np.isfinite(a)).sum())} NaN/Inf values")
+    return out
+
+
+def load_intrinsic_views(bench: MorphBenchmark, morph_dir: str | Path, s: GBufferSettings | None = None,
+                         show_progress: bool = True) -> IntrinsicViews:
+    """Photos and both meshes' G-buffers at every camera; G-buffers cached in ``morph_dir`` by mesh digests."""
+    s = s or GBufferSettings()
+    morph_dir = Path(morph_dir)
+    morphed_ply = morph_dir / "morphed.ply"
+    if not morphed_ply.is_file():
+        raise UsageError(f"{morphed_ply}: no morphed mesh (run `photoreal morph run` first)")
+    meta = bench.meta
+    n = len(meta.cameras)
+    key = json.dumps({"coarse": file_digest(bench.coarse), "morphed": file_digest(morphed_ply), **asdict(s)},
+                     sort_keys=True)
+    cache = morph_dir / "diffrender_gbuffers.npz"
+    layers = None
+    if cache.is_file():
+        try:
+            with np.load(cache, allow_pickle=False) as z:
+                if str(z["key"]) == key:
+                    layers = {src: {name: z[f"{src}.{name}"] for name in LAYERS} for src in SOURCES}
+        except Exception:  # a damaged cache is only a cache: render again
+            layers = None
+    if layers is None:
+        ids = list(range(n))
+        layers = {"coarse": render_gbuffers(bench.coarse, bench, ids, s, "G-buffers coarse", show_progress),
+                  "morphed": render_gbuffers(morphed_ply, bench, ids, s, "G-buffers morphed", show_progress)}
+        with atomic_path(cache, suffix=".npz") as tmp:
+            np.savez(tmp, key=key, **{f"{src}.{name}": a for src, d in layers.items() for name, a in d.items()})
+    photos = np.stack([bench.photo(i) for i in range(n)]).astype(np.float32)
+    return IntrinsicViews(photos, layers, list(meta.train), list(meta.test), meta.kind)
+
+
+# -- value spaces ---------------------------------------------------------------------------------------------------
+
+
+def _srgb(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 1e-8), 1 / 2.4) - 0.055)
+
+
+def _linear(s: np.ndarray) -> np.ndarray:
+    s = np.clip(s, 0.0, 1.0)
+    return np.where(s <= 0.04045, s / 12.92, ((s + 0.055) / 1.055) ** 2.4)
+
+
+def photo_to_model(img: np.ndarray) -> np.ndarray:
+    """Linear RGB (…, 3) → model space: sRGB in [−1, 1]."""
+    return (2.0 * _srgb(img) - 1.0).astype(np.float32)
+
+
+def model_to_photo(x: np.ndarray) -> np.ndarray:
+    return _linear((np.asarray(x) + 1.0) / 2.0).astype(np.float32)
+
+
+def local_condition(layers: dict[str, np.ndarray]) -> np.ndarray:
+    """(…, H, W, 3) layers → (…, H, W, 12) condition in about [−1, 1]: A sRGB, I and S as x/(1+x), N as is."""
+    for name in LAYERS:
+        if name not in layers:
+            raise UsageError(f"G-buffer lacks the {name!r} layer (has {sorted(layers)})")
+        if not np.isfinite(layers[name]).all():
+            raise UsageError(f"G-buffer layer {name!r} has {int((~np.isfinite(layers[name])).sum())} NaN/Inf values")
+    a = 2 * _srgb(layers["albedo"]) - 1
+    i = np.maximum(layers["irradiance"], 0)
+    s = np.maximum(layers["specular"], 0)
+    return np.concatenate([a, 2 * i / (1 + i) - 1, 2 * s / (1 + s) - 1, np.clip(layers["normal"], -1, 1)],
+                          -1).astype(np.float32)
+
+
+@torch.no_grad()
+def global_condition(layers: dict[str, np.ndarray], source: str) -> np.ndarray | None:
+    """MobileNetV2 tokens of whole views → (V, T, 1280): R (16 tokens), A‖I‖S (48 tokens) or None."""
+    validate.one_of("global_source", source, GLOBAL_SOURCES)
+    if source == "none":
+        return None
+    imgs = [layers["albedo"] * layers["irradiance"] + layers["specular"]] if source == "R" else \
+        [layers["albedo"], layers["irradiance"], layers["specular"]]
+    net = load_mobilenet()
+    toks = []
+    for im in imgs:
+        x = torch.from_numpy(np.ascontiguousarray(np.asarray(im, np.float32).transpose(0, 3, 1, 2)))
+        x = torch.nn.functional.interpolate(x, size=(ENCODER_SIZE, ENCODER_SIZE), mode="bilinear",
+                                            align_corners=False, antialias=True)
+        f = feature_maps(net, normalise(x), stages=(18,))[0]  # (V, 1280, 4, 4)
+        toks.append(f.flatten(2).transpose(1, 2))
+    return torch.cat(toks, 1).numpy().astype(np.float32)
+
+
+def token_count(source: str) -> int:
+    return {"R": TOKEN_GRID ** 2, "AIS": 3 * TOKEN_GRID ** 2, "none": TOKEN_GRID ** 2}[source]
+
+
+# -- training -------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class DiffRenderSettings:
+    steps: int = 4000  #: upper bound; ``max_seconds`` usually ends the run first
+    max_seconds: float | None = 600.0  #: training wall-time budget (summed over resumes)
+    batch: int = 8
+    crop: int = 64  #: random crop side (whole views when ≥ the resolution)
+    lr: float = 2e-4
+    widths: tuple[int, ...] = (32, 64, 96)
+    attention_levels: int = 1
+    layers_per_block: int = 1
+    cross_dim: int = 64
+    global_source: str = "R"  #: "R" (seed 000), "AIS" (recomposition ablation), "none" (global features off)
+    p_uncond: float = 0.1  #: probability of dropping the global condition (classifier-free guidance)
+    sources: tuple[str, ...] = SOURCES  #: whose G-buffers are training inputs
+    checkpoint_every: int = 50
+    threads: int = 0  #: torch intra-op threads while training (0: all cores)
+    seed: int = 0
+
+    def __post_init__(self):
+        self.widths = tuple(int(w) for w in self.widths)
+        self.sources = tuple(self.sources)
+        validate.integer("steps", self.steps, 1)
+        validate.optional(validate.positive, "max_seconds", self.max_seconds)
+        validate.integer("batch", self.batch, 1, 1024)
+        validate.integer("crop", self.crop, 8)
+        validate.positive("lr", self.lr)
+        validate.one_of("global_source", self.global_source, GLOBAL_SOURCES)
+        validate.in_range("p_uncond", self.p_uncond, 0.0, 1.0)
+        if not self.sources or any(x not in SOURCES for x in self.sources):
+            raise UsageError(f"sources must be a non-empty subset of {SOURCES}, got {self.sources}")
+        validate.integer("checkpoint_every", self.checkpoint_every, 1)
+        validate.integer("threads", self.threads, 0)
+        validate.seed("seed", self.seed)
+        self.model_config()  # validates widths / levels
+
+    def model_config(self) -> DiffusionConfig:
+        return DiffusionConfig(image_channels=3, cond_channels=12, widths=self.widths,
+                               layers_per_block=self.layers_per_block, attention_levels=self.attention_levels,
+                               global_dim=0 if self.global_source == "none" else FEATURE_DIM,
+                               global_tokens=token_count(self.global_source), cross_dim=self.cross_dim)
+
+
+@dataclass
+class DiffRenderResult:
+    """``metrics.json`` of a training run."""
+
+    settings: DiffRenderSettings
+    cases: list[str]
+    train_pairs: int  #: (view, source) pairs trained on
+    parameters: int
+    training: TrainingSummary
+    loss_curve: list[float] = field(default_factory=list)  #: mean loss per 50 steps
+
+
+class _Pairs:
+    """Every (case, view, source) training pair as model-space arrays, with its global tokens."""
+
+    def __init__(self, cases: list[IntrinsicViews], s: DiffRenderSettings):
+        self.x, self.c, self.g = [], [], []
+        for v in cases:
+            ids = list(v.train)
+            for src in s.sources:
+                L = {k: a[ids] for k, a in v.layers[src].items()}
+                self.x.append(photo_to_model(v.photos[ids]))
+                self.c.append(local_condition(L))
+                g = global_condition(L, s.global_source)
+                self.g.append(g if g is not None else np.zeros((len(ids), 0, 0), np.float32))
+        self.x = np.concatenate(self.x)
+        self.c = np.concatenate(self.c)
+        self.g = np.concatenate(self.g)
+        self.use_global = s.global_source != "none"
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def batch(self, rng: np.random.Generator, size: int, crop: int):
+        ids = rng.integers(0, len(self.x), size)
+        h, w = self.x.shape[1:3]
+        xs, cs = [], []
+        for i in ids:
+            if crop >= min(h, w):
+                y0 = x0 = 0
+                ch = cw = min(h, w)
+            else:
+                y0, x0 = int(rng.integers(0, h - crop + 1)), int(rng.integers(0, w - crop + 1))
+                ch = cw = crop
+            xs.append(self.x[i, y0:y0 + ch, x0:x0 + cw])
+            cs.append(self.c[i, y0:y0 + ch, x0:x0 + cw])
+        x = torch.from_numpy(np.ascontiguousarray(np.stack(xs).transpose(0, 3, 1, 2)))
+        c = torch.from_numpy(np.ascontiguousarray(np.stack(cs).transpose(0, 3, 1, 2)))
+        g = torch.from_numpy(self.g[ids]) if self.use_global else None
+        return x, c, g
+
+
+class DiffRenderStage(Stage):
+    """Seeded crops of (G-buffer → photo) pairs; one Adam step on the v-prediction loss per step."""
+
+    unit = "step"
+
+    def __init__(self, cases: list[IntrinsicViews], s: DiffRenderSettings):
+        self.cases, self.s = cases, s
+        self.name = "train diffusion renderer"
+        res = {v.resolution for v in cases}
+        cfg = s.model_config()
+        for r in res:
+            check_size(cfg, r, r)
+        if s.crop < min(res):
+            check_size(cfg, s.crop, s.crop)
+        self.pairs = _Pairs(cases, s)
+        self.rng = np.random.default_rng(s.seed)
+        self.gen = torch.Generator().manual_seed(s.seed)
+        self.model = ConditionalDiffusion(cfg, seed=s.seed)
+        self.model.train()
+        self.scheduler = make_scheduler(cfg)
+        self.opt = torch.optim.AdamW(self.model.parameters(), lr=s.lr, weight_decay=0.0)
+
+    def fingerprint(self) -> dict:
+        return {"settings": self.s, "data": [v.digest() for v in self.cases]}
+
+    def state(self) -> dict:
+        return {"model": self.model.state_dict(), "opt": optimizer_state(self.opt), "rng": rng_state(self.rng),
+                "gen": self.gen.get_state()}
+
+    def load_state(self, tree: dict) -> None:
+        self.model.load_state_dict(tree["model"])
+        load_optimizer_state(self.opt, tree["opt"], "diffusion optimizer")
+        set_rng_state(self.rng, tree["rng"])
+        self.gen.set_state(tree["gen"])
+
+    def step(self, it: int) -> StepResult:
+        x, c, g = self.pairs.batch(self.rng, self.s.batch, self.s.crop)
+        self.opt.zero_grad(set_to_none=True)
+        loss = diffusion_loss(self.model, self.scheduler, x, c, g, self.gen, self.s.p_uncond)
+        loss.backward()
+        value = float(loss.detach())
+        return StepResult(value, all_finite(value, *[p.grad for p in self.model.parameters() if p.grad is not None]))
+
+    def apply(self, it: int) -> None:
+        self.opt.step()
+
+    def discard(self, it: int) -> None:
+        self.opt.zero_grad(set_to_none=True)
+
+    def finish(self, run: RunState) -> DiffRenderResult:
+        losses = np.asarray(run.losses, np.float64)
+        curve = [float(np.nanmean(losses[k:k + 50])) for k in range(0, len(losses), 50)]
+        return DiffRenderResult(self.s, [v.case for v in self.cases], len(self.pairs),
+                                sum(p.numel() for p in self.model.parameters()), run.summary(), curve)
+
+
+def train_diffrender(cases: list[IntrinsicViews], out: str | Path, s: DiffRenderSettings | None = None,
+                     show_progress: bool = True, budget_steps: int | None = None) -> DiffRenderResult | None:
+    """Train on the train views of ``cases``; ``OUT/checkpoint.npz`` (resumable), ``OUT/metrics.json`` when done.
+
+    ``budget_steps`` stops after that many steps in this call (checkpointed, returns None); calling
+    again with the same settings and data continues exactly.
+    """
+    s = s or DiffRenderSettings()
+    if not cases:
+        raise UsageError("no benchmarks to train on")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with torch_threads(s.threads):
+        stage = DiffRenderStage(cases, s)
+        loop = LoopSettings(steps=s.steps, max_seconds=s.max_seconds, checkpoint_every=s.checkpoint_every)
+        return run_loop(stage, loop, checkpoint=out / "checkpoint.npz", budget_steps=budget_steps,
+                        show_progress=show_progress, metrics_path=out / "metrics.json")
+
+
+def load_diffrender(run: str | Path) -> tuple[ConditionalDiffusion, DiffRenderSettings]:
+    """The trained model of a run folder (its checkpoint's weights), eval mode."""
+    ckpt = Path(run) / "checkpoint.npz"
+    if not ckpt.is_file():
+        raise UsageError(f"{ckpt}: no diffusion renderer checkpoint (train with `photoreal diffrender train`)")
+    saved = read_checkpoint(ckpt)
+    if saved.kind != DiffRenderStage.__name__:
+        raise CheckpointError(f"{ckpt}: a {saved.kind} checkpoint, not a diffusion renderer's")
+    s = from_json(DiffRenderSettings, saved.fingerprint["settings"], str(ckpt))
+    model = ConditionalDiffusion(s.model_config(), seed=s.seed)
+    try:
+        model.load_state_dict(saved.stage["model"])
+    except RuntimeError as exc:
+        raise CheckpointError(f"{ckpt}: weights do not fit the architecture its settings describe "
+                              f"({str(exc).splitlines()[0]})") from None
+    model.eval()
+    return model, s
+
+
+@dataclass
+class SampleSettings:
+    steps: int = 20  #: DDIM steps
+    guidance: float = 1.5  #: classifier-free guidance weight on the global condition (1 = none)
+    seed: int = 0
+
+    def __post_init__(self):
+        validate.integer("steps", self.steps, 1, 1000)
+        validate.non_negative("guidance", self.guidance)
+        validate.seed("seed", self.seed)
+
+
+def render_views(model: ConditionalDiffusion, s: DiffRenderSettings, layers: dict[str, np.ndarray],
+                 sample_s: SampleSettings | None = None, show_progress: bool = True) -> tuple[np.ndarray, float]:
+    """Generate photos of whole views from G-buffers (layer → (N, H, W, 3)) → (N, H, W, 3) linear, s per image.
+
+    View k uses noise seed ``sample_s.seed + k``, so a view's image does not depend on the batch.
+    """
+    ss = sample_s or SampleSettings()
+    local = local_condition(layers)
+    glob = global_condition(layers, s.global_source)
+    n, h, w, _ = local.shape
+    out = np.empty((n, h, w, 3), np.float32)
+    t0 = time.perf_counter()
+    with progress_bar(total=n * ss.steps, desc="diffusion render", unit="step", disable=not show_progress) as bar:
+        for k in range(n):
+            c = torch.from_numpy(np.ascontiguousarray(local[k:k + 1].transpose(0, 3, 1, 2)))
+            g = None if glob is None else torch.from_numpy(glob[k:k + 1])
+            x = sample(model, c, g, (1, 3, h, w), steps=ss.steps, guidance=ss.guidance, seed=ss.seed + k,
+                       progress=bar.update)
+            out[k] = model_to_photo(x[0].permute(1, 2, 0).numpy())
+    return out, (time.perf_counter() - t0) / max(n, 1)
+
+
+def _write_views(out_dir: Path, names: list[str], images: np.ndarray, layers: dict[str, np.ndarray]) -> list[str]:
+    """Each view as ``NAME.exr`` (the image + its G-buffer layers) and ``NAME.png``, atomically."""
+    from foundation.imageio import write_exr, write_png
+
+    written = []
+    for k, name in enumerate(names):
+        exr = out_dir / f"{name}.exr"
+        write_png(exr.with_suffix(".png"), images[k])
+        write_exr(exr, {"": images[k], **{n: a[k] for n, a in layers.items()}})
+        written.append(str(exr))
+    return written
+
+
+@dataclass
+class DiffRenderOutput:
+    """What ``photoreal diffrender render`` wrote and, on a benchmark, how close it came to the photos."""
+
+    files: list[str]
+    seconds_per_image: float
+    views: list[int] = field(default_factory=list)
+    source: str = ""
+    diffusion: dict | None = None  #: mean held-out metrics of the diffusion renders (benchmark only)
+    pbr: dict | None = None  #: the same for the PBR recomposition R = A·I + S of the same G-buffers
+
+
+def render_benchmark(run: str | Path, bench: MorphBenchmark, morph_dir: str | Path, out_dir: str | Path,
+                     source: str = "morphed", views: str = "test", sample_s: SampleSettings | None = None,
+                     show_progress: bool = True) -> DiffRenderOutput:
+    """Diffusion renders of a benchmark's views from its ``source`` mesh's G-buffers, with metrics vs the photos."""
+    from foundation.metrics import ImageMetrics, image_metrics
+    from foundation.records import to_json
+
+    validate.one_of("source", source, SOURCES)
+    validate.one_of("views", views, ("test", "all"))
+    model, s = load_diffrender(run)
+    data = load_intrinsic_views(bench, morph_dir, show_progress=show_progress)
+    ids = list(data.test) if views == "test" else list(range(len(data.photos)))
+    layers = {k: a[ids] for k, a in data.layers[source].items()}
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    images, sec = render_views(model, s, layers, sample_s, show_progress)
+    files = _write_views(out_dir, [f"view{i:02d}" for i in ids], images, layers)
+
+    def mean(pred):
+        return to_json(ImageMetrics.mean([image_metrics(p, r) for p, r in zip(pred, data.photos[ids])]))
+
+    return DiffRenderOutput(files, sec, ids, source, mean(images), mean(data.recomposed(source)[ids]))
+
+
+def render_scene_file(run: str | Path, scene_path: str | Path, out_dir: str | Path, spp: int = 16,
+                      sample_s: SampleSettings | None = None, show_progress: bool = True) -> DiffRenderOutput:
+    """G-buffers of every sensor of a Mitsuba scene (``intrinsic`` integrator) → diffusion renders."""
+    from foundation.scene import RenderSettings, load_scene, render_scene, sensor_count
+
+    model, s = load_diffrender(run)
+    n = sensor_count(scene_path)
+    layers: dict[str, list] = {k: [] for k in LAYERS}
+    for i in range(n):
+        rs = RenderSettings(spp=spp, aovs=True, sensor=i)
+        _, aovs = render_scene(load_scene(scene_path, rs), rs, show_progress, label=f"G-buffers sensor {i}")
+        for k in LAYERS:
+            layers[k].append(aovs[k])
+    stacked = {k: np.stack(v) for k, v in layers.items()}
+    check_size(s.model_config(), *stacked["albedo"].shape[1:3])
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    images, sec = render_views(model, s, stacked, sample_s, show_progress)
+    stem = Path(scene_path).stem
+    return DiffRenderOutput(_write_views(out_dir, [f"{stem}_sensor{i}" for i in range(n)], images, stacked), sec,
+                            list(range(n)))
+
+
+__all__ = ["DiffRenderOutput", "DiffRenderResult", "DiffRenderSettings", "GBufferSettings", "GLOBAL_SOURCES", "IntrinsicViews", "LAYERS",
+           "SampleSettings", "global_condition", "load_diffrender", "load_intrinsic_views", "local_condition",
+           "model_to_photo", "photo_to_model", "render_benchmark", "render_gbuffers", "render_scene_file", "render_views",
+           "train_diffrender"]
