@@ -9,6 +9,7 @@ module                    what
 ``mesh``                  mesh I/O (OBJ with UVs, PLY with colours, any via pymeshlab), basic ops
 ``mesh_metrics``          Chamfer, normal consistency, spikes, inverted triangles
 ``metrics``               image metrics (PSNR, SSIM, ꟻLIP, MSE, …)
+``features``              pretrained ImageNet MobileNetV2 (hash-checked): features, FID/KID, perceptual distance
 ``assets``                the vendored assets (HDRIs, scans, meshes) and envmap dicts
 ``scene``                 loading/rendering Mitsuba scenes with clear errors; intrinsic layers
 ``progress``              progress bars

@@ -256,6 +256,18 @@ def _cmd_bench_gan(a) -> int:
     return 0
 
 
+def _cmd_bench_diffrender(a) -> int:
+    from foundation.files import write_json
+
+    from .benchmarks.diffrender import DiffRenderBenchSettings, bench_diffrender
+
+    out = _bench_out(a)
+    result = bench_diffrender(_settings(DiffRenderBenchSettings, a), out_dir=out.parent)
+    write_json(out, result)
+    _print({k: result[k] for k in ("heldout", "kid_mnv2", "fid_mnv2", "sample_seconds_128", "train_flops_fraction")})
+    return 0
+
+
 # -- face -----------------------------------------------------------------------------------------------------------
 
 
@@ -656,13 +668,24 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"training budget per GAN (default: {_default(GanBenchSettings, 'seconds_per_model')} s; "
                          "the joint, CycleGAN and fine-tune budgets keep their proportions)")
     bg.set_defaults(func=_cmd_bench_gan)
+    from .benchmarks.diffrender import DiffRenderBenchSettings
+
+    bd = bsub.add_parser("diffrender", help="diffusion renderer vs PBR recomposition and the GANs on held-out views")
+    _opt(bd, DiffRenderBenchSettings, "train_seconds", type=float, help="diffusion training budget")
+    _opt(bd, DiffRenderBenchSettings, "ddim_steps")
+    _opt(bd, DiffRenderBenchSettings, "guidance")
+    _opt(bd, DiffRenderBenchSettings, "gans", "--no-gans", help="skip training the GAN baselines")
+    _opt(bd, DiffRenderBenchSettings, "gan_seconds", type=float, help="pix2pix / Morph-GAN budget each")
+    _opt(bd, DiffRenderBenchSettings, "cyclegan_seconds", type=float)
+    _opt(bd, DiffRenderBenchSettings, "seed")
+    bd.set_defaults(func=_cmd_bench_diffrender)
     bs = bsub.add_parser("scale", help="a batch of renders serially, on a process pool and on Ray (identical?)")
     for name in ("items", "resolution", "spp"):
         _opt(bs, ScaleBenchSettings, name)
     _opt(bs, ScaleBenchSettings, "ray", "--no-ray", help="leave out the Ray configuration")
     _opt(bs, ScaleBenchSettings, "material_item", "--no-material", help="leave out timing one BTF material")
     bs.set_defaults(func=_cmd_bench_scale)
-    for q in (bp, bm, bb, bf, bg, bs):
+    for q in (bp, bm, bb, bf, bg, bd, bs):
         q.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
 
     f = sub.add_parser("face", help="face material fitting in UV space (seed 003)")

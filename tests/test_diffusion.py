@@ -207,3 +207,18 @@ def test_render_views_and_bad_inputs(tiny_views, tmp_path):
                                                      ngf=4, ndf=4, levels=3, val_every=0), show_progress=False)
     with pytest.raises(CheckpointError, match="GANStage/pix2pix checkpoint, not a diffusion renderer"):
         load_diffrender(tmp_path / "gan")
+
+
+def test_cli_errors_name_the_input(tiny_views, tmp_path, capsys):
+    from photoreal.cli import main
+
+    root, _, _ = tiny_views
+    assert main(["diffrender", "train", str(root / "bench"), "--morph", "a", "b", "--out", str(tmp_path / "o")]) == 2
+    assert "--morph: 2 folders for 1 benchmarks" in capsys.readouterr().err
+    assert main(["diffrender", "render", str(tmp_path / "nothing"), "--run", str(tmp_path / "r"),
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "nothing" in capsys.readouterr().err
+    assert main(["diffrender", "render", str(root / "bench"), "--morph", str(root / "morph"), "--run",
+                 str(tmp_path / "r"), "--out", str(tmp_path / "o")]) == 2
+    assert "no diffusion renderer checkpoint" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
