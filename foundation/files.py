@@ -240,3 +240,25 @@ def file_digest(path: str | os.PathLike, n: int = 16) -> str:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()[:n]
+
+
+def cached_arrays(path: str | os.PathLike, key: str, compute) -> dict:
+    """Arrays saved in ``path`` (.npz) under ``key``, or ``compute()`` (a dict of arrays) saved there atomically.
+
+    A cache of another key, or a damaged one, is recomputed and replaced: it is only a cache.
+    """
+    import numpy as np
+
+    path = Path(path)
+    if path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if str(z["key"]) == key:
+                    return {k: z[k] for k in z.files if k != "key"}
+        except Exception:
+            pass
+    arrays = compute()
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez(tmp, key=key, **arrays)
+    return arrays
+

@@ -33,7 +33,7 @@ import mitsuba as mi
 from foundation import validate
 from foundation.errors import CheckpointError, UsageError
 from foundation.features import FEATURE_DIM, feature_maps, load_mobilenet, normalise
-from foundation.files import atomic_path, file_digest
+from foundation.files import cached_arrays, file_digest
 from foundation.loop import (LoopSettings, RunState, Stage, StepResult, TrainingSummary, all_finite, read_checkpoint,
                              rng_state, run_loop, set_rng_state)
 from foundation.optim_state import load_optimizer_state, optimizer_state
@@ -130,21 +130,14 @@ def load_intrinsic_views(bench: MorphBenchmark, morph_dir: str | Path, s: GBuffe
     n = len(meta.cameras)
     key = json.dumps({"coarse": file_digest(bench.coarse), "morphed": file_digest(morphed_ply), **asdict(s)},
                      sort_keys=True)
-    cache = morph_dir / "diffrender_gbuffers.npz"
-    layers = None
-    if cache.is_file():
-        try:
-            with np.load(cache, allow_pickle=False) as z:
-                if str(z["key"]) == key:
-                    layers = {src: {name: z[f"{src}.{name}"] for name in LAYERS} for src in SOURCES}
-        except Exception:  # a damaged cache is only a cache: render again
-            layers = None
-    if layers is None:
+
+    def render() -> dict:
         ids = list(range(n))
-        layers = {"coarse": render_gbuffers(bench.coarse, bench, ids, s, "G-buffers coarse", show_progress),
-                  "morphed": render_gbuffers(morphed_ply, bench, ids, s, "G-buffers morphed", show_progress)}
-        with atomic_path(cache, suffix=".npz") as tmp:
-            np.savez(tmp, key=key, **{f"{src}.{name}": a for src, d in layers.items() for name, a in d.items()})
+        return {f"{src}.{name}": a for src, mesh in (("coarse", bench.coarse), ("morphed", morphed_ply))
+                for name, a in render_gbuffers(mesh, bench, ids, s, f"G-buffers {src}", show_progress).items()}
+
+    flat = cached_arrays(morph_dir / "diffrender_gbuffers.npz", key, render)
+    layers = {src: {name: flat[f"{src}.{name}"] for name in LAYERS} for src in SOURCES}
     photos = np.stack([bench.photo(i) for i in range(n)]).astype(np.float32)
     return IntrinsicViews(photos, layers, list(meta.train), list(meta.test), meta.kind)
 

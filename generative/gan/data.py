@@ -28,7 +28,7 @@ import mitsuba as mi
 
 from foundation import validate
 from foundation.errors import UsageError
-from foundation.files import atomic_path, file_digest
+from foundation.files import cached_arrays, file_digest
 from foundation.progress import progress_bar
 from inverse.morph import MODES, MorphBenchmark, morph_scene, sensor_dict
 
@@ -99,21 +99,14 @@ def load_paired_views(bench: MorphBenchmark, morph_dir: str | Path, s: GanDataSe
     n = len(meta.cameras)
     key = json.dumps({"coarse": file_digest(bench.coarse), "morphed": file_digest(morphed_ply), **asdict(s)},
                      sort_keys=True)
-    cache = morph_dir / "gan_renders.npz"
-    rendered = morphed = None
-    if cache.is_file():
-        try:
-            with np.load(cache, allow_pickle=False) as z:
-                if str(z["key"]) == key:
-                    rendered, morphed = z["rendered"], z["morphed"]
-        except Exception:  # a damaged cache is only a cache: render again
-            rendered = morphed = None
-    if rendered is None:
+
+    def render() -> dict:
         ids = list(range(n))
-        rendered = render_mesh_views(bench.coarse, bench, ids, s, "render coarse", show_progress)
-        morphed = render_mesh_views(morphed_ply, bench, ids, s, "render morphed", show_progress)
-        with atomic_path(cache, suffix=".npz") as tmp:
-            np.savez(tmp, key=key, rendered=rendered, morphed=morphed)
+        return {"rendered": render_mesh_views(bench.coarse, bench, ids, s, "render coarse", show_progress),
+                "morphed": render_mesh_views(morphed_ply, bench, ids, s, "render morphed", show_progress)}
+
+    cached = cached_arrays(morph_dir / "gan_renders.npz", key, render)
+    rendered, morphed = cached["rendered"], cached["morphed"]
     photos = np.stack([bench.photo(i) for i in range(n)])
     if photos.shape != rendered.shape:
         raise ValueError(f"{bench.path}: photos {photos.shape} and renders {rendered.shape} differ in shape")
