@@ -40,6 +40,7 @@ bench: $(STAMP)
 	$(BIN)/photoreal bench btf --json out/bench/btf.json
 	$(BIN)/photoreal bench gan --json out/bench/gan.json
 	$(BIN)/photoreal bench scale --json out/bench/scale.json
+	$(BIN)/photoreal bench diffrender --json out/bench/diffrender.json
 
 clean:
 	rm -rf out .pytest_cache

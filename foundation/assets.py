@@ -26,6 +26,16 @@ FACE = ASSETS / "face"
 ARMADILLO = MESHES / "armadillo.ply"
 
 
+def pymeshlab_sample(name: str) -> Path:
+    """A real mesh shipped inside pymeshlab's wheel (``tests/sample_meshes``: bunny.obj, cow.obj, …)."""
+    import pymeshlab
+
+    p = Path(pymeshlab.__file__).parent / "tests" / "sample_meshes" / name
+    if not p.is_file():
+        raise UsageError(f"{p}: pymeshlab's sample mesh {name!r} is missing (reinstall pymeshlab)")
+    return p
+
+
 def bundled_hdris() -> list[str]:
     return sorted(p.stem for p in HDRI_DIR.glob("*.exr"))
 

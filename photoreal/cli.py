@@ -259,12 +259,15 @@ def _cmd_bench_gan(a) -> int:
 def _cmd_bench_diffrender(a) -> int:
     from foundation.files import write_json
 
-    from .benchmarks.diffrender import DiffRenderBenchSettings, bench_diffrender
+    from .benchmarks.diffrender import DiffRenderBenchSettings, bench_diffrender, sweep_chart, views_figure
 
     out = _bench_out(a)
     result = bench_diffrender(_settings(DiffRenderBenchSettings, a), out_dir=out.parent)
+    result["chart"] = str(sweep_chart(result, out.with_name(out.stem + "_sweep.png")))
+    result["views_figure"] = str(views_figure(result, out.parent, out.with_name(out.stem + "_views.png")))
     write_json(out, result)
-    _print({k: result[k] for k in ("heldout", "kid_mnv2", "fid_mnv2", "sample_seconds_128", "train_flops_fraction")})
+    _print({k: result[k] for k in ("heldout", "unseen", "kid_mnv2", "fid_mnv2", "decomposition_psnr", "chosen",
+                                   "sample_seconds_128", "train_flops_fraction", "verdict")})
     return 0
 
 
@@ -583,6 +586,8 @@ def _add_diffrender_parser(sub) -> None:
     _opt(t, DiffRenderSettings, "global_source", choices=["R", "AIS", "none"],
          help="global tokens from the recomposition R (seed 000), from A, I, S separately, or none")
     _opt(t, DiffRenderSettings, "p_uncond")
+    _opt(t, DiffRenderSettings, "residual", "--direct",
+         help="generate the photo itself (the seed) instead of its residual over R = A·I + S")
     _opt(t, DiffRenderSettings, "threads", help="torch threads (0: all cores)")
     _opt(t, DiffRenderSettings, "seed")
     t.add_argument("--json", default=None)
@@ -670,9 +675,14 @@ def build_parser() -> argparse.ArgumentParser:
     bg.set_defaults(func=_cmd_bench_gan)
     from .benchmarks.diffrender import DiffRenderBenchSettings
 
-    bd = bsub.add_parser("diffrender", help="diffusion renderer vs PBR recomposition and the GANs on held-out views")
-    _opt(bd, DiffRenderBenchSettings, "train_seconds", type=float, help="diffusion training budget")
-    _opt(bd, DiffRenderBenchSettings, "ddim_steps")
+    bd = bsub.add_parser("diffrender", help="diffusion renderer vs PBR recomposition and the GANs on held-out views; "
+                         "decomposition network, ablations, steps × size sweep, an unseen mesh")
+    _opt(bd, DiffRenderBenchSettings, "train_seconds", type=float, help="the main model's training budget")
+    _opt(bd, DiffRenderBenchSettings, "ablation_seconds", type=float, help="training budget of each ablation run")
+    _opt(bd, DiffRenderBenchSettings, "decomp_seconds", type=float, help="decomposition network's training budget")
+    _opt(bd, DiffRenderBenchSettings, "decomp_scenes", help="procedural scenes for the decomposition network")
+    _opt(bd, DiffRenderBenchSettings, "sweep_steps", nargs="+", type=int, help="DDIM steps of the sweep")
+    _opt(bd, DiffRenderBenchSettings, "seeds", help="sampling seeds of the main model's held-out renders")
     _opt(bd, DiffRenderBenchSettings, "guidance")
     _opt(bd, DiffRenderBenchSettings, "gans", "--no-gans", help="skip training the GAN baselines")
     _opt(bd, DiffRenderBenchSettings, "gan_seconds", type=float, help="pix2pix / Morph-GAN budget each")

@@ -329,6 +329,7 @@ def run_demo(out_dir: str | Path, s: DemoSettings, bench_dir: str | Path | None 
         results["btf"] = demo_btf(out_dir, s, bench_dir=bench_dir)
     results["gan"] = demo_gan(out_dir, bench_dir)  # reads the bench's gan.json when present; trains nothing
     results["scale"] = demo_scale(out_dir, bench_dir)
+    results["diffrender"] = demo_diffrender(out_dir, bench_dir)
     if s.plugin_bench:
         bench = bench_plugins(PluginBenchSettings(resolution=128, spp=32, repetitions=3, rounds=2))
         write_json(out_dir / "bench_plugins.json", bench)
@@ -387,6 +388,43 @@ def demo_gan(out_dir: Path, bench_dir: Path | None = None) -> dict | None:
     add_section(out_dir, "45_gan", "GAN refinement: pix2pix, CycleGAN, Morph-GAN, joint training (REAL-DIBS §3, §5, §6)",
                 body)
     return {k: v.get("mse") for k, v in b["heldout"].items()}
+
+
+def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None:
+    """The `photoreal bench diffrender` tables, side-by-side views and sweep chart, when that JSON exists."""
+    b = _bench_json(bench_dir, "diffrender.json")
+    if b is None or "ablation" not in b:
+        return None
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cols = ["method", "psnr", "one_minus_ssim", "flip", "mse", "kid_mnv2", "fid_mnv2"]
+    rows = [{"method": k, **{c: m[c] for c in cols[1:5]}, "kid_mnv2": b["kid_mnv2"].get(k, ""),
+             "fid_mnv2": b["fid_mnv2"].get(k, "")} for k, m in b["heldout"].items()]
+    s = b["settings"]
+    body = (f"<p>Held-out views of {', '.join(s['cases'])} (mean over cases; diffusion: mean over {s['seeds']} sampling "
+            f"seeds, {b['ddim_steps']} DDIM steps, guidance {b['guidance']}). diffusion = rendered from the morphed "
+            f"mesh's G-buffers, diffusion_coarse = from the coarse mesh's. KID/FID use ImageNet MobileNetV2 "
+            f"features (not Inception). Lower is better except PSNR.</p>" + _table(rows, cols))
+    for c, u in b.get("unseen", {}).items():
+        body += f"<h4>Unseen mesh: {html.escape(c)} (never trained on)</h4>" + _table(
+            [{"method": k, **m} for k, m in u.items()], ["method", "psnr", "one_minus_ssim", "flip", "mse"])
+    d = b["decomposition"]
+    body += (f"<h4>Decomposition network</h4><p>{d['scenes']} procedural scenes ({d['heldout_scenes']} held out), "
+             f"{d['steps']} steps; held-out PSNR per layer (dB): "
+             + ", ".join(f"{k} {v:.2f}" for k, v in d["psnr"].items()) + " (trivial decomposition A = image, I = 1, "
+             "S = 0: " + ", ".join(f"{k} {v:.2f}" for k, v in d.get("psnr_trivial", {}).items())
+             + f"); {d['extra_pairs']} extra pairs.</p>")
+    body += (f"<h4>Equal-time ablations ({s['ablation_seconds']:.0f} s each)</h4>"
+             + _table(b["ablation"], ["run", "global_source", "residual", "decomposed_pairs", "train_steps", "steps", "psnr", "flip",
+                                      "one_minus_ssim", "mse", "seconds_per_image"]))
+    c = b["chosen"]
+    body += (f"<p>Chosen automatically (cheapest within {c['tolerance_flip']} ꟻLIP of the best): <b>{c['model']}</b> "
+             f"model, <b>{c['steps']}</b> DDIM steps, {c['seconds_per_image']:.2f} s per 128² image.</p>")
+    for key, name in (("chart", "diffrender_sweep.png"), ("views_figure", "diffrender_views.png")):
+        if _copy_chart({"chart": b.get(key)}, bench_dir, out_dir / name):
+            body += f"<img src='{name}' style='max-width:100%'>"
+    add_section(out_dir, "48_diffrender", "Intrinsic-conditioned diffusion renderer (seed 000)", body)
+    return {k: v.get("flip") for k, v in b["heldout"].items()}
 
 
 def demo_scale(out_dir: Path, bench_dir: Path | None = None) -> dict | None:

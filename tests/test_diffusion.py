@@ -157,13 +157,15 @@ def test_training_resumes_exactly_and_descends(tiny_views, tmp_path):
 
 
 @pytest.mark.slow
-def test_training_lowers_the_loss_on_a_tiny_task(tiny_views, tmp_path):
+@pytest.mark.parametrize("residual,ratio", [(False, 0.6), (True, 0.85)])
+def test_training_lowers_the_loss_on_a_tiny_task(tiny_views, tmp_path, residual, ratio):
     """The v-loss on a fixed set of (pair, crop, t, noise) draws falls well under the untrained model's
-    (measured 0.37 vs 0.79 after 150 steps)."""
+    after 150 steps (measured: photo generated directly 0.79 → 0.37; residual over R, whose target at 32²
+    and 4 spp is mostly Monte-Carlo noise, 0.95 → 0.69)."""
     from generative.diffusion.renderer import _Pairs, load_diffrender, train_diffrender
 
     _, _, v = tiny_views
-    s = _tiny_settings(steps=150, lr=2e-3, checkpoint_every=200)
+    s = _tiny_settings(steps=150, lr=2e-3, checkpoint_every=200, residual=residual)
     train_diffrender([v], tmp_path / "t", s, show_progress=False)
     trained, _ = load_diffrender(tmp_path / "t")
     fresh = ConditionalDiffusion(s.model_config(), seed=s.seed)
@@ -177,7 +179,7 @@ def test_training_lowers_the_loss_on_a_tiny_task(tiny_views, tmp_path):
                             for _ in range(8)])
 
     before, after = fixed_loss(fresh), fixed_loss(trained)
-    assert after < 0.6 * before, (before, after)
+    assert after < ratio * before, (before, after)
 
 
 @pytest.mark.slow
@@ -222,3 +224,60 @@ def test_cli_errors_name_the_input(tiny_views, tmp_path, capsys):
                  str(tmp_path / "r"), "--out", str(tmp_path / "o")]) == 2
     assert "no diffusion renderer checkpoint" in capsys.readouterr().err
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_residual_target_space_inverts_and_an_untrained_residual_returns_r(tiny_views):
+    """photo → target → photo is the identity (residual and direct); a residual of 0 is the PBR recomposition R."""
+    from generative.diffusion.renderer import from_target_space, target_space
+
+    _, _, v = tiny_views
+    L = v.layers["morphed"]
+    for s in (_tiny_settings(), _tiny_settings(residual=False)):
+        x = target_space(v.photos, L, s)
+        back = from_target_space(x, L, s)
+        # sRGB round trip of values clipped to [0, 1]
+        np.testing.assert_allclose(back, np.clip(v.photos, 0, 1), rtol=0, atol=2e-5)
+    s = _tiny_settings()
+    np.testing.assert_allclose(from_target_space(np.zeros_like(v.photos), L, s), np.clip(v.recomposed("morphed"), 0, 1),
+                               rtol=0, atol=2e-5)
+    # the scale brings the residual near unit variance: its std is the unscaled one times residual_scale
+    unscaled = target_space(v.photos, L, _tiny_settings(residual_scale=1.0))
+    np.testing.assert_allclose(target_space(v.photos, L, s).std(), 4.0 * unscaled.std(), rtol=1e-5)
+
+
+def test_condition_to_layers_inverts_local_condition(tiny_views):
+    from generative.diffusion.renderer import condition_to_layers, local_condition
+
+    _, _, v = tiny_views
+    L = v.layers["coarse"]
+    back = condition_to_layers(local_condition(L))
+    for k in ("albedo", "irradiance", "specular", "normal"):
+        np.testing.assert_allclose(back[k], np.clip(L[k], 0 if k != "normal" else -1, 1 if k == "albedo" else None),
+                                   rtol=1e-4, atol=2e-5, err_msg=k)
+
+
+def test_runs_from_before_the_residual_option_load_as_direct(tiny_views, tmp_path):
+    """A checkpoint whose settings lack ``residual`` generated the photo itself: it must load as residual=False."""
+    from foundation.checkpoint import load_tree, save_tree
+    from generative.diffusion.renderer import load_diffrender, train_diffrender
+
+    _, _, v = tiny_views
+    train_diffrender([v], tmp_path / "old", _tiny_settings(steps=1), show_progress=False)
+    tree = load_tree(tmp_path / "old" / "checkpoint.npz")
+    for k in ("residual", "residual_scale"):
+        del tree["fingerprint"]["settings"][k]
+    save_tree(tmp_path / "old" / "checkpoint.npz", tree)
+    _, s = load_diffrender(tmp_path / "old")
+    assert s.residual is False
+
+
+def test_decomposed_pairs_join_the_training_set(tiny_views):
+    from generative.diffusion.renderer import DECOMPOSED, IntrinsicViews, _Pairs
+
+    _, _, v = tiny_views
+    extra = IntrinsicViews(v.photos[:3], {DECOMPOSED: {k: a[:3] for k, a in v.layers["coarse"].items()}}, [0, 1, 2],
+                           [], "decomposed:test")
+    s = _tiny_settings()
+    assert len(_Pairs([v, extra], s)) == len(_Pairs([v], s)) + 3
+    assert len(_Pairs([v], _tiny_settings(sources=("morphed",)))) == len(v.train)
+    assert extra.digest() != IntrinsicViews(v.photos[:3], {"coarse": extra.layers[DECOMPOSED]}, [0, 1, 2], []).digest()

@@ -5,6 +5,7 @@ module             what
 =================  ==========================================================================
 ``core``           config, conditional pixel-space UNet (diffusers), v-prediction loss, DDIM + CFG
 ``renderer``       intrinsic-conditioned diffusion renderer: G-buffer data, training stage, sampling
+``decomposition`` intrinsic decomposition network (image → A, I, S, N) trained on procedural Mitsuba scenes
 =================  ==========================================================================
 
 Other features and the application use only the names below.
@@ -12,12 +13,18 @@ Other features and the application use only the names below.
 
 from .core import (ConditionalDiffusion, DiffusionConfig, count_parameters, diffusion_loss, make_scheduler, sample,
                    training_flops)
-from .renderer import (GLOBAL_SOURCES, LAYERS, DiffRenderOutput, DiffRenderResult, DiffRenderSettings, GBufferSettings, IntrinsicViews,
+from .decomposition import (DecompDataSettings, DecompResult, DecompSettings, Decomposer, decompose, heldout_psnr,
+                        load_decomp_data, load_decomposer, photographs, procedural_scene, render_decomp_data,
+                        train_decomposer)
+from .renderer import (DECOMPOSED, GLOBAL_SOURCES, condition_to_layers, from_target_space, intrinsic_layers, target_space, LAYERS, DiffRenderOutput, DiffRenderResult, DiffRenderSettings, GBufferSettings, IntrinsicViews,
                        SampleSettings, global_condition, load_diffrender, load_intrinsic_views, local_condition,
                        model_to_photo, photo_to_model, render_benchmark, render_gbuffers, render_scene_file,
                        render_views, train_diffrender)
 
 __all__ = [
+    "DECOMPOSED", "DecompDataSettings", "DecompResult", "DecompSettings", "Decomposer", "condition_to_layers", "decompose",
+    "from_target_space", "heldout_psnr", "intrinsic_layers", "load_decomp_data", "load_decomposer", "photographs",
+    "procedural_scene", "render_decomp_data", "target_space", "train_decomposer",
     "ConditionalDiffusion", "DiffRenderOutput", "DiffRenderResult", "DiffRenderSettings", "DiffusionConfig", "GBufferSettings",
     "GLOBAL_SOURCES", "IntrinsicViews", "LAYERS", "SampleSettings", "count_parameters", "diffusion_loss",
     "global_condition", "load_diffrender", "load_intrinsic_views", "local_condition", "make_scheduler",

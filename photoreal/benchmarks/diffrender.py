@@ -1,22 +1,26 @@
-"""`photoreal bench diffrender`: the intrinsic-conditioned diffusion renderer on held-out views (seed 000 §4.3).
+"""`photoreal bench diffrender`: the intrinsic-conditioned diffusion renderer on held-out views (seed 000 §4).
 
-Per case (village, armadillo): the morph benchmark and a morph run (the GAN bench's recipe, reused from
-the work folder), the coarse and morphed G-buffers. One diffusion model is trained on the train views
-of all cases (reused from the work folder when finished: training resumes through the shared loop).
-On the held-out views:
+Data per case (village, armadillo; the bunny is the *unseen* mesh, never trained on): the morph
+benchmark and a morph run (the GAN bench's recipe, reused from the work folder), the coarse and
+morphed G-buffers. Everything trained is kept in ``OUT/diffrender_work`` and reused by later runs
+(the shared loop resumes or returns a finished run).
 
-* paired metrics against the photos (PSNR, 1−SSIM, ꟻLIP, MSE; mean and spread over views) of the PBR
-  recomposition R = A·I + S of the coarse and of the morphed G-buffers, of the diffusion renders
-  (from the morphed G-buffers) and, with ``gans`` on, of CycleGAN, pix2pix and Morph-GAN trained
-  on the same views;
-* MobileNetV2-KID / -FID between each method's renders and the held-out photos (ImageNet MobileNetV2
-  features, *not* Inception's), and the MobileNetV2 perceptual distance;
-* sampling seconds per 128² image, and training throughput: FLOPs per step (torch's FlopCounterMode)
-  ÷ step time, as a fraction of a 2048² float32 GEMM measured in the same run (best of two, the
-  ceiling of this CPU).
-
-Not here yet (issue 13): the decomposition network and its data ablation, the global-condition
-ablations, ≥ 3 seeds, the steps × model-size sweep and its automatic choice, the unseen-mesh case.
+1. **Decomposition network** (§3.1): procedural Mitsuba scenes with exact layers → held-out per-layer
+   PSNR and recomposition PSNR; applied to the train-view photos and to scikit-image photographs, it
+   makes (decomposed layers → photo) pairs for the data ablation.
+2. **Equal-time ablations** (``ablation_seconds`` each, one seed): global features from R (the seed),
+   from A‖I‖S (recomposition ablation), off; R plus the decomposed pairs (data ablation); the photo
+   generated directly instead of the residual over R; a smaller UNet.
+3. **Sweep** of DDIM steps × model size (the R and small runs, on the first ``sweep_views`` held-out
+   views per case): seconds per 128² image and ꟻLIP; **chosen** = the cheapest (seconds) within
+   ``tolerance_flip`` of the best ꟻLIP. The main model is trained (``train_seconds``) at the chosen size
+   and sampled with the chosen steps.
+4. **Held-out metrics**: PSNR, 1−SSIM, ꟻLIP, MSE (mean and spread over views, and over ``seeds``
+   sampling seeds for the diffusion renders) of PBR recomposition (coarse, morphed), diffusion (from the
+   morphed and from the coarse G-buffers), CycleGAN, pix2pix and Morph-GAN; MobileNetV2-KID/-FID (ImageNet
+   MobileNetV2 features, *not* Inception's) and the MobileNetV2 perceptual distance; the unseen bunny.
+5. **Cost**: sampling seconds per 128² image; training FLOPs per step (torch's FlopCounterMode) ÷ step
+   time as a fraction of a 2048² float32 GEMM measured in the same run (the ceiling of this CPU).
 """
 
 from __future__ import annotations
@@ -29,13 +33,16 @@ import numpy as np
 import torch
 
 from foundation import validate
+from foundation.errors import UsageError
 from foundation.features import fid, image_features, kid, perceptual_distance
+from foundation.files import read_json
 from foundation.metrics import image_metrics
-from foundation.progress import progress_bar
 from foundation.threads import torch_threads
-from generative.diffusion import (ConditionalDiffusion, DiffRenderSettings, SampleSettings, diffusion_loss,
-                                  load_diffrender, load_intrinsic_views, make_scheduler, render_views,
-                                  train_diffrender, training_flops)
+from generative.diffusion import (DECOMPOSED, ConditionalDiffusion, DecompDataSettings, DecompSettings,
+                                  DiffRenderSettings, IntrinsicViews, SampleSettings, decompose, diffusion_loss, heldout_psnr,
+                                  load_decomp_data, load_decomposer, load_diffrender, load_intrinsic_views,
+                                  make_scheduler, photographs, render_views, train_decomposer, train_diffrender,
+                                  training_flops)
 from generative.gan import GanTrainSettings, load_heldout_predictions, load_paired_views, train_gan
 
 from .gan import GanBenchSettings, _prepare
@@ -45,24 +52,42 @@ PAIRED = ("psnr", "one_minus_ssim", "flip", "mse")
 
 @dataclass
 class DiffRenderBenchSettings:
-    cases: tuple[str, ...] = ("village", "armadillo")
-    train_seconds: float = 1800.0  #: diffusion training budget (one model for all cases)
-    ddim_steps: int = 20
+    cases: tuple[str, ...] = ("village", "armadillo")  #: trained on (their train views)
+    unseen: tuple[str, ...] = ("bunny",)  #: never trained on: the renderer applied to a mesh it never saw
+    train_seconds: float = 720.0  #: the main model's training budget (one model for all cases)
+    ablation_seconds: float = 180.0  #: budget of each ablation run (equal time)
+    small_widths: tuple[int, ...] = (16, 32, 48, 64)  #: the smaller model of the size sweep
+    sweep_steps: tuple[int, ...] = (5, 10, 20, 40)
+    sweep_views: int = 4  #: held-out views per case in the sweep
+    tolerance_flip: float = 0.003  #: chosen = cheapest within this ꟻLIP of the sweep's best
     guidance: float = 1.5
-    gans: bool = True  #: also train CycleGAN, pix2pix and Morph-GAN on the same views (the GAN bench's budgets)
-    gan_seconds: float = 120.0
-    cyclegan_seconds: float = 360.0
+    seeds: int = 3  #: sampling seeds of the main model's held-out renders
+    decomp_scenes: int = 160
+    decomp_seconds: float = 300.0
+    gans: bool = True  #: also train CycleGAN, pix2pix and Morph-GAN on the same views
+    gan_seconds: float = 60.0
+    cyclegan_seconds: float = 180.0
     morph_iterations: int = 100  #: as the GAN bench: work folders are interchangeable
     seed: int = 0
 
     def __post_init__(self):
-        self.cases = tuple(self.cases)
-        for name in ("train_seconds", "gan_seconds", "cyclegan_seconds"):
+        self.cases, self.unseen = tuple(self.cases), tuple(self.unseen)
+        self.small_widths = tuple(int(w) for w in self.small_widths)
+        self.sweep_steps = tuple(sorted(int(k) for k in self.sweep_steps))
+        for name in ("train_seconds", "ablation_seconds", "gan_seconds", "cyclegan_seconds", "decomp_seconds"):
             validate.positive(name, getattr(self, name))
-        validate.integer("ddim_steps", self.ddim_steps, 1, 1000)
+        if not self.cases:
+            raise UsageError("cases: name at least one benchmark to train on")
+        for k in self.sweep_steps:
+            validate.integer("sweep_steps", k, 1, 1000)
+        validate.integer("sweep_views", self.sweep_views, 1)
+        validate.non_negative("tolerance_flip", self.tolerance_flip)
         validate.non_negative("guidance", self.guidance)
+        validate.integer("seeds", self.seeds, 1, 100)
+        validate.integer("decomp_scenes", self.decomp_scenes, 4)
         validate.integer("morph_iterations", self.morph_iterations, 1)
         validate.seed("seed", self.seed)
+        DiffRenderSettings(widths=self.small_widths)  # validates the widths
 
 
 def _gemm_flops_per_s(n: int = 2048, reps: int = 5) -> float:
@@ -105,6 +130,16 @@ def throughput(s: DiffRenderSettings, reps: int = 4) -> dict:
 
 
 def _paired(pred: np.ndarray, ref: np.ndarray) -> dict:
+    """Mean and spread over images of the paired metrics; ``pred`` may carry a leading seeds axis."""
+    pred = np.asarray(pred)
+    if pred.ndim == 5:  # (seeds, views, H, W, 3): spread over views and seeds
+        per_seed = [_paired(p, ref) for p in pred]
+        out = {k: float(np.mean([d[k] for d in per_seed])) for k in PAIRED}
+        for k in PAIRED:
+            out[f"{k}_std"] = float(np.mean([d[f"{k}_std"] for d in per_seed]))  # over views, mean over seeds
+            out[f"{k}_seed_std"] = float(np.std([d[k] for d in per_seed]))  # of the per-seed means
+        out["seeds"] = len(pred)
+        return out
     per = [image_metrics(p, r) for p, r in zip(pred, ref)]
     out = {}
     for k in PAIRED:
@@ -114,56 +149,269 @@ def _paired(pred: np.ndarray, ref: np.ndarray) -> dict:
     return out
 
 
+def _test_layers(v: IntrinsicViews, source: str, ids: list[int]) -> dict:
+    return {k: a[ids] for k, a in v.layers[source].items()}
+
+
+def _sample(run: Path, layers: dict, steps: int, guidance: float, seeds: int, show_progress: bool):
+    """(seeds, N, H, W, 3) renders and seconds per image (mean over seeds)."""
+    model, ds = load_diffrender(run)
+    imgs, secs = [], []
+    with torch_threads(0):
+        for k in range(seeds):
+            im, sec = render_views(model, ds, layers, SampleSettings(steps=steps, guidance=guidance, seed=1000 * k),
+                                   show_progress)
+            imgs.append(im)
+            secs.append(sec)
+    return np.stack(imgs), float(np.mean(secs))
+
+
+def _decomposition(s: DiffRenderBenchSettings, work: Path, views: dict[str, IntrinsicViews],
+                   show_progress: bool) -> tuple[dict, list[IntrinsicViews]]:
+    """Train/evaluate the decomposition network; the (decomposed layers → photo) pairs it makes from the train
+    photos of every case and from scikit-image photographs."""
+    dds = DecompDataSettings(count=s.decomp_scenes, seed=s.seed)
+    data = load_decomp_data(work / "decomp_data.npz", dds, show_progress)
+    train_decomposer(data, dds, work / "decomposer", DecompSettings(max_seconds=s.decomp_seconds, seed=s.seed),
+                     show_progress=show_progress)
+    metrics = read_json(work / "decomposer" / "metrics.json", "decomposition metrics")
+    model = load_decomposer(work / "decomposer")
+    extra = []
+    for c, v in views.items():
+        photos = v.photos[v.train]
+        extra.append(IntrinsicViews(photos, {DECOMPOSED: decompose(model, photos)}, list(range(len(photos))), [],
+                                    f"decomposed:{c}"))
+    res = next(iter(views.values())).resolution
+    ph = photographs(size=res, seed=s.seed)
+    extra.append(IntrinsicViews(ph, {DECOMPOSED: decompose(model, ph)}, list(range(len(ph))), [], "decomposed:skimage"))
+    info = {"psnr": metrics["heldout_psnr"], "psnr_trivial": heldout_psnr(None, data, dds), "scenes": dds.count, "heldout_scenes": dds.n_test,
+            "train_seconds": metrics["training"]["train_seconds"], "steps": metrics["training"]["steps"],
+            "parameters": metrics["parameters"], "extra_pairs": int(sum(len(e.train) for e in extra))}
+    return info, extra
+
+
+def main_dir(work: Path, widths, seconds: float) -> Path:
+    """The main model's run folder: one per (size, budget), so a longer budget trains beside a shorter one."""
+    return Path(work) / "main" / f"{'-'.join(map(str, widths))}_{seconds:g}s"
+
+
+def _choose(sweep: list[dict], tol: float) -> dict:
+    best = min(r["flip"] for r in sweep)
+    ok = [r for r in sweep if r["flip"] <= best + tol]
+    pick = min(ok, key=lambda r: (r["seconds_per_image"], r["parameters"], r["steps"]))
+    return {**pick, "best_flip": best, "tolerance_flip": tol}
+
+
 def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Path = "out/bench",
                      show_progress: bool = True) -> dict:
     s = s or DiffRenderBenchSettings()
     work = Path(out_dir) / "diffrender_work"
     t0 = time.perf_counter()
     gb = GanBenchSettings(cases=s.cases, morph_iterations=s.morph_iterations, seed=s.seed)
-    prepared = {c: _prepare(c, work, gb, show_progress)[:2] for c in s.cases}
+    prepared = {c: _prepare(c, work, gb, show_progress)[:2] for c in (*s.cases, *s.unseen)}
     views = {c: load_intrinsic_views(b, m, show_progress=show_progress) for c, (b, m) in prepared.items()}
-    ds = DiffRenderSettings(max_seconds=s.train_seconds, seed=s.seed)
-    with torch_threads(ds.threads):
-        tput = throughput(ds)
-    result = train_diffrender(list(views.values()), work / "diffusion", ds, show_progress=show_progress)
-    model, ds = load_diffrender(work / "diffusion")
-    ss = SampleSettings(steps=s.ddim_steps, guidance=s.guidance, seed=s.seed)
-    cases, sample_s = {}, []
-    all_pred: dict[str, list] = {}
-    all_photos = []
-    for c, v in views.items():
-        ids = list(v.test)
-        photos = v.photos[ids]
-        preds = {"pbr_coarse": v.recomposed("coarse")[ids], "pbr_morphed": v.recomposed("morphed")[ids]}
-        with torch_threads(0):
-            preds["diffusion"], sec = render_views(model, ds, {k: a[ids] for k, a in v.layers["morphed"].items()}, ss,
-                                                   show_progress)
+    train_views = [views[c] for c in s.cases]
+    timing = {}
+
+    t = time.perf_counter()
+    decomposition, extra = _decomposition(s, work, {c: views[c] for c in s.cases}, show_progress)
+    timing["decomposition"] = time.perf_counter() - t
+
+    # 2. equal-time ablations
+    base = DiffRenderSettings(max_seconds=s.ablation_seconds, seed=s.seed)
+    runs = {"R": (base, False), "AIS": (replace(base, global_source="AIS"), False),
+            "none": (replace(base, global_source="none"), False), "R+decomposed": (base, True),
+            "direct": (replace(base, residual=False), False), "small": (replace(base, widths=s.small_widths), False)}
+    t = time.perf_counter()
+    for name, (ds, use_extra) in runs.items():
+        train_diffrender(train_views + (extra if use_extra else []), work / "ablation" / name, ds,
+                         show_progress=show_progress)
+    timing["ablation_training"] = time.perf_counter() - t
+    ids = {c: list(views[c].test) for c in s.cases}
+    photos = np.concatenate([views[c].photos[ids[c]] for c in s.cases])
+    morphed = {k: np.concatenate([views[c].layers["morphed"][k][ids[c]] for c in s.cases]) for k in views[s.cases[0]].layers["morphed"]}
+    mid = sorted(s.sweep_steps)[len(s.sweep_steps) // 2]
+    ablation = []
+    t = time.perf_counter()
+    for name, (ds, use_extra) in runs.items():
+        pred, sec = _sample(work / "ablation" / name, morphed, mid, s.guidance, 1, show_progress)
+        trained = read_json(work / "ablation" / name / "metrics.json", "ablation metrics")
+        ablation.append({"run": name, "global_source": ds.global_source, "residual": ds.residual,
+                         "decomposed_pairs": use_extra, "widths": list(ds.widths), "steps": mid,
+                         "train_steps": trained["training"]["steps"], "train_pairs": trained["train_pairs"],
+                         **_paired(pred[0], photos), "seconds_per_image": sec})
+
+    # 3. steps × size sweep on the first sweep_views held-out views per case
+    sub = {c: ids[c][:s.sweep_views] for c in s.cases}
+    sw_photos = np.concatenate([views[c].photos[sub[c]] for c in s.cases])
+    sw_layers = {k: np.concatenate([views[c].layers["morphed"][k][sub[c]] for c in s.cases]) for k in morphed}
+    sweep = []
+    for name in ("R", "small"):
+        _, ds = load_diffrender(work / "ablation" / name)
+        params = sum(p.numel() for p in ConditionalDiffusion(ds.model_config()).parameters())
+        for steps in s.sweep_steps:
+            pred, sec = _sample(work / "ablation" / name, sw_layers, steps, s.guidance, 1, show_progress)
+            m = _paired(pred[0], sw_photos)
+            sweep.append({"model": name, "widths": list(ds.widths), "parameters": int(params), "steps": steps,
+                          "seconds_per_image": sec, **{k: m[k] for k in PAIRED}})
+    chosen = _choose(sweep, s.tolerance_flip)
+    timing["ablation_and_sweep_sampling"] = time.perf_counter() - t
+
+    # 4. the main model at the chosen size, sampled with the chosen steps
+    main_s = DiffRenderSettings(max_seconds=s.train_seconds, widths=tuple(chosen["widths"]), seed=s.seed)
+    with torch_threads(main_s.threads):
+        tput = throughput(main_s)
+    t = time.perf_counter()
+    main = main_dir(work, main_s.widths, s.train_seconds)
+    result = train_diffrender(train_views, main, main_s, show_progress=show_progress)
+    timing["main_training"] = time.perf_counter() - t
+    main_metrics = read_json(main / "metrics.json", "diffusion metrics")
+    steps = int(chosen["steps"])
+    t = time.perf_counter()
+    cases, all_pred, all_photos, sample_s = {}, {}, [], []
+    for c in (*s.cases, *s.unseen):
+        v = views[c]
+        tid = list(v.test)
+        ph = v.photos[tid]
+        preds = {"pbr_coarse": v.recomposed("coarse")[tid], "pbr_morphed": v.recomposed("morphed")[tid]}
+        preds["diffusion"], sec = _sample(main, _test_layers(v, "morphed", tid), steps, s.guidance, s.seeds,
+                                          show_progress)
         sample_s.append(sec)
-        if s.gans:
+        preds["diffusion_coarse"], _ = _sample(main, _test_layers(v, "coarse", tid), steps, s.guidance, 1,
+                                               show_progress)
+        if s.gans and c in s.cases:
             bench, mdir = prepared[c]
             data = load_paired_views(bench, mdir, show_progress=show_progress)
             for name in ("cyclegan", "pix2pix", "morph_gan"):
                 gs = GanTrainSettings(model=name, max_seconds=s.cyclegan_seconds if name == "cyclegan" else s.gan_seconds,
                                       residual=name != "cyclegan", seed=s.seed)
                 train_gan(data, work / c / name, gs, show_progress=show_progress)
-                preds[name] = load_heldout_predictions(work / c / name, ids)
-        cases[c] = {"heldout": {k: _paired(p, photos) for k, p in preds.items()},
-                    "perceptual_mnv2": {k: float(perceptual_distance(p, photos).mean()) for k, p in preds.items()},
-                    "views": {"train": len(v.train), "test": len(ids), "resolution": v.resolution}}
-        for k, p in preds.items():
-            all_pred.setdefault(k, []).append(p)
-        all_photos.append(photos)
+                preds[name] = load_heldout_predictions(work / c / name, tid)
+        first = {k: (p[0] if p.ndim == 5 else p) for k, p in preds.items()}
+        cases[c] = {"heldout": {k: _paired(p, ph) for k, p in preds.items()},
+                    "perceptual_mnv2": {k: float(perceptual_distance(p, ph).mean()) for k, p in first.items()},
+                    "views": {"train": len(v.train), "test": len(tid), "resolution": v.resolution},
+                    "seen_in_training": c in s.cases}
+        if c in s.cases:
+            for k, p in first.items():
+                all_pred.setdefault(k, []).append(p)
+            all_photos.append(ph)
+    timing["evaluation"] = time.perf_counter() - t
     photos = np.concatenate(all_photos)
     f_photo = image_features(photos)
     kid_mnv2, fid_mnv2, heldout = {}, {}, {}
     for k, ps in all_pred.items():
-        p = np.concatenate(ps)
-        f = image_features(p)
+        f = image_features(np.concatenate(ps))
         kid_mnv2[k], fid_mnv2[k] = kid(f, f_photo), fid(f, f_photo)
-        heldout[k] = _paired(p, photos)
-    return {"heldout": heldout, "cases": cases, "kid_mnv2": kid_mnv2, "fid_mnv2": fid_mnv2,
-            "sample_seconds_128": float(np.mean(sample_s)), "ddim_steps": s.ddim_steps, "guidance": s.guidance,
-            "train_flops_fraction": tput["train_flops_fraction"], "throughput": tput,
-            "training": asdict(result.training) if result else None, "parameters": result.parameters if result else None,
-            "loss_curve": result.loss_curve if result else None, "settings": asdict(s), "model": asdict(ds),
-            "seconds": time.perf_counter() - t0}
+    for k in all_pred:  # pooled over the trained cases' held-out views, with the seeds where there are some
+        ps = [cases[c]["heldout"][k] for c in s.cases]
+        heldout[k] = {m: float(np.mean([p[m] for p in ps])) for m in ps[0] if m != "seeds"}
+    unseen = {c: cases[c]["heldout"] for c in s.unseen}
+    out = {"heldout": heldout, "cases": cases, "unseen": unseen, "kid_mnv2": kid_mnv2, "fid_mnv2": fid_mnv2,
+           "decomposition_psnr": decomposition["psnr"], "decomposition": decomposition,
+           "ablation": ablation, "sweep": sweep, "chosen": chosen,
+           "sample_seconds_128": float(np.mean(sample_s)), "ddim_steps": steps, "guidance": s.guidance,
+           "train_flops_fraction": tput["train_flops_fraction"], "throughput": tput,
+           "main_training": main_metrics["training"], "parameters": main_metrics["parameters"],
+           "loss_curve": main_metrics.get("loss_curve"), "settings": asdict(s), "model": asdict(main_s),
+           "timing_seconds": timing, "seconds": time.perf_counter() - t0}
+    out["verdict"] = _verdict(out, s)
+    return out
+
+
+def _verdict(r: dict, s: DiffRenderBenchSettings) -> dict:
+    """The issue's comparisons, read off the figures above (lower ꟻLIP / KID is better)."""
+    h, k = r["heldout"], r["kid_mnv2"]
+    v = {"beats_pbr_coarse_flip": h["diffusion"]["flip"] < h["pbr_coarse"]["flip"],
+         "beats_pbr_morphed_flip": h["diffusion"]["flip"] < h["pbr_morphed"]["flip"],
+         "beats_pbr_coarse_kid": k["diffusion"] < k["pbr_coarse"], "beats_pbr_morphed_kid": k["diffusion"] < k["pbr_morphed"]}
+    for c in s.unseen:
+        u = r["unseen"][c]
+        v[f"{c}_beats_pbr_morphed_flip"] = u["diffusion"]["flip"] < u["pbr_morphed"]["flip"]
+        v[f"{c}_beats_pbr_coarse_flip"] = u["diffusion"]["flip"] < u["pbr_coarse"]["flip"]
+    if "cyclegan" in h:
+        v["beats_cyclegan_flip"] = h["diffusion"]["flip"] < h["cyclegan"]["flip"]
+        v["beats_cyclegan_kid"] = k["diffusion"] < k["cyclegan"]
+        v["beats_morph_gan_flip"] = h["diffusion"]["flip"] < h["morph_gan"]["flip"]
+        v["beats_morph_gan_kid"] = k["diffusion"] < k["morph_gan"]
+    return v
+
+
+def sweep_chart(result: dict, path: Path) -> Path:
+    """ꟻLIP against sampling seconds per 128² image, one line per model size, points labelled by DDIM steps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from foundation.imageio import save_figure
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for model in sorted({r["model"] for r in result["sweep"]}):
+        rows = [r for r in result["sweep"] if r["model"] == model]
+        ax.plot([r["seconds_per_image"] for r in rows], [r["flip"] for r in rows], "-o",
+                label=f"{model} ({rows[0]['parameters'] / 1e6:.2f} M params)")
+        for r in rows:
+            ax.annotate(f"{r['steps']}", (r["seconds_per_image"], r["flip"]), fontsize=7, xytext=(3, 3),
+                        textcoords="offset points")
+    c = result["chosen"]
+    ax.plot([c["seconds_per_image"]], [c["flip"]], "k*", ms=13, label=f"chosen ({c['model']}, {c['steps']} steps)")
+    sub = result["heldout"]
+    for name, ls in (("pbr_coarse", "--"), ("pbr_morphed", ":")):
+        ax.axhline(sub[name]["flip"], color="gray", ls=ls, lw=1, label=f"{name} (all held-out views)")
+    ax.set_xscale("log")
+    ax.set_xlabel("seconds per 128² image (2 CPU cores; labels: DDIM steps)")
+    ax.set_ylabel("held-out ꟻLIP (lower is better)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    ax.set_title("Diffusion renderer: quality vs sampling cost")
+    return save_figure(fig, path)
+
+
+def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 1, show_progress: bool = False) -> Path:
+    """Side by side for the first held-out view(s) of every case: the coarse G-buffer layers (A, I, S, N), PBR
+    of the coarse and morphed meshes, CycleGAN, Morph-GAN, the diffusion render (sampling seed 0, as the bench)
+    and the photo. Reads the trained runs of the bench's work folder; trains nothing."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from foundation.imageio import save_figure
+
+    from .gan import _prepare as prepare
+
+    s = DiffRenderBenchSettings(**{k: v for k, v in result["settings"].items()})
+    work = Path(out_dir) / "diffrender_work"
+    gb = GanBenchSettings(cases=s.cases, morph_iterations=s.morph_iterations, seed=s.seed)
+    rows = []
+    for c in (*s.cases, *s.unseen):
+        bench, mdir = prepare(c, work, gb, show_progress)[:2]
+        v = load_intrinsic_views(bench, mdir, show_progress=show_progress)
+        for i in list(v.test)[:per_case]:
+            L = v.layers["coarse"]
+            cols = [("A (coarse)", L["albedo"][i]), ("I (coarse)", L["irradiance"][i] / (1 + L["irradiance"][i])),
+                    ("S (coarse)", L["specular"][i]), ("N (coarse)", (L["normal"][i] + 1) / 2),
+                    ("PBR coarse", v.recomposed("coarse")[i]), ("PBR morphed", v.recomposed("morphed")[i])]
+            for name in ("cyclegan", "morph_gan"):
+                if (work / c / name / "checkpoint.npz").is_file():
+                    cols.append((name, load_heldout_predictions(work / c / name, list(v.test))[list(v.test).index(i)]))
+            img, _ = _sample(main_dir(work, result["model"]["widths"], s.train_seconds), _test_layers(v, "morphed", [i]), int(result["ddim_steps"]),
+                             float(result["guidance"]), 1, show_progress)
+            cols += [("diffusion", img[0, 0]), ("photo", v.photos[i])]
+            rows.append((f"{c} view {i}", cols))
+    n = max(len(r[1]) for r in rows)
+    fig, axes = plt.subplots(len(rows), n, figsize=(1.6 * n, 1.75 * len(rows)), squeeze=False)
+    for r, (label, cols) in enumerate(rows):
+        for k in range(n):
+            ax = axes[r][k]
+            ax.axis("off")
+            if k < len(cols):
+                title, im = cols[k]
+                shown = np.clip(im, 0, 1) if title.startswith(("N ", "I ")) else np.clip(im, 0, 1) ** (1 / 2.2)
+                ax.imshow(shown)
+                ax.set_title(title if r == 0 or title in ("cyclegan", "morph_gan") else title, fontsize=7)
+        axes[r][0].text(-0.1, 0.5, label, transform=axes[r][0].transAxes, rotation=90, va="center", ha="right",
+                        fontsize=7)
+    fig.suptitle("Held-out views: G-buffers of the coarse mesh, PBR, GANs, diffusion renderer, photo", fontsize=9)
+    return save_figure(fig, path)

@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from foundation import validate
-from foundation.assets import ARMADILLO
+from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
 from inverse.morph import (MorphBenchmarkSettings, MorphResult, MorphSettings, load_morph_benchmark,
@@ -41,7 +41,9 @@ class MorphBenchSettings:
 
 
 def source(case: str) -> str:
-    """A benchmark case: "village", "armadillo" (bundled) or a mesh file."""
+    """A benchmark case: "village", "armadillo" (bundled), "bunny" (pymeshlab's Stanford bunny) or a mesh file."""
+    if case == "bunny":
+        return str(pymeshlab_sample("bunny.obj"))
     return "village" if case == "village" else str(ARMADILLO if case == "armadillo" else case)
 
 
