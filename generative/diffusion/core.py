@@ -18,10 +18,8 @@ The schedulers are diffusers' own; nothing here re-implements one.
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -189,6 +187,73 @@ def sample(model: ConditionalDiffusion, local: torch.Tensor | None, global_cond:
     return x
 
 
+class OptimizerStage:
+    """Mixin for a :class:`foundation.loop.Stage` with one torch ``model`` and one optimiser ``opt``: ``backward``
+    a loss into a :class:`StepResult`; the loop applies the step only when the loss and every gradient are finite."""
+
+    model: nn.Module
+    opt: torch.optim.Optimizer
+
+    def backward(self, loss: torch.Tensor):
+        from foundation.loop import StepResult, all_finite
+
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        value = float(loss.detach())
+        return StepResult(value, all_finite(value, *[p.grad for p in self.model.parameters() if p.grad is not None]))
+
+    def apply(self, it: int) -> None:
+        self.opt.step()
+
+    def discard(self, it: int) -> None:
+        self.opt.zero_grad(set_to_none=True)
+
+
+def train_stage(make_stage, out, s, budget_steps: int | None, show_progress: bool, metrics: bool = True):
+    """Build a stage with ``s.threads`` torch threads and run it on the shared loop in folder ``out``
+    (``checkpoint.npz``; ``metrics.json`` when ``metrics``) with ``s``'s steps / max_seconds / checkpoint_every.
+    Returns (stage, the loop's result or None when ``budget_steps`` ended the call)."""
+    from pathlib import Path
+
+    from foundation.loop import LoopSettings, run_loop
+    from foundation.threads import torch_threads
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with torch_threads(s.threads):
+        stage = make_stage()
+        loop = LoopSettings(steps=s.steps, max_seconds=s.max_seconds, checkpoint_every=s.checkpoint_every)
+        return stage, run_loop(stage, loop, checkpoint=out / "checkpoint.npz", budget_steps=budget_steps,
+                               show_progress=show_progress, metrics_path=out / "metrics.json" if metrics else None)
+
+
+def load_trained(run, stage_kind: str, what: str, hint: str, settings_cls, build, defaults: dict | None = None):
+    """The trained model of a run folder in eval mode, and its settings: the checkpoint's stage kind must be
+    ``stage_kind`` and its weights must fit ``build(settings)``; errors name the file. ``defaults`` fill
+    settings fields that older checkpoints lack."""
+    from pathlib import Path
+
+    from foundation.errors import CheckpointError
+    from foundation.loop import read_checkpoint
+    from foundation.records import from_json
+
+    ckpt = Path(run) / "checkpoint.npz"
+    if not ckpt.is_file():
+        raise UsageError(f"{ckpt}: no {what} checkpoint{hint}")
+    saved = read_checkpoint(ckpt)
+    if saved.kind != stage_kind:
+        raise CheckpointError(f"{ckpt}: a {saved.kind} checkpoint, not a {what}'s")
+    s = from_json(settings_cls, {**(defaults or {}), **saved.fingerprint["settings"]}, str(ckpt))
+    model = build(s)
+    try:
+        model.load_state_dict(saved.stage["model"])
+    except RuntimeError as exc:
+        raise CheckpointError(f"{ckpt}: weights do not fit the architecture its settings describe "
+                              f"({str(exc).splitlines()[0]})") from None
+    model.eval()
+    return model, s
+
+
 def count_parameters(model: nn.Module) -> int:
     return int(sum(p.numel() for p in model.parameters()))
 
@@ -209,5 +274,5 @@ def training_flops(model: ConditionalDiffusion, batch: int, size: int) -> float:
     return float(fc.get_total_flops())
 
 
-__all__ = ["ConditionalDiffusion", "DiffusionConfig", "PREDICTIONS", "SCHEDULES", "check_size", "count_parameters",
+__all__ = ["ConditionalDiffusion", "DiffusionConfig", "OptimizerStage", "load_trained", "train_stage", "PREDICTIONS", "SCHEDULES", "check_size", "count_parameters",
            "diffusion_loss", "make_scheduler", "sample", "training_flops"]

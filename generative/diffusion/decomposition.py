@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import functools
 import json
-import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -35,17 +34,16 @@ import mitsuba as mi
 
 from foundation import validate
 from foundation.assets import bundled_hdris, envmap, pymeshlab_sample
-from foundation.errors import CheckpointError, UsageError
+from foundation.errors import UsageError
 from foundation.files import cached_arrays
-from foundation.loop import (LoopSettings, RunState, Stage, StepResult, TrainingSummary, all_finite, read_checkpoint,
-                             rng_state, run_loop, set_rng_state)
+from foundation.loop import RunState, Stage, StepResult, TrainingSummary, rng_state, set_rng_state
 from foundation.metrics import psnr
 from foundation.optim_state import load_optimizer_state, optimizer_state
 from foundation.progress import progress_bar
-from foundation.records import from_json
 from foundation.scene import recompose
 from foundation.threads import torch_threads
 
+from .core import OptimizerStage, load_trained, train_stage
 from .renderer import LAYERS, condition_to_layers, intrinsic_layers, local_condition, photo_to_model
 
 TEXTURES = ("brick", "grass", "gravel", "astronaut", "rocket", "hubble_deep_field", "color", "coffee")
@@ -263,7 +261,7 @@ class DecompResult:
     heldout_psnr: dict = field(default_factory=dict)  #: layer → PSNR on the held-out scenes, and "R"
 
 
-class DecompStage(Stage):
+class DecompStage(OptimizerStage, Stage):
     """Seeded crops of the procedural (image → layers) pairs; one Adam step on the L1 loss per step."""
 
     unit = "step"
@@ -300,17 +298,7 @@ class DecompStage(Stage):
             ys.append(self.y[i, y0:y0 + c, x0:x0 + c])
         x = torch.from_numpy(np.ascontiguousarray(np.stack(xs).transpose(0, 3, 1, 2)))
         y = torch.from_numpy(np.ascontiguousarray(np.stack(ys).transpose(0, 3, 1, 2)))
-        self.opt.zero_grad(set_to_none=True)
-        loss = torch.mean(torch.abs(self.model(x) - y))
-        loss.backward()
-        value = float(loss.detach())
-        return StepResult(value, all_finite(value, *[p.grad for p in self.model.parameters() if p.grad is not None]))
-
-    def apply(self, it: int) -> None:
-        self.opt.step()
-
-    def discard(self, it: int) -> None:
-        self.opt.zero_grad(set_to_none=True)
+        return self.backward(torch.mean(torch.abs(self.model(x) - y)))
 
     def finish(self, run: RunState) -> DecompResult:
         return DecompResult(self.s, self.ds, sum(p.numel() for p in self.model.parameters()), run.summary())
@@ -375,35 +363,17 @@ def train_decomposer(data: dict[str, np.ndarray], ds: DecompDataSettings, out: s
     from foundation.records import to_json
 
     s = s or DecompSettings()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    with torch_threads(s.threads):
-        stage = DecompStage(data, ds, s)
-        loop = LoopSettings(steps=s.steps, max_seconds=s.max_seconds, checkpoint_every=s.checkpoint_every)
-        result = run_loop(stage, loop, checkpoint=out / "checkpoint.npz", budget_steps=budget_steps,
-                          show_progress=show_progress, metrics_path=out / "metrics.json")
-        if result is not None:
+    stage, result = train_stage(lambda: DecompStage(data, ds, s), out, s, budget_steps, show_progress, metrics=False)
+    if result is not None:
+        with torch_threads(s.threads):
             result.heldout_psnr = heldout_psnr(stage.model, data, ds)
-            write_json(out / "metrics.json", to_json(result))
+        write_json(Path(out) / "metrics.json", to_json(result))
     return result
 
 
 def load_decomposer(run: str | Path) -> Decomposer:
-    ckpt = Path(run) / "checkpoint.npz"
-    if not ckpt.is_file():
-        raise UsageError(f"{ckpt}: no decomposition network checkpoint")
-    saved = read_checkpoint(ckpt)
-    if saved.kind != DecompStage.__name__:
-        raise CheckpointError(f"{ckpt}: a {saved.kind} checkpoint, not a decomposition network's")
-    s = from_json(DecompSettings, saved.fingerprint["settings"], str(ckpt))
-    model = Decomposer(s)
-    try:
-        model.load_state_dict(saved.stage["model"])
-    except RuntimeError as exc:
-        raise CheckpointError(f"{ckpt}: weights do not fit the architecture its settings describe "
-                              f"({str(exc).splitlines()[0]})") from None
-    model.eval()
-    return model
+    """The trained decomposition network of a run folder, eval mode."""
+    return load_trained(run, DecompStage.__name__, "decomposition network", "", DecompSettings, Decomposer)[0]
 
 
 def photographs(names: tuple[str, ...] = ("coffee", "chelsea", "motorcycle_left", "astronaut", "rocket"),

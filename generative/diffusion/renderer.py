@@ -35,19 +35,17 @@ import mi_plugins  # noqa: F401
 import mitsuba as mi
 
 from foundation import validate
-from foundation.errors import CheckpointError, UsageError
+from foundation.errors import UsageError
 from foundation.features import FEATURE_DIM, feature_maps, load_mobilenet, normalise
 from foundation.files import cached_arrays, file_digest
-from foundation.loop import (LoopSettings, RunState, Stage, StepResult, TrainingSummary, all_finite, read_checkpoint,
-                             rng_state, run_loop, set_rng_state)
+from foundation.loop import RunState, Stage, StepResult, TrainingSummary, rng_state, set_rng_state
 from foundation.optim_state import load_optimizer_state, optimizer_state
 from foundation.progress import progress_bar
-from foundation.records import from_json
 from foundation.scene import recompose, split_intrinsics
-from foundation.threads import torch_threads
 from inverse.morph import MorphBenchmark, morph_scene, sensor_dict
 
-from .core import ConditionalDiffusion, DiffusionConfig, check_size, diffusion_loss, make_scheduler, sample
+from .core import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, check_size, diffusion_loss, load_trained,
+                   make_scheduler, sample, train_stage)
 
 LAYERS = ("albedo", "irradiance", "specular", "normal")
 SOURCES = ("coarse", "morphed")
@@ -349,7 +347,7 @@ class _Pairs:
         return x, c, g
 
 
-class DiffRenderStage(Stage):
+class DiffRenderStage(OptimizerStage, Stage):
     """Seeded crops of (G-buffer → photo) pairs; one Adam step on the v-prediction loss per step."""
 
     unit = "step"
@@ -390,17 +388,7 @@ class DiffRenderStage(Stage):
         x, c, g = self.pairs.batch(self.rng, self.s.batch, self.s.crop)
         if self.s.channels_last:
             x, c = x.contiguous(memory_format=torch.channels_last), c.contiguous(memory_format=torch.channels_last)
-        self.opt.zero_grad(set_to_none=True)
-        loss = diffusion_loss(self.model, self.scheduler, x, c, g, self.gen, self.s.p_uncond)
-        loss.backward()
-        value = float(loss.detach())
-        return StepResult(value, all_finite(value, *[p.grad for p in self.model.parameters() if p.grad is not None]))
-
-    def apply(self, it: int) -> None:
-        self.opt.step()
-
-    def discard(self, it: int) -> None:
-        self.opt.zero_grad(set_to_none=True)
+        return self.backward(diffusion_loss(self.model, self.scheduler, x, c, g, self.gen, self.s.p_uncond))
 
     def finish(self, run: RunState) -> DiffRenderResult:
         losses = np.asarray(run.losses, np.float64)
@@ -419,34 +407,15 @@ def train_diffrender(cases: list[IntrinsicViews], out: str | Path, s: DiffRender
     s = s or DiffRenderSettings()
     if not cases:
         raise UsageError("no benchmarks to train on")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    with torch_threads(s.threads):
-        stage = DiffRenderStage(cases, s)
-        loop = LoopSettings(steps=s.steps, max_seconds=s.max_seconds, checkpoint_every=s.checkpoint_every)
-        return run_loop(stage, loop, checkpoint=out / "checkpoint.npz", budget_steps=budget_steps,
-                        show_progress=show_progress, metrics_path=out / "metrics.json")
+    return train_stage(lambda: DiffRenderStage(cases, s), out, s, budget_steps, show_progress)[1]
 
 
 def load_diffrender(run: str | Path) -> tuple[ConditionalDiffusion, DiffRenderSettings]:
-    """The trained model of a run folder (its checkpoint's weights), eval mode."""
-    ckpt = Path(run) / "checkpoint.npz"
-    if not ckpt.is_file():
-        raise UsageError(f"{ckpt}: no diffusion renderer checkpoint (train with `photoreal diffrender train`)")
-    saved = read_checkpoint(ckpt)
-    if saved.kind != DiffRenderStage.__name__:
-        raise CheckpointError(f"{ckpt}: a {saved.kind} checkpoint, not a diffusion renderer's")
-    settings = dict(saved.fingerprint["settings"])
-    settings.setdefault("residual", False)  # runs from before the residual option generated the photo itself
-    s = from_json(DiffRenderSettings, settings, str(ckpt))
-    model = ConditionalDiffusion(s.model_config(), seed=s.seed)
-    try:
-        model.load_state_dict(saved.stage["model"])
-    except RuntimeError as exc:
-        raise CheckpointError(f"{ckpt}: weights do not fit the architecture its settings describe "
-                              f"({str(exc).splitlines()[0]})") from None
-    model.eval()
-    return model, s
+    """The trained model of a run folder (its checkpoint's weights), eval mode, and its settings."""
+    # runs from before the residual option generated the photo itself
+    return load_trained(run, DiffRenderStage.__name__, "diffusion renderer",
+                        " (train with `photoreal diffrender train`)", DiffRenderSettings,
+                        lambda s: ConditionalDiffusion(s.model_config(), seed=s.seed), defaults={"residual": False})
 
 
 @dataclass

@@ -39,7 +39,7 @@ from foundation.files import read_json
 from foundation.metrics import image_metrics
 from foundation.threads import torch_threads
 from generative.diffusion import (DECOMPOSED, ConditionalDiffusion, DecompDataSettings, DecompSettings,
-                                  DiffRenderSettings, IntrinsicViews, SampleSettings, decompose, diffusion_loss, heldout_psnr,
+                                  DiffRenderSettings, IntrinsicViews, SampleSettings, count_parameters, decompose, diffusion_loss, heldout_psnr,
                                   load_decomp_data, load_decomposer, load_diffrender, load_intrinsic_views,
                                   make_scheduler, photographs, render_views, train_decomposer, train_diffrender,
                                   training_flops)
@@ -155,9 +155,9 @@ def _test_layers(v: IntrinsicViews, source: str, ids: list[int]) -> dict:
     return {k: a[ids] for k, a in v.layers[source].items()}
 
 
-def _sample(run: Path, layers: dict, steps: int, guidance: float, seeds: int, show_progress: bool):
-    """(seeds, N, H, W, 3) renders and seconds per image (mean over seeds)."""
-    model, ds = load_diffrender(run)
+def _sample(trained: tuple, layers: dict, steps: int, guidance: float, seeds: int, show_progress: bool):
+    """(seeds, N, H, W, 3) renders of a loaded run (:func:`load_diffrender`) and seconds per image (mean over seeds)."""
+    model, ds = trained
     imgs, secs = [], []
     with torch_threads(0):
         for k in range(seeds):
@@ -235,8 +235,9 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     mid = sorted(s.sweep_steps)[len(s.sweep_steps) // 2]
     ablation = []
     t = time.perf_counter()
+    loaded = {name: load_diffrender(work / "ablation" / name) for name in runs}
     for name, (ds, use_extra) in runs.items():
-        pred, sec = _sample(work / "ablation" / name, morphed, mid, s.guidance, 1, show_progress)
+        pred, sec = _sample(loaded[name], morphed, mid, s.guidance, 1, show_progress)
         trained = read_json(work / "ablation" / name / "metrics.json", "ablation metrics")
         ablation.append({"run": name, "global_source": ds.global_source, "residual": ds.residual,
                          "decomposed_pairs": use_extra, "widths": list(ds.widths), "steps": mid,
@@ -249,10 +250,10 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     sw_layers = {k: np.concatenate([views[c].layers["morphed"][k][sub[c]] for c in s.cases]) for k in morphed}
     sweep = []
     for name in ("R", "small"):
-        _, ds = load_diffrender(work / "ablation" / name)
-        params = sum(p.numel() for p in ConditionalDiffusion(ds.model_config()).parameters())
+        ds = loaded[name][1]
+        params = count_parameters(loaded[name][0])
         for steps in s.sweep_steps:
-            pred, sec = _sample(work / "ablation" / name, sw_layers, steps, s.guidance, 1, show_progress)
+            pred, sec = _sample(loaded[name], sw_layers, steps, s.guidance, 1, show_progress)
             m = _paired(pred[0], sw_photos)
             sweep.append({"model": name, "widths": list(ds.widths), "parameters": int(params), "steps": steps,
                           "seconds_per_image": sec, **{k: m[k] for k in PAIRED}})
@@ -265,7 +266,8 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
         tput = throughput(main_s)
     t = time.perf_counter()
     main = main_dir(work, main_s.widths, s.train_seconds)
-    result = train_diffrender(train_views, main, main_s, show_progress=show_progress)
+    train_diffrender(train_views, main, main_s, show_progress=show_progress)
+    trained_main = load_diffrender(main)
     timing["main_training"] = time.perf_counter() - t
     main_metrics = read_json(main / "metrics.json", "diffusion metrics")
     steps = int(chosen["steps"])
@@ -276,10 +278,10 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
         tid = list(v.test)
         ph = v.photos[tid]
         preds = {"pbr_coarse": v.recomposed("coarse")[tid], "pbr_morphed": v.recomposed("morphed")[tid]}
-        preds["diffusion"], sec = _sample(main, _test_layers(v, "morphed", tid), steps, s.guidance, s.seeds,
+        preds["diffusion"], sec = _sample(trained_main, _test_layers(v, "morphed", tid), steps, s.guidance, s.seeds,
                                           show_progress)
         sample_s.append(sec)
-        preds["diffusion_coarse"], _ = _sample(main, _test_layers(v, "coarse", tid), steps, s.guidance, 1,
+        preds["diffusion_coarse"], _ = _sample(trained_main, _test_layers(v, "coarse", tid), steps, s.guidance, 1,
                                                show_progress)
         if s.gans and c in s.cases:
             bench, mdir = prepared[c]
@@ -386,6 +388,7 @@ def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 
     s = DiffRenderBenchSettings(**{k: v for k, v in result["settings"].items()})
     work = Path(out_dir) / "diffrender_work"
     gb = GanBenchSettings(cases=s.cases, morph_iterations=s.morph_iterations, seed=s.seed)
+    trained = load_diffrender(main_dir(work, result["model"]["widths"], s.train_seconds))
     rows = []
     for c in (*s.cases, *s.unseen):
         bench, mdir = prepare(c, work, gb, show_progress)[:2]
@@ -398,7 +401,7 @@ def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 
             for name in ("cyclegan", "morph_gan"):
                 if (work / c / name / "checkpoint.npz").is_file():
                     cols.append((name, load_heldout_predictions(work / c / name, list(v.test))[list(v.test).index(i)]))
-            img, _ = _sample(main_dir(work, result["model"]["widths"], s.train_seconds), _test_layers(v, "morphed", [i]), int(result["ddim_steps"]),
+            img, _ = _sample(trained, _test_layers(v, "morphed", [i]), int(result["ddim_steps"]),
                              float(result["guidance"]), 1, show_progress)
             cols += [("diffusion", img[0, 0]), ("photo", v.photos[i])]
             rows.append((f"{c} view {i}", cols))
