@@ -55,6 +55,12 @@ def hdri_path(name_or_path: str | os.PathLike) -> Path:
     return q
 
 
+def hdri_label(name_or_path: str | os.PathLike) -> str:
+    """A short name for an HDRI: the bundled name, or a file's stem (image layer names, figure captions)."""
+    s = str(name_or_path)
+    return Path(s).stem if Path(s).suffix.lower() == ".exr" or os.sep in s else s
+
+
 @functools.lru_cache(maxsize=16)
 def _hdri_bitmap(path: str, mtime: float):
     """Mitsuba's own reader (what ``envmap`` with a file name would use: bit-identical radiance; Python's

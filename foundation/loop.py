@@ -16,7 +16,8 @@ A stage (:class:`Stage`) says how to take one step and what its state is; :func:
   record that includes the loop's :class:`TrainingSummary`).
 
 Evaluation inside the run (held-out curves, model selection) happens in :meth:`Stage.after_step`,
-outside the timed part, so time budgets count training only.
+outside the timed part, so time budgets count training only; there a stage may end the run early by
+setting ``run.stopped`` (convergence on a validation loss), which a resumed run keeps.
 """
 
 from __future__ import annotations
@@ -83,6 +84,9 @@ class RunState:
     losses: list = field(default_factory=list)
     log: list = field(default_factory=list)
     done: bool = False  #: a budget is used up (set before ``after_step``)
+    #: the stage ended the run early (set in its ``after_step``: e.g. its validation loss stopped improving); a
+    #: resumed run stays ended
+    stopped: bool = False
 
     def to_tree(self) -> dict:
         d = asdict(self)
@@ -314,8 +318,8 @@ def run_loop(stage: Stage, settings: LoopSettings, checkpoint: str | Path | None
         run = saved.run
 
     def budgets_used() -> bool:
-        return run.step >= settings.steps or (settings.max_seconds is not None
-                                               and run.train_seconds >= settings.max_seconds)
+        return run.stopped or run.step >= settings.steps or (settings.max_seconds is not None
+                                                             and run.train_seconds >= settings.max_seconds)
 
     saved_step = run.step
 
@@ -358,6 +362,7 @@ def run_loop(stage: Stage, settings: LoopSettings, checkpoint: str | Path | None
                                      "lower the learning rate or check the inputs")
             run.done = budgets_used()
             stage.after_step(it, run)
+            run.done = budgets_used()  # the stage may have stopped the run
             if run.step % settings.checkpoint_every == 0 or run.done or run.step == stop:
                 save()
     if not run.done:

@@ -34,27 +34,61 @@ def chamfer(va, fa, vb, fb, n: int = 100_000, n_ref: int = 1_000_000, seed: int 
     return {"chamfer": float(0.5 * (da.mean() + db.mean())), "normal_consistency": float(nc)}
 
 
-def inverted_triangles(v: np.ndarray, f: np.ndarray, gv: np.ndarray, gf: np.ndarray) -> int:
-    """Triangles facing against the ground-truth surface at their nearest ground-truth triangle.
+def triangle_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
 
-    Orientation is judged against the truth, not against the starting mesh: a
-    morph that *unfolds* a fold of the coarse input must not count as flipping.
+
+def facing_against_truth(v: np.ndarray, f: np.ndarray, gv: np.ndarray, gf: np.ndarray, n_ref: int = 1_000_000,
+                         seed: int = 0) -> dict:
+    """Triangles facing against the ground truth at the truth's surface point nearest their centroid.
+
+    ``count`` and ``area_fraction`` (share of the mesh's area): meshes with different triangle counts (a
+    coarse input and its remeshed morph) compare by the fraction. The nearest point comes from a dense
+    area-uniform sampling of the truth (``n_ref`` points), not from the truth's triangle centroids: a large
+    truth triangle's centroid can be far from the part of it a small triangle lies on (a house wall is two
+    triangles), and the nearest centroid then belongs to another wall. Orientation is judged against the
+    truth, not against the starting mesh: a morph that *unfolds* a fold of its input does not count as flipping.
     """
     from scipy.spatial import cKDTree
 
-    gc = gv[gf].mean(axis=1)
-    idx = cKDTree(gc).query(v[f].mean(axis=1))[1]
-    return int((np.sum(face_normals(v, f) * face_normals(gv, gf)[idx], axis=1) < 0).sum())
+    pts, fid, _ = sample_surface(gv, gf, n_ref, np.random.default_rng(seed))
+    gn = face_normals(gv, gf)[fid]
+    idx = cKDTree(pts).query(v[f].mean(axis=1))[1]
+    against = np.sum(face_normals(v, f) * gn[idx], axis=1) < 0
+    area = triangle_areas(v, f)
+    return {"count": int(against.sum()), "area_fraction": float(area[against].sum() / max(area.sum(), 1e-30))}
+
+
+def vertex_neighbours_mean(x: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Mean of ``x`` over each vertex's 1-ring (edge neighbours, each counted once)."""
+    import scipy.sparse as sp
+
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    n = len(x)
+    a = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    deg = np.asarray(a.sum(axis=1)).ravel()
+    return (a @ x) / np.maximum(deg, 1)[:, None]
 
 
 def spikes(v0: np.ndarray, v1: np.ndarray, f: np.ndarray, gv: np.ndarray, gf: np.ndarray, k: float = 3.0) -> dict:
-    """Spike vertices (moved more than k× their local edge length) and inverted triangles (normal
-    flipped relative to the start: folds the optimisation made); ``spikes`` = both.
+    """Spikes and folds a morph made, judged against its start ``v0`` (same topology ``f``).
 
-    ``facing_against_truth`` is also reported but is only meaningful for a closed,
-    non-overlapping ground truth (the village's overlapping parts confuse it).
+    * ``spike_vertices``: vertices whose displacement departs from the mean displacement of their 1-ring
+      by more than ``k`` × their local edge length — a vertex that left its neighbours (a spike or a pit).
+      A region moving together (an eroded chimney growing back, a bulge pushed in) is not a spike.
+    * ``far_moved_vertices``: vertices that moved more than ``k`` × their local edge length at all (the
+      earlier definition of a spike; coherent large moves count, reported beside).
+    * ``inverted_triangles``: triangles whose normal flipped relative to the start (folds).
+    * ``spikes`` = spike vertices + inverted triangles.
+    * ``facing_against_truth`` / ``facing_against_truth_area``: see :func:`facing_against_truth`.
     """
-    moved = np.linalg.norm(v1 - v0, axis=1) > k * edge_lengths(v0, f)
+    d = v1 - v0
+    ell = edge_lengths(v0, f)
+    spike = np.linalg.norm(d - vertex_neighbours_mean(d, f), axis=1) > k * ell
+    far = np.linalg.norm(d, axis=1) > k * ell
     flipped = int((np.sum(face_normals(v0, f) * face_normals(v1, f), axis=1) < 0).sum())
-    return {"spike_vertices": int(moved.sum()), "inverted_triangles": flipped,
-            "facing_against_truth": inverted_triangles(v1, f, gv, gf), "spikes": int(moved.sum() + flipped)}
+    fa = facing_against_truth(v1, f, gv, gf)
+    return {"spike_vertices": int(spike.sum()), "far_moved_vertices": int(far.sum()), "inverted_triangles": flipped,
+            "facing_against_truth": fa["count"], "facing_against_truth_area": fa["area_fraction"],
+            "spikes": int(spike.sum() + flipped)}

@@ -630,6 +630,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .benchmarks.face import FaceBenchSettings
     from .benchmarks.gan import GanBenchSettings
+    from .benchmarks.morph import MorphBenchSettings
     from .benchmarks.plugins import PluginBenchSettings
     from .benchmarks.scale import ScaleBenchSettings
     from .demo import DemoSettings
@@ -659,7 +660,14 @@ def build_parser() -> argparse.ArgumentParser:
     for name in ("resolution", "spp", "repetitions", "rounds"):
         _opt(bp, PluginBenchSettings, name)
     bp.set_defaults(func=_cmd_bench_plugins)
-    bm = bsub.add_parser("morph", help="geometry morphing: accuracy vs time, speed vs the tutorial recipe, stability")
+    bm = bsub.add_parser("morph", help="geometry morphing: accuracy vs time, speed vs the tutorial recipe, stability, "
+                                       "the generalisation suite, the benchmark's framing")
+    _opt(bm, MorphBenchSettings, "parts", choices=["cases", "suite", "framing"],
+         help="cases: village/armadillo (speed, sweep, stability); suite: every suite mesh at the same defaults; "
+              "framing: views and photo resolution swept on the first suite mesh")
+    _opt(bm, MorphBenchSettings, "cases")
+    _opt(bm, MorphBenchSettings, "suite", help="suite meshes (village and armadillo may be added)")
+    _opt(bm, MorphBenchSettings, "iterations", help="morph iterations of the main and suite runs")
     _pool_opts(bm)
     bm.set_defaults(func=_cmd_bench_morph)
     bb = bsub.add_parser("btf", help="neural BTF: universal vs NeuMIP, width × texture sweep, render time")
@@ -706,6 +714,9 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(fm, FaceBenchmarkSettings, "uv_res")
     _opt(fm, FaceBenchmarkSettings, "n_lights", "--lights", help="directional training lights")
     _opt(fm, FaceBenchmarkSettings, "seed")
+    _opt(fm, FaceBenchmarkSettings, "heldout_hdris", "--hdri", metavar="HDRI",
+         help="held-out relighting environments: bundled names or your own .exr files (copied into the benchmark); "
+              "the training photos stay under directional lights, which the fit models")
     fm.set_defaults(func=_cmd_face_make_benchmark)
     ff = fsub.add_parser("fit", help="fit UV maps to benchmarks and score them (resumes from a checkpoint)")
     ff.add_argument("benchmark", nargs="+", help="folder(s) made by make-benchmark, or a folder of them")
@@ -737,6 +748,12 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mm, MorphBenchmarkSettings, "resolution")
     _opt(mm, MorphBenchmarkSettings, "spp")
     _opt(mm, MorphBenchmarkSettings, "seed")
+    _opt(mm, MorphBenchmarkSettings, "hdri", help="lighting of the photos (and of the morph's lit renders): a bundled "
+                                                  "HDRI's name or your own .exr, copied into the benchmark")
+    _opt(mm, MorphBenchmarkSettings, "elevation_deg", "--elevation", type=float, nargs=2, metavar=("LOW", "HIGH"),
+         help="camera elevation range in degrees (default: 25 45 for the village, -15 65 for an object)")
+    _opt(mm, MorphBenchmarkSettings, "framing_margin",
+         help="objects: free border around the bounding sphere, fraction of the half-image")
     mm.set_defaults(func=_cmd_morph_make_benchmark)
     mr = msub.add_parser("run", help="morph benchmarks' coarse meshes (resumes from their checkpoints)")
     mr.add_argument("benchmark", nargs="+", help="benchmark folder(s), or a folder of them")
@@ -761,6 +778,11 @@ def build_parser() -> argparse.ArgumentParser:
               "largest plane holds ≥ 20%% of the area, e.g. a ground plane)")
     mr.add_argument("--no-repair", action="store_true",
                     help="keep folds: skip the final unfolding of triangles flipped w.r.t. the start (reported)")
+    _opt(mr, MorphSettings, "validation_views",
+         help="training photos kept out of the fit to watch convergence (0: fit all)")
+    _opt(mr, MorphSettings, "early_stop", help="stop when the validation loss stops improving (--iterations caps it)")
+    _opt(mr, MorphSettings, "lambda_start", type=float,
+         help="large-steps λ at the start, falling to --lambda over the warm-up (default: constant λ)")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

@@ -55,9 +55,20 @@ def test_integrate_normals_recovers_a_known_height_field():
 
 @pytest.fixture(scope="module")
 def small_benchmark(tmp_path_factory):
-    out = tmp_path_factory.mktemp("face") / "josie64"
-    s = fd.FaceBenchmarkSettings(uv_res=64, render_res=48, render_spp=8, heldout_hdris=("sunset",))
-    return fd.load_benchmark(fd.make_benchmark(JOSIE, out, s, show_progress=False))
+    import shutil
+
+    from foundation.assets import HDRI_DIR
+
+    # A user's own HDRI (`face make-benchmark --hdri FILE.exr`): copied into the benchmark, named by its stem.
+    root = tmp_path_factory.mktemp("face")
+    mine = root / "my_sunset.exr"
+    shutil.copyfile(HDRI_DIR / "sunset.exr", mine)
+    s = fd.FaceBenchmarkSettings(uv_res=64, render_res=48, render_spp=8, heldout_hdris=(str(mine),))
+    made = fd.make_benchmark(JOSIE, root / "josie64", s, show_progress=False)
+    mine.unlink()
+    bench = fd.load_benchmark(made)
+    assert (made / "hdri" / "my_sunset.exr").is_file() and "my_sunset" in bench.heldout
+    return bench
 
 
 def test_uv_shader_reproduces_mitsuba_observations_on_the_scan(small_benchmark):

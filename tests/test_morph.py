@@ -1,6 +1,7 @@
 """Geometry morphing: metrics oracles, benchmark generation, optimisation, checkpoint/resume, GCN."""
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,12 @@ def test_spikes_and_inverted_triangles():
     a, b, c = f[100]
     flipped[a] = v[b] + 1.5 * (v[a] - v[b]) * -1  # reflect one vertex through its neighbour: fold
     assert spikes(v, flipped, f, v, f)["inverted_triangles"] >= 1
+    # A region moving together (an eroded part growing back) is not a spike, though it moved far.
+    cap = v[:, 1] > 0.5
+    grown = v.copy()
+    grown[cap] += [0.0, 2.0, 0.0]
+    sp = spikes(v, grown, f, v, f)
+    assert sp["far_moved_vertices"] == int(cap.sum()) and sp["spike_vertices"] < 0.5 * cap.sum()
 
 
 @pytest.fixture(scope="module")
@@ -96,8 +103,15 @@ def test_morph_improves_photos_and_resumes_exactly(small_armadillo, tmp_path):
     # One Dr.Jit thread (conftest): renders and Adam steps are bit-identical run to run, so an interrupted +
     # resumed run must equal the uninterrupted one exactly (tolerance 0). The coarse input as is
     # (min_vertices=None) keeps the test small.
-    s = MorphSettings(iterations=10, checkpoint_every=5, resolution=48, min_vertices=None)
+    # The λ schedule (25 → 2, refactored at the checks every 3 iterations) is part of the state to resume.
+    s = MorphSettings(iterations=10, checkpoint_every=5, resolution=48, min_vertices=None, lambda_start=25.0,
+                      check_every=3, validation_fraction=0.5)
     straight = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
+    assert [t.iteration for t in straight.trace] == [0, 3, 6, 9, 10]
+    lams = [t.lambda_ for t in straight.trace]
+    assert lams[0] == 25.0 and lams[-1] == 2.0 and all(a >= b for a, b in zip(lams, lams[1:]))
+    assert all(t.chamfer > 0 and t.validation_l1 > 0 for t in straight.trace)
+    assert straight.validation_views and not set(straight.validation_views) & set(small_armadillo.meta.test)
     assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=4) is None
     assert (tmp_path / "b" / "checkpoint.npz").is_file() and not (tmp_path / "b" / "morphed.ply").exists()
     resumed = run_morph(small_armadillo, tmp_path / "b", s, show_progress=False)
@@ -106,6 +120,7 @@ def test_morph_improves_photos_and_resumes_exactly(small_armadillo, tmp_path):
     np.testing.assert_array_equal(va, vb)
     assert resumed.chamfer_morphed == straight.chamfer_morphed
     assert resumed.training.loss_last == straight.training.loss_last
+    assert [t.validation_l1 for t in resumed.trace] == [t.validation_l1 for t in straight.trace]
     assert straight.psnr_heldout_morphed > straight.psnr_heldout_input
     assert straight.training.skipped_steps == 0 and straight.training.steps == 10
     for v in (straight.chamfer_input, straight.chamfer_morphed, straight.psnr_heldout_input,
@@ -113,6 +128,88 @@ def test_morph_improves_photos_and_resumes_exactly(small_armadillo, tmp_path):
         assert np.isfinite(v)
     saved = json.loads((tmp_path / "a" / "metrics.json").read_text())
     assert saved["chamfer_morphed"] == straight.chamfer_morphed and saved["training"]["steps"] == 10
+
+
+def test_early_stop_ends_the_run_and_a_resumed_run_stays_ended(small_armadillo, tmp_path):
+    # min_improvement 0.9 cannot be met: the rule fires at the first check at or after min_iterations.
+    s = MorphSettings(iterations=40, resolution=32, min_vertices=None, early_stop=True, check_every=2,
+                      patience=1, min_improvement=0.9, min_iterations=4, validation_fraction=0.5)
+    r = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
+    assert r.stopped_early and r.iterations == 4 and r.training.steps == 4
+    again = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
+    assert again.iterations == 4 and again.training.loss_last == r.training.loss_last
+    with pytest.raises(UsageError, match="early_stop needs validation_views"):
+        MorphSettings(early_stop=True, validation_views=0)
+
+
+def test_validation_split_spreads_over_the_orbit():
+    from inverse.morph.run import validation_split
+
+    train = [0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14]
+    assert validation_split(train, 3) == [2, 8, 13]  # positions 2, 6, 10 of 12
+    assert validation_split(train, 0) == [] and validation_split([3], 2) == []
+    assert len(validation_split(train, 50)) == len(train) - 1  # one view always stays to fit
+
+
+def test_object_views_frame_the_whole_silhouette_and_the_source_is_a_hash(small_armadillo):
+    from foundation.files import file_digest
+    from inverse.morph.benchmark import silhouette_margins
+
+    meta = small_armadillo.meta
+    margins = silhouette_margins(small_armadillo, list(range(len(meta.cameras))))
+    # framing_margin 0.1 of the half-width (2.4 px at 48²); a pixel of quantisation either way
+    assert min(margins) >= 0.1 - 2 / 24, margins
+    assert max(margins) < 0.6  # and the object is not lost in the frame
+    assert meta.source == "armadillo.ply" and meta.source_sha256 == file_digest(ARMADILLO, 64)
+    els = [np.degrees(np.arcsin((c.eye[1] - c.target[1]) / np.linalg.norm(np.subtract(c.eye, c.target))))
+           for c in meta.cameras]
+    assert min(els) < 0 and max(els) > 45  # sides, a little underside, and the top
+
+
+def test_a_users_hdri_travels_with_the_benchmark(tmp_path):
+    import shutil
+
+    from foundation.assets import HDRI_DIR
+    from inverse.morph.scene import morph_scene
+
+    mine = tmp_path / "my_light.exr"
+    shutil.copyfile(HDRI_DIR / "forest.exr", mine)
+    s = MorphBenchmarkSettings(n_views=4, resolution=16, spp=2, coarse_vertices=300, hdri=str(mine))
+    made = make_morph_benchmark(ARMADILLO, tmp_path / "b", s, show_progress=False)
+    moved = tmp_path / "elsewhere"
+    made.rename(moved)
+    mine.unlink()  # the benchmark no longer needs the user's file
+    b = load_morph_benchmark(moved)
+    assert b.meta.hdri == str(moved / "hdri.exr") and (moved / "hdri.exr").is_file()
+    assert morph_scene(b.coarse, "lit", b.meta.hdri) is not None
+    for bad, match in ((tmp_path / "none.exr", "none.exr: no such HDRI file"),
+                       ("no_such_name", "not a bundled environment map")):
+        with pytest.raises(UsageError, match=match):
+            make_morph_benchmark(ARMADILLO, tmp_path / "c", replace(s, hdri=str(bad)), show_progress=False)
+    corrupt = tmp_path / "corrupt.exr"
+    corrupt.write_bytes(b"not an exr")
+    with pytest.raises(Exception, match="corrupt.exr"):
+        make_morph_benchmark(ARMADILLO, tmp_path / "c", replace(s, hdri=str(corrupt)), show_progress=False)
+    assert not (tmp_path / "c").exists()
+
+
+def test_generated_suite_meshes_are_closed_outward_and_of_known_volume(tmp_path):
+    from inverse.morph.suite import SUITE, pedestal_mesh, suite_mesh, table_mesh
+
+    def volume(v, f):  # divergence theorem: positive for a closed outward-oriented surface
+        return float(np.sum(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]]))) / 6)
+
+    v, f = table_mesh()
+    assert volume(v, f) == pytest.approx(1.2 * 0.06 * 0.8 + 4 * 0.05 * 0.05 * 0.7, rel=1e-9)
+    v, f = pedestal_mesh(n_theta=64)
+    y = np.linspace(0.1, 1.0, 20001)
+    t = (y - 0.1) / 0.9
+    r = 0.22 + 0.12 * np.sin(np.pi * t * 1.5) ** 2 - 0.08 * t + 0.05 * np.exp(-((t - 0.95) / 0.05) ** 2)
+    polygon = 64 * np.sin(2 * np.pi / 64) / (2 * np.pi)  # a 64-gon's area / the circle's
+    vase = polygon * np.pi * np.trapezoid(r**2, y)
+    assert volume(v, f) == pytest.approx(1.6 * 0.1 * 1.6 + vase, rel=2e-3)  # the profile's chords: < 0.2 %
+    for name in SUITE:
+        load_mesh_any(suite_mesh(name, tmp_path))
 
 
 def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +38,7 @@ import mi_plugins  # noqa: F401
 import mitsuba as mi
 
 from foundation import imageio, validate
-from foundation.assets import envmap, hdri_path
+from foundation.assets import HDRI_DIR, envmap, hdri_label, hdri_path
 from foundation.errors import UsageError
 from foundation.files import atomic_dir, write_json
 from foundation.mesh import MeshError, UVMesh, load_obj
@@ -80,8 +80,10 @@ class FaceBenchmarkSettings:
             raise UsageError("views: at least one (yaw, pitch) view is needed")
         if not self.heldout_hdris:
             raise UsageError("heldout_hdris: at least one HDRI is needed")
-        for h in self.heldout_hdris:
-            hdri_path(h)
+        labels = [hdri_label(h) for h in self.heldout_hdris]
+        if len(set(labels)) != len(labels):
+            raise UsageError(f"heldout_hdris: two HDRIs share a name ({', '.join(labels)}); rename one")
+        # The files are checked when a benchmark is made (.exr files are copied in; a record need not find them).
 
 
 @dataclass
@@ -364,10 +366,17 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
     scan, out = Path(scan), Path(out)
     mesh = load_obj(scan)
     scan_texture(mesh)  # a missing or damaged texture is named before any rendering
+    for h in s.heldout_hdris:
+        envmap(h)  # a missing or unreadable HDRI is named before any rendering
     t0 = time.perf_counter()
     with atomic_dir(out, MARKER) as tmp:
-        # The benchmark carries its own copy of the geometry (self-contained folder).
+        # The benchmark carries its own copy of the geometry (self-contained folder) and of the user's HDRIs.
         shutil.copyfile(scan, tmp / "mesh.obj")
+        own = {h: f"hdri/{hdri_label(h)}.exr" for h in s.heldout_hdris if hdri_path(h).parent != HDRI_DIR}
+        if own:
+            (tmp / "hdri").mkdir()
+            for h, rel in own.items():
+                shutil.copyfile(hdri_path(h), tmp / rel)
         geo = bake_geometry(mesh, s.uv_res)
         gt = ground_truth_maps(mesh, geo, s)
         centre, radius, front = scan_frame(mesh)
@@ -396,8 +405,8 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
             heldout = {}
             for hdri in s.heldout_hdris:
                 rgb, mask = render_heldout(scan, gt, s, hdri, views[0], centre, fov)
-                heldout[hdri] = rgb
-                heldout[f"{hdri}_mask"] = mask.astype(np.float32)
+                heldout[hdri_label(hdri)] = rgb
+                heldout[f"{hdri_label(hdri)}_mask"] = mask.astype(np.float32)
                 bar.update(1)
 
         imageio.write_exr(tmp / "geometry.exr", {"position": geo.position, "normal": geo.normal,
@@ -411,7 +420,8 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
         imageio.write_png(tmp / "albedo_gt.png", gt["albedo"])
         imageio.write_png(tmp / "observation_v0_l0.png", obs["v0_l0"])
         meta = FaceBenchmarkMeta(
-            scan=str(scan), mesh="mesh.obj", settings=s, lights=lights, views=[tuple(map(float, v)) for v in views],
+            scan=str(scan), mesh="mesh.obj",
+            settings=replace(s, heldout_hdris=tuple(own.get(h, h) for h in s.heldout_hdris)), lights=lights, views=[tuple(map(float, v)) for v in views],
             centre=tuple(map(float, centre)), radius=radius, front=tuple(map(float, front)),
             heldout_camera=HeldoutCamera(tuple(map(float, views[0])), tuple(map(float, centre)), fov),
             camera_fov=fov, seconds=time.perf_counter() - t0)
@@ -452,6 +462,12 @@ def load_benchmark(path: str | Path) -> FaceBenchmark:
                               "photoreal face make-benchmark")
     if not (path / meta.mesh).is_file():
         raise UsageError(f"{path / meta.mesh}: missing from the benchmark")
+    # HDRIs copied into the benchmark are named relative to it
+    hdris = tuple(str(path / h) if h.startswith("hdri/") else h for h in meta.settings.heldout_hdris)
+    for h in hdris:
+        if h.startswith(str(path)) and not Path(h).is_file():
+            raise UsageError(f"{h}: missing from the benchmark (its held-out renders were lit by it)")
+    meta.settings = replace(meta.settings, heldout_hdris=hdris)
     geometry = _layers(path / "geometry.exr")
     geometry = {k: (v[..., 0] if v.shape[-1] == 1 else v) for k, v in geometry.items()}
     vis = {k: v[..., 0] for k, v in _layers(path / "visibility.exr").items()}
@@ -464,7 +480,7 @@ def load_benchmark(path: str | Path) -> FaceBenchmark:
                                                       for k in range(len(meta.lights))]),
             "visibility.exr": (bench.visibility, [f"v{v}" for v in range(len(meta.views))]
                                + [f"light{k}" for k in range(len(meta.lights))]),
-            "heldout.exr": (bench.heldout, [h for h in meta.settings.heldout_hdris])}
+            "heldout.exr": (bench.heldout, [hdri_label(h) for h in meta.settings.heldout_hdris])}
     for name, (layers, keys) in need.items():
         missing = [k for k in keys if k not in layers]
         if missing:

@@ -30,6 +30,7 @@ import drjit as dr
 import mitsuba as mi
 
 from foundation import validate
+from foundation.assets import hdri_label
 from foundation.errors import UsageError
 from foundation.loop import DrJitStage, LoopSettings, RunState, StepResult, TrainingSummary, run_loop
 from foundation.mesh import load_obj
@@ -510,11 +511,12 @@ def evaluate_fit(bench: FaceBenchmark, result: FaceFitResult, relight: bool = Tr
         for hdri in s.heldout_hdris:
             rgb, _ = render_heldout(bench.mesh_path, maps, s, hdri, np.asarray(cam.eye), np.asarray(cam.target),
                                     cam.fov)
-            ref = bench.heldout[hdri]
-            mask = bench.heldout[f"{hdri}_mask"][..., 0] > 0.5
-            out.relit[hdri] = RelitMetrics(masked_psnr(rgb, ref, mask), flip(rgb, ref, mask=mask))
+            name = hdri_label(hdri)
+            ref = bench.heldout[name]
+            mask = bench.heldout[f"{name}_mask"][..., 0] > 0.5
+            out.relit[name] = RelitMetrics(masked_psnr(rgb, ref, mask), flip(rgb, ref, mask=mask))
             if images is not None:
-                images[hdri] = rgb
+                images[name] = rgb
         out.relit_psnr = float(np.mean([v.psnr for v in out.relit.values()]))
         out.relit_flip = float(np.mean([v.flip for v in out.relit.values()]))
     return out

@@ -18,6 +18,7 @@ The village's textures come from the real photographs scikit-image ships
 
 from __future__ import annotations
 
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,9 +29,9 @@ import mi_plugins  # noqa: F401
 import mitsuba as mi
 
 from foundation import imageio, validate
-from foundation.assets import envmap, hdri_path
+from foundation.assets import HDRI_DIR, envmap, hdri_path
 from foundation.errors import UsageError
-from foundation.files import atomic_dir, write_json
+from foundation.files import atomic_dir, file_digest, write_json
 from foundation.mesh import load_mesh_any, normalise_mesh, sample_surface, vertex_normals, write_ply
 from foundation.progress import progress_bar
 from foundation.records import load_folder_record, to_json
@@ -45,9 +46,14 @@ class MorphBenchmarkSettings:
     test_every: int = 4  #: every k-th view is held out
     resolution: int = 128
     spp: int = 64
-    hdri: str = "sunrise"
+    hdri: str = "sunrise"  #: a bundled HDRI's name or an .exr file (copied into the benchmark)
     photo_max_depth: int = 4  #: path length of the "photos" (2 = direct light only)
-    elevation_deg: tuple[float, float] = (25.0, 45.0)  #: drone altitude range
+    #: camera elevation range; None = the drone's (25°, 45°) for the village, (−15°, 65°) for an object: its sides,
+    #: a little of its underside and its top
+    elevation_deg: tuple[float, float] | None = None
+    #: objects: the camera distance frames the object's bounding sphere with this margin (fraction of the image
+    #: half-width), so every view holds the whole silhouette; the village is a scene and keeps its drone framing
+    framing_margin: float = 0.1
     coarse_vertices: int = 3000  #: decimation target of the degraded mesh
     bump_amplitude: float = 0.012  #: × scene size, on flat regions
     wobble_amplitude: float = 0.008  #: × scene size, on sharp edges
@@ -68,9 +74,20 @@ class MorphBenchmarkSettings:
         validate.seed("seed", self.seed)
         for name in ("bump_amplitude", "wobble_amplitude", "misregistration", "colour_blur"):
             validate.non_negative(name, getattr(self, name))
-        if len(self.elevation_deg) != 2 or not -89 <= self.elevation_deg[0] <= self.elevation_deg[1] <= 89:
-            raise UsageError(f"elevation_deg must be (low, high) within [-89, 89]°, got {self.elevation_deg}")
-        hdri_path(self.hdri)
+        validate.in_range("framing_margin", self.framing_margin, 0.0, 0.9)
+        el = self.elevation_deg
+        if el is not None:
+            self.elevation_deg = el = tuple(float(x) for x in el)
+        if el is not None and (len(el) != 2 or not -89 <= el[0] <= el[1] <= 89):
+            raise UsageError(f"elevation_deg must be (low, high) within [-89, 89]°, got {el}")
+        # The HDRI itself is checked when a benchmark is made (an .exr is copied in; a record need not find it).
+        if not isinstance(self.hdri, str) or not self.hdri:
+            raise UsageError(f"hdri: a bundled HDRI name or an .exr file, got {self.hdri!r}")
+
+    def elevations(self, kind: str) -> tuple[float, float]:
+        if self.elevation_deg is not None:
+            return tuple(self.elevation_deg)
+        return (25.0, 45.0) if kind == "village" else (-15.0, 65.0)
 
 
 @dataclass(frozen=True)
@@ -96,7 +113,7 @@ class Degradation:
 class MorphBenchmarkMeta:
     """``morph_benchmark.json``: how the benchmark was made, its cameras and split."""
 
-    source: str  #: the mesh file it was made from (as given) or "village"
+    source: str  #: the mesh file's name (no folder: the JSON is shared) or "village"
     kind: str  #: "village" or the mesh file's stem
     settings: MorphBenchmarkSettings
     cameras: list[Camera]
@@ -105,11 +122,12 @@ class MorphBenchmarkMeta:
     test: list[int]  #: held-out camera indices (never fitted)
     scene_size: float  #: bounding-box diagonal of the ground truth
     centre: list[float]
-    hdri: str  #: bundled HDRI name or EXR path lighting the photos
+    hdri: str  #: bundled HDRI name, or ``hdri.exr`` in the benchmark folder (absolute once loaded)
     degradation: Degradation
     gt_parts: list[str]
     seconds: float
     format: str = FORMAT
+    source_sha256: str | None = None  #: content hash of the mesh file (None for the village)
 
     @property
     def resolution(self) -> int:
@@ -264,17 +282,29 @@ def procedural_colours(v: np.ndarray, seed: int) -> np.ndarray:
 # -- cameras -------------------------------------------------------------------------------------------
 
 
-def drone_orbit(n: int, centre: np.ndarray, radius: float, elevation: tuple[float, float], seed: int) -> list[Camera]:
-    """``n`` cameras on a jittered orbit, altitude varying between the elevation bounds."""
+def drone_orbit(n: int, centre: np.ndarray, radius: float, elevation: tuple[float, float], seed: int,
+                jitter: float = 0.02) -> list[Camera]:
+    """``n`` cameras on a jittered orbit, altitude varying between the elevation bounds (three periods per turn,
+    so that neighbouring views differ in height and every quarter of the orbit spans the whole range); the
+    look-at target is jittered by ``jitter`` × radius."""
     rng = np.random.default_rng(seed + 5)
     cams = []
     for i in range(n):
         az = 2 * np.pi * i / n + rng.uniform(-0.05, 0.05)
         el = np.radians(elevation[0] + (elevation[1] - elevation[0]) * (0.5 + 0.5 * np.sin(3 * az)))
         eye = centre + radius * np.array([np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)])
-        target = centre + rng.normal(scale=0.02 * radius, size=3)
+        target = centre + rng.normal(scale=jitter * radius, size=3) if jitter else np.asarray(centre, float)
         cams.append(Camera(tuple(map(float, eye)), tuple(map(float, target))))
     return cams
+
+
+def framing_distance(v: np.ndarray, centre: np.ndarray, fov: float, margin: float) -> float:
+    """Camera distance at which the bounding sphere (radius r about ``centre``) fits inside (1 − margin) of the
+    image half-width from any direction. The sphere seen from distance d is a cone of half-angle α = asin(r/d),
+    whose image reaches tan α on the image plane: tan α ≤ t = (1 − margin)·tan(fov/2) ⇔ d ≥ r·√(1 + t²)/t."""
+    r = float(np.linalg.norm(np.asarray(v) - centre, axis=1).max())
+    t = (1.0 - margin) * np.tan(np.radians(fov / 2))
+    return r * np.sqrt(1.0 + t * t) / t  # d with r/d = sin(atan(t))
 
 
 def sensor_dict(cam: Camera, res: int, fov: float, sample_border: bool = False) -> dict:
@@ -379,6 +409,7 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
     out = Path(out)
     rng = np.random.default_rng(s.seed)
     env = envmap(s.hdri)  # validated before any work
+    user_hdri = hdri_path(s.hdri) if hdri_path(s.hdri).parent != HDRI_DIR else None
     if str(source) != "village":
         load_mesh_any(source)  # a missing, unreadable or degenerate mesh is named before the folder is touched
     t0 = time.perf_counter()
@@ -438,14 +469,19 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
         lo, hi = gt_v.min(0), gt_v.max(0)
         size = float(np.linalg.norm(hi - lo))
         centre = 0.5 * (lo + hi)
-        centre[1] = lo[1] + 0.25 * (hi[1] - lo[1])
         write_ply(tmp / "ground_truth.ply", gt_v, gt_f)
 
         # Photos.
         fov = 40.0
-        # Frame the scene's central part (the orbit sees the whole ground only at the borders).
-        radius = 0.5 * size / np.tan(np.radians(fov / 2)) * (0.75 if kind == "village" else 0.8)
-        cams = drone_orbit(s.n_views, centre, radius, s.elevation_deg, s.seed)
+        if kind == "village":
+            # A scene, not an object: frame its central part (the orbit sees the whole ground only at the borders).
+            centre[1] = lo[1] + 0.25 * (hi[1] - lo[1])
+            radius = 0.5 * size / np.tan(np.radians(fov / 2)) * 0.75
+            jitter = 0.02
+        else:
+            radius = framing_distance(gt_v, centre, fov, s.framing_margin)
+            jitter = 0.0  # the bounding sphere is centred exactly: the framing guarantee holds in every view
+        cams = drone_orbit(s.n_views, centre, radius, s.elevations(kind), s.seed, jitter=jitter)
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": s.photo_max_depth},
                               "env": env, **shapes})
         photos = {}
@@ -456,6 +492,8 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
                 bar.update(1)
         del scene
         imageio.write_exr(tmp / "photos.exr", photos, half=True)
+        if user_hdri is not None:  # the benchmark carries its lighting: the folder can move or be shared
+            shutil.copyfile(user_hdri, tmp / "hdri.exr")
 
         # Degraded reconstruction with vertex colours.
         gt_pts, gt_fid, gt_w = sample_surface(gt_v, gt_f, 200_000, rng)
@@ -466,10 +504,11 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
         imageio.write_png(tmp / "preview_view00.png", photos["view00"])
         test = [i for i in range(s.n_views) if i % s.test_every == s.test_every - 1]
         meta = MorphBenchmarkMeta(
-            source=str(source), kind=kind, settings=s, cameras=cams, fov=fov,
-            train=[i for i in range(s.n_views) if i not in test], test=test, scene_size=size,
-            centre=centre.tolist(), hdri=s.hdri, degradation=log, gt_parts=sorted(k for k in shapes),
-            seconds=time.perf_counter() - t0)
+            source="village" if kind == "village" else Path(source).name, kind=kind, settings=s, cameras=cams,
+            fov=fov, train=[i for i in range(s.n_views) if i not in test], test=test, scene_size=size,
+            centre=centre.tolist(), hdri="hdri.exr" if user_hdri is not None else s.hdri, degradation=log,
+            gt_parts=sorted(k for k in shapes), seconds=time.perf_counter() - t0,
+            source_sha256=None if kind == "village" else file_digest(source, 64))
         write_json(tmp / MARKER, to_json(meta))  # last: its presence marks a complete benchmark
     return out
 
@@ -499,6 +538,10 @@ def load_morph_benchmark(path: str | Path) -> MorphBenchmark:
     mp = path / MARKER
     meta = load_folder_record(path, MARKER, MorphBenchmarkMeta, FORMAT, "morph benchmark",
                               "photoreal morph make-benchmark")
+    if meta.hdri == "hdri.exr":  # a user's HDRI, copied into the benchmark
+        meta.hdri = str(path / "hdri.exr")
+        if not Path(meta.hdri).is_file():
+            raise UsageError(f"{meta.hdri}: missing from the benchmark (its photos were lit by it)")
     n = len(meta.cameras)
     if not meta.train or not meta.test or max(meta.train + meta.test) >= n or min(meta.train + meta.test) < 0:
         raise UsageError(f"{mp}: train/test views must be non-empty indices of the {n} cameras")
@@ -515,6 +558,27 @@ def load_morph_benchmark(path: str | Path) -> MorphBenchmark:
     if any(photos[f"view{i:02d}"].shape[:2] != (res, res) for i in range(n)):
         raise UsageError(f"{path / 'photos.exr'}: photos are not {res}×{res} as the benchmark says")
     return MorphBenchmark(path, meta, photos)
+
+
+def silhouette_margins(bench: MorphBenchmark, ids: list[int] | None = None, spp: int = 4) -> list[float]:
+    """Per view, the free border around the ground truth's silhouette: the smallest distance from a covered
+    pixel to the image edge, as a fraction of the image half-width (0: the object touches or leaves the frame)."""
+    meta = bench.meta
+    ids = list(meta.test if ids is None else ids)
+    res = meta.resolution
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "d:depth"},
+                          "gt": {"type": "ply", "filename": str(bench.ground_truth)}})
+    out = []
+    for i in ids:
+        sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, meta.fov))
+        hit = np.array(mi.render(scene, sensor=sensor, spp=spp, seed=int(i)))[..., 0] > 0
+        if not hit.any():
+            out.append(1.0)
+            continue
+        r, c = np.nonzero(hit)
+        free = min(r.min(), c.min(), res - 1 - r.max(), res - 1 - c.max())
+        out.append(float(free / (res / 2)))
+    return out
 
 
 # -- artifact regions in image space (for per-region errors of the refinement stages) ---------------------------

@@ -3,7 +3,7 @@ and held-out photos (the thesis' image metrics on views never fitted)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +13,7 @@ import mitsuba as mi
 
 from foundation import imageio
 from foundation.mesh import load_mesh_any, write_ply
-from foundation.mesh_metrics import chamfer, inverted_triangles, spikes
+from foundation.mesh_metrics import chamfer, facing_against_truth, spikes
 from foundation.metrics import ImageMetrics, image_metrics
 
 from .benchmark import MorphBenchmark, sensor_dict
@@ -31,14 +31,23 @@ class MorphEvaluation:
     psnr_heldout_morphed: float
     heldout_input: ImageMetrics  #: mean over the held-out views, coarse input rendered
     heldout_morphed: ImageMetrics
-    #: vertices moved more than 3× their local edge length; −1 when remeshing during the run broke the
-    #: per-vertex correspondence with the start
+    #: vertices whose displacement departs from their 1-ring's mean displacement by more than 3× their local
+    #: edge length (see foundation.mesh_metrics.spikes); −1 when remeshing during the run broke the per-vertex
+    #: correspondence with the start
     spike_vertices: int
     inverted_triangles: int  #: triangles flipped w.r.t. the start of the optimisation (folds), −1 as above
     spikes: int  #: both
-    facing_against_truth: int  #: triangles facing against the ground truth at their nearest truth triangle
+    #: triangles facing against the ground truth at the truth's nearest surface point: the result, the coarse
+    #: input and the mesh the optimisation started from (the input remeshed); counts and area fractions
+    facing_against_truth: int
     facing_against_truth_input: int
     scene_size: float
+    _: KW_ONLY  # added later: results written before them still load
+    far_moved_vertices: int = -1  #: vertices moved more than 3× their edge length at all (−1 as above)
+    facing_against_truth_start: int = -1
+    facing_against_truth_area: float = float("nan")
+    facing_against_truth_area_input: float = float("nan")
+    facing_against_truth_area_start: float = float("nan")
 
 
 def evaluate_morph(bench: MorphBenchmark, v_in, f_in, c_in, v_out, f_out, c_out, mode: str, res: int,
@@ -73,8 +82,10 @@ def evaluate_morph(bench: MorphBenchmark, v_in, f_in, c_in, v_out, f_out, c_out,
     if len(v0) == len(v_out) and np.array_equal(f0, f_out):
         sp = spikes(v0, v_out, f_out, gv, gf)
     else:  # remeshed during the run: no per-vertex displacement to judge
-        sp = {"spike_vertices": -1, "inverted_triangles": -1, "spikes": -1,
-              "facing_against_truth": inverted_triangles(v_out, f_out, gv, gf)}
+        fa = facing_against_truth(v_out, f_out, gv, gf)
+        sp = {"spike_vertices": -1, "far_moved_vertices": -1, "inverted_triangles": -1, "spikes": -1,
+              "facing_against_truth": fa["count"], "facing_against_truth_area": fa["area_fraction"]}
+    fa_in, fa_start = facing_against_truth(v_in, f_in, gv, gf), facing_against_truth(v0, f0, gv, gf)
     return MorphEvaluation(
         chamfer_input=ch_in["chamfer"], chamfer_morphed=ch_out["chamfer"],
         chamfer_reduction=1.0 - ch_out["chamfer"] / ch_in["chamfer"],
@@ -83,5 +94,8 @@ def evaluate_morph(bench: MorphBenchmark, v_in, f_in, c_in, v_out, f_out, c_out,
         psnr_heldout_input=mean["input"].psnr, psnr_heldout_morphed=mean["morphed"].psnr,
         heldout_input=mean["input"], heldout_morphed=mean["morphed"],
         spike_vertices=sp["spike_vertices"], inverted_triangles=sp["inverted_triangles"], spikes=sp["spikes"],
-        facing_against_truth=sp["facing_against_truth"],
-        facing_against_truth_input=inverted_triangles(v_in, f_in, gv, gf), scene_size=meta.scene_size)
+        far_moved_vertices=sp["far_moved_vertices"],
+        facing_against_truth=sp["facing_against_truth"], facing_against_truth_area=sp["facing_against_truth_area"],
+        facing_against_truth_input=fa_in["count"], facing_against_truth_area_input=fa_in["area_fraction"],
+        facing_against_truth_start=fa_start["count"], facing_against_truth_area_start=fa_start["area_fraction"],
+        scene_size=meta.scene_size)

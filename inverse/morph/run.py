@@ -30,7 +30,7 @@ vertex colours the image loss alone does not pin the bumps of large flat areas
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -41,10 +41,13 @@ import drjit as dr
 import mitsuba as mi
 
 from foundation import validate
+from foundation.errors import UsageError
 from foundation.files import file_digest
 from foundation.loop import (DrJitStage, LoopSettings, RunState, StepResult, TrainingSummary, rng_state, run_loop,
                              set_rng_state)
-from foundation.mesh import face_normals, read_ply_colours, write_ply
+from foundation.mesh import face_normals, load_mesh_any, read_ply_colours, write_ply
+from foundation.mesh_metrics import chamfer
+from foundation.records import from_json, to_json
 from foundation.optim_state import load_optimizer_state, optimizer_state
 from foundation.scene import mitsuba_log_level
 
@@ -85,6 +88,23 @@ class MorphSettings:
     planarity_angle: float = 20.0  #: degrees; σ = 1 − cos(angle), where the prior's pull starts to fade
     planarity_auto_weight: float = 1.0
     planarity_auto_threshold: float = 0.2  #: village's largest plane 0.48 of the area, armadillo's 0.05, a sphere's 0.07
+    #: training photos kept out of the fit (evenly spread over the orbit) to watch convergence: their L1 every
+    #: ``check_every`` iterations is the validation curve; 0 = fit every training photo, no validation
+    validation_views: int = 3
+    #: at most this share of the training photos goes to validation (few photos: all are fitted, no early stop)
+    validation_fraction: float = 0.125
+    check_every: int = 25
+    #: stop when the validation L1 has not improved by ``min_improvement`` (relative) for ``patience`` checks
+    #: (never before ``min_iterations``); the learning rates still decay over ``iterations``
+    early_stop: bool = False
+    patience: int = 2
+    min_improvement: float = 0.005
+    min_iterations: int = 100
+    #: large-steps λ schedule: start at ``lambda_start`` (stiffer: smooth early steps while the silhouettes are
+    #: far off) and fall geometrically to ``lambda_`` over the first ``lambda_warmup`` of the iterations (the
+    #: operator is refactored at each check); None = constant λ
+    lambda_start: float | None = None
+    lambda_warmup: float = 0.3
     seed: int = 0
 
     def __post_init__(self):
@@ -108,6 +128,27 @@ class MorphSettings:
         validate.non_negative("planarity_auto_weight", self.planarity_auto_weight)
         validate.in_range("planarity_auto_threshold", self.planarity_auto_threshold, 0.0, 1.0)
         validate.seed("seed", self.seed, 200_000)  # render seeds are seed·7919 + step·101 + view
+        validate.integer("validation_views", self.validation_views, 0)
+        validate.in_range("validation_fraction", self.validation_fraction, 0.0, 0.5)
+        validate.integer("check_every", self.check_every, 1)
+        validate.integer("patience", self.patience, 1)
+        validate.non_negative("min_improvement", self.min_improvement)
+        validate.integer("min_iterations", self.min_iterations, 0)
+        validate.optional(validate.positive, "lambda_start", self.lambda_start)
+        validate.in_range("lambda_warmup", self.lambda_warmup, 0.0, 1.0)
+        if self.early_stop and not self.validation_views:
+            raise UsageError("early_stop needs validation_views ≥ 1 (the stopping rule watches their loss)")
+
+
+@dataclass
+class TracePoint:
+    """One point of a run's convergence record (every ``check_every`` iterations and at the end)."""
+
+    iteration: int
+    seconds: float  #: set-up + optimisation time so far (validation renders not counted)
+    validation_l1: float | None  #: mean L1 of the validation photos (None without validation views)
+    chamfer: float | None = None  #: to the ground truth (20k/200k samples: for the curve, not the headline figure)
+    lambda_: float | None = None  #: the large-steps λ in force
 
 
 @dataclass
@@ -132,6 +173,11 @@ class MorphResult(MorphEvaluation):
     planarity: PlanarityDecision | None = None
     repair: RepairReport | None = None
     pretrain_loss_last: float | None = None  #: GCN only: identity pre-training
+    trace: list[TracePoint] = field(default_factory=list)
+    stopped_early: bool = False  #: the validation loss stopped improving before ``settings.iterations``
+    validation_views: list[int] = field(default_factory=list)  #: training photos kept out of the fit
+    validation_seconds: float = 0.0  #: time spent rendering the validation views (not in ``seconds``)
+    trace_chamfer_input: float | None = None  #: the coarse input's Chamfer with the trace's estimator
 
 
 def start_mesh(bench: MorphBenchmark, s: MorphSettings) -> tuple[tuple, tuple]:
@@ -171,6 +217,13 @@ class MorphStage(DrJitStage):
         self.sigma = 1.0 - float(np.cos(np.radians(s.planarity_angle)))
         self.lr_pos = s.lr * self.size / 10.0 if s.parameterisation == "large_steps" else s.lr * self.size / 100.0
         self.work_ply = out / ".morph_work.ply"
+        self.val_ids = validation_split(meta.train, min(s.validation_views,
+                                                        int(s.validation_fraction * len(meta.train))))
+        self.train_ids = [i for i in meta.train if i not in self.val_ids]
+        self.trace: list[TracePoint] = []
+        self.snapshots: list[np.ndarray] = []  #: vertices at the trace points (same topology only)
+        self.best_val, self.since_best, self.validation_seconds = float("inf"), 0, 0.0
+        self.lam = s.lambda_start if s.lambda_start and s.parameterisation == "large_steps" else s.lambda_
         self._build(v0, v0, f0, c0)
         if self.planarity.weight and dr.width(self.pairs) == 0:  # no manifold edge (an unwelded soup)
             self.planarity.weight = 0.0
@@ -189,7 +242,7 @@ class MorphStage(DrJitStage):
         self.pairs = mi.UInt32(np.ascontiguousarray(dihedral_pairs(f), np.uint32).ravel())
         self.n_start = face_normals(v_ref, f) if s.forbid_flips else None
         if s.parameterisation == "large_steps":
-            self.ls = mi.ad.LargeSteps(mi.Float(np.ascontiguousarray(v_ref, np.float32).ravel()), self.f_mi, s.lambda_)
+            self.ls = mi.ad.LargeSteps(mi.Float(np.ascontiguousarray(v_ref, np.float32).ravel()), self.f_mi, self.lam)
             self.opt = mi.ad.Adam(lr=self.lr_pos, uniform=True)
             self.key = "u"
             self.opt["u"] = self.ls.to_differential(mi.Float(np.ascontiguousarray(v, np.float32).ravel()))
@@ -217,12 +270,66 @@ class MorphStage(DrJitStage):
 
     def state(self) -> dict:
         return {"faces": self.faces, "v_ref": self.v_ref, "vertices": self.vertices(), "colours": self.colours(),
-                "optimizer": optimizer_state(self.opt), "rng": rng_state(self.rng)}
+                "optimizer": optimizer_state(self.opt), "rng": rng_state(self.rng), "lambda": self.lam,
+                "trace": [to_json(t) for t in self.trace], "snapshots": list(self.snapshots),
+                "best_val": self.best_val, "since_best": self.since_best,
+                "validation_seconds": self.validation_seconds}
 
     def load_state(self, tree: dict) -> None:
+        self.lam = float(tree["lambda"])
         self._build(tree["vertices"], tree["v_ref"], tree["faces"], tree["colours"])
         load_optimizer_state(self.opt, tree["optimizer"], "morph optimizer")
         set_rng_state(self.rng, tree["rng"])
+        self.trace = [from_json(TracePoint, t, "morph checkpoint: trace") for t in tree["trace"]]
+        self.snapshots = [np.asarray(x) for x in tree["snapshots"]]
+        self.best_val, self.since_best = float(tree["best_val"]), int(tree["since_best"])
+        self.validation_seconds = float(tree["validation_seconds"])
+
+    # -- validation, trace, λ schedule ----------------------------------------------------------------------------
+
+    def validation_l1(self) -> float | None:
+        """Mean L1 of the validation photos (fixed seeds: checks compare like with like); no gradients."""
+        if not self.val_ids:
+            return None
+        meta = self.bench.meta
+        with dr.suspend_grad():
+            imgs = render_views(self.scene, self.params, meta.cameras, self.val_ids, self.res, meta.fov,
+                                max(self.s.spp, 8), 7_000_003)
+            return float(np.mean([np.asarray(dr.mean(dr.abs(img[..., :3] - self.photos[int(i)]), axis=None)).item()
+                                  for img, i in zip(imgs, self.val_ids)]))
+
+    def _check(self, run: RunState) -> None:
+        s = self.s
+        t0 = time.perf_counter()
+        val = self.validation_l1()
+        self.validation_seconds += time.perf_counter() - t0
+        self.trace.append(TracePoint(run.step, self.setup_seconds + run.train_seconds, val,
+                                     lambda_=self.lam if s.parameterisation == "large_steps" else None))
+        if not s.remesh_at:
+            self.snapshots.append(self.vertices().astype(np.float32))
+        if val is None:
+            return
+        if val < self.best_val * (1.0 - s.min_improvement):
+            self.best_val, self.since_best = val, 0
+        else:
+            self.since_best += 1
+        if s.early_stop and self.since_best >= s.patience and run.step >= s.min_iterations:
+            run.stopped = True
+
+    def _schedule_lambda(self, step: int) -> None:
+        """Geometric fall from λ_start to λ over the warm-up; the operator is refactored, Adam's state on u reset."""
+        s = self.s
+        if not s.lambda_start or s.parameterisation != "large_steps":
+            return
+        t = min(1.0, step / max(s.lambda_warmup * s.iterations, 1.0))
+        lam = float(s.lambda_start * (s.lambda_ / s.lambda_start) ** t)
+        if abs(lam - self.lam) <= 1e-9 * lam:
+            return
+        v = self.positions()
+        self.lam = lam
+        self.ls = mi.ad.LargeSteps(mi.Float(np.ascontiguousarray(self.v_ref, np.float32).ravel()), self.f_mi, lam)
+        self.opt["u"] = self.ls.to_differential(dr.detach(v))
+        self.opt.reset("u")  # u = (I + λL)v changes scale with λ: old moments would mislead the steps
 
     def step(self, it: int) -> StepResult:
         s, meta = self.s, self.bench.meta
@@ -233,7 +340,7 @@ class MorphStage(DrJitStage):
         self.params["mesh.vertex_color"] = self.opt["c"]
         with mitsuba_log_level(mi.LogLevel.Error):  # non-manifold vertices of remeshed inputs: expected
             self.params.update()
-        views = self.rng.choice(meta.train, size=min(s.views_per_step, len(meta.train)), replace=False)
+        views = self.rng.choice(self.train_ids, size=min(s.views_per_step, len(self.train_ids)), replace=False)
         imgs = render_views(self.scene, self.params, meta.cameras, views, self.res, meta.fov, s.spp,
                             s.seed * 7919 + it * 101)
         loss = 0
@@ -255,10 +362,18 @@ class MorphStage(DrJitStage):
             undo_flips(self.opt, self.key, v_before, self.positions,
                        self.ls.to_differential if self.ls is not None else (lambda x: x), self.n_start, self.faces)
 
+    def start(self, run: RunState) -> None:
+        if run.step == 0 and not self.trace:
+            self._check(run)
+
     def after_step(self, it: int, run: RunState) -> None:
         if run.step in self.s.remesh_at and not run.done:
             v, f, c = remesh(self.vertices(), self.faces, self.colours())
             self._build(v, v, f, c)
+        if run.step % self.s.check_every == 0 or run.done:
+            self._check(run)
+            if not run.stopped and not run.done:
+                self._schedule_lambda(run.step)
 
     def finish(self, run: RunState) -> MorphResult:
         s = self.s
@@ -271,14 +386,33 @@ class MorphStage(DrJitStage):
         self.close()
         ev = evaluate_morph(self.bench, self.v_in, self.f_in, self.c_in, v_out, self.faces, c_out, s.mode, self.res,
                             self.out, start=(self.v_start, self.f_start) if not s.remesh_at else None)
-        return MorphResult(**vars(ev), seconds=seconds, iterations=s.iterations, vertices=int(len(v_out)),
+        trace_in = None
+        if self.snapshots:  # the convergence curve in Chamfer (coarser estimator than the headline figure)
+            gv, gf = load_mesh_any(self.bench.ground_truth)
+
+            def quick(v, f):
+                return chamfer(np.asarray(v, np.float64), f, gv, gf, n=20_000, n_ref=200_000)["chamfer"]
+            trace_in = quick(self.v_in, self.f_in)
+            for t, v in zip(self.trace, self.snapshots):
+                t.chamfer = quick(v, self.faces)
+        return MorphResult(**vars(ev), seconds=seconds, iterations=run.step, vertices=int(len(v_out)),
                            method=s.parameterisation, settings=s, training=run.summary(),
-                           planarity=self.planarity, repair=repair)
+                           planarity=self.planarity, repair=repair, trace=self.trace, stopped_early=run.stopped,
+                           validation_views=list(self.val_ids), validation_seconds=self.validation_seconds,
+                           trace_chamfer_input=trace_in)
 
     def close(self) -> None:
         """Free the scene (Mitsuba traces every live plugin instance in every render) and the work file."""
         self.scene = self.params = self.opt = self.ls = None
         self.work_ply.unlink(missing_ok=True)
+
+
+def validation_split(train: list[int], k: int) -> list[int]:
+    """``k`` training views spread evenly over the orbit (never all of them: at least one stays to fit)."""
+    k = min(k, len(train) - 1)
+    if k <= 0:
+        return []
+    return sorted({train[int((j + 0.5) * len(train) / k)] for j in range(k)})
 
 
 def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = None,

@@ -7,17 +7,28 @@ import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+import numpy as np
+
 from foundation import validate
 from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
 from inverse.morph import (MorphBenchmarkSettings, MorphResult, MorphSettings, load_morph_benchmark,
                            make_morph_benchmark, run_morph)
+from inverse.morph.benchmark import silhouette_margins
+from inverse.morph.suite import KINDS, SUITE, suite_mesh
 
 
 @dataclass
 class MorphBenchSettings:
+    #: what to run: "cases" (village and armadillo: main run, speed vs the tutorial, vertex sweep, stability),
+    #: "suite" (the generalisation suite: one run per mesh at the same defaults), "framing" (views and photo
+    #: resolution of the benchmark, swept on the first suite mesh)
+    parts: tuple[str, ...] = ("cases", "suite", "framing")
     cases: tuple[str, ...] = ("village", "armadillo")
+    suite: tuple[str, ...] = SUITE  #: suite meshes (inverse.morph.suite); "village"/"armadillo" may be added
+    framing_views: tuple[int, ...] = (8, 16, 32)
+    framing_resolutions: tuple[int, ...] = (64, 128, 192)
     iterations: int = 300
     sweep_vertices: tuple[int, ...] = (2000, 4000, 8000, 16000)
     sweep_iterations: int = 120
@@ -38,6 +49,18 @@ class MorphBenchSettings:
         validate.integer("speed_resolution", self.speed_resolution, 8, 4096)
         validate.integer("baseline_spp", self.baseline_spp, 1)
         validate.seed("seed", self.seed)
+        for part in self.parts:
+            validate.one_of("parts", part, ("cases", "suite", "framing"))
+        for name in self.suite:
+            validate.one_of("suite", name, (*SUITE, "village", "armadillo"))
+        for n in self.framing_views:
+            validate.integer("framing_views", n, 4, 1024)
+        for n in self.framing_resolutions:
+            validate.integer("framing_resolutions", n, 16, 4096)
+
+
+#: the suite's targets (issue 17): per mesh, at the same defaults
+TARGETS = {"chamfer_reduction": 0.40, "psnr_gain_db": 3.0}
 
 
 def source(case: str) -> str:
@@ -121,6 +144,89 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, pool: PoolSettings,
     }
 
 
+def suite_row(name: str, m: MorphResult) -> dict:
+    """One mesh of the suite: the figures of issue 17 and whether each target holds."""
+    row = {"kind": KINDS.get(name, "tuned on"), **_summary(m),
+           "psnr_gain_db": m.psnr_heldout_morphed - m.psnr_heldout_input,
+           "far_moved_vertices": m.far_moved_vertices,
+           "facing_against_truth": {"input": m.facing_against_truth_input, "start": m.facing_against_truth_start,
+                                    "morphed": m.facing_against_truth},
+           "facing_against_truth_area": {"input": m.facing_against_truth_area_input,
+                                         "start": m.facing_against_truth_area_start,
+                                         "morphed": m.facing_against_truth_area},
+           "normal_consistency": {"input": m.normal_consistency_input, "morphed": m.normal_consistency_morphed},
+           "iterations": m.iterations, "stopped_early": m.stopped_early, "trace_chamfer_input": m.trace_chamfer_input,
+           "s_per_iteration": m.seconds / max(m.iterations, 1), "validation_seconds": m.validation_seconds,
+           "trace": [{"iteration": t.iteration, "seconds": t.seconds, "validation_l1": t.validation_l1,
+                      "chamfer": t.chamfer} for t in m.trace]}
+    row["checks"] = {
+        "chamfer_reduction": row["chamfer_reduction"] >= TARGETS["chamfer_reduction"],
+        "psnr_gain": row["psnr_gain_db"] >= TARGETS["psnr_gain_db"],
+        "no_spikes": m.spike_vertices == 0, "no_inverted": m.inverted_triangles == 0,
+        # counts differ between the coarse input and the remeshed result: the area fraction compares them
+        "facing_not_worse": m.facing_against_truth_area <= m.facing_against_truth_area_input,
+        "normal_consistency_up": m.normal_consistency_morphed > m.normal_consistency_input}
+    row["passes"] = all(row["checks"].values())
+    return row
+
+
+def _item(key: str, bench_dir: Path, out: Path, settings: MorphSettings) -> Item:
+    return Item(key, "inverse.morph:run_item", (str(bench_dir), str(out), settings), {},
+                output=str(out / "metrics.json"), loader="inverse.morph:load_result")
+
+
+def _suite_bench(name: str, work: Path, bs: MorphBenchmarkSettings, tag: str = "") -> Path:
+    src = source(name) if name in ("village", "armadillo") else str(suite_mesh(name, work / "meshes"))
+    return make_morph_benchmark(src, work / f"bench_{name}{tag}", bs, show_progress=False)
+
+
+def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
+    """Every suite mesh morphed with the same defaults (the pool runs them side by side)."""
+    benches = {n: _suite_bench(n, work, MorphBenchmarkSettings(seed=s.seed)) for n in s.suite}
+    items = [_item(n, benches[n], work / f"suite_{n}", MorphSettings(iterations=s.iterations, seed=s.seed))
+             for n in s.suite]
+    report = run_items(items, pool, desc="bench morph suite", show_progress=show_progress)
+    report.raise_if_failed()
+    rows = {r.key: suite_row(r.key, r.value) for r in report.results}
+    rows = {n: rows[n] for n in s.suite}
+    keys = ("chamfer_reduction", "psnr_gain_db", "spike_vertices", "inverted_triangles", "seconds", "s_per_iteration")
+    mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in keys}
+    return {"meshes": rows, "mean": mean, "targets": TARGETS,
+            "all_pass": all(r["passes"] for r in rows.values()),
+            "failing": {n: [c for c, ok in r["checks"].items() if not ok] for n, r in rows.items() if not r["passes"]},
+            "pool": {"workers": pool.workers, "threads_per_run": pool.threads}}
+
+
+def bench_framing(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
+    """Why the benchmark's defaults (views, photo resolution): the first suite mesh made with each, morphed at
+    the same defaults. Held-out PSNR of different resolutions compares photos of different sizes: read Chamfer."""
+    name = s.suite[0]
+    base = MorphBenchmarkSettings(seed=s.seed)
+    variants = {f"views_{n}": replace(base, n_views=n) for n in s.framing_views}
+    variants.update({f"res_{r}": replace(base, resolution=r) for r in s.framing_resolutions})
+    items = []
+    for key, bs in variants.items():
+        b = _suite_bench(name, work, bs, f"_{key}")
+        items.append(_item(key, b, work / f"framing_{name}_{key}", MorphSettings(iterations=s.iterations,
+                                                                                   seed=s.seed)))
+    report = run_items(items, pool, desc=f"bench morph framing ({name})", show_progress=show_progress)
+    report.raise_if_failed()
+    runs = {r.key: r.value for r in report.results}
+    margins = {}
+    for key in variants:
+        bench = load_morph_benchmark(work / f"bench_{name}_{key}")
+        margins[key] = min(silhouette_margins(bench, list(range(len(bench.meta.cameras)))))
+
+    def row(key: str, **kw) -> dict:
+        m = runs[key]
+        return {**kw, "chamfer_reduction": m.chamfer_reduction, "psnr_gain_db": m.psnr_heldout_morphed
+                - m.psnr_heldout_input, "seconds": m.seconds, "min_silhouette_margin": margins[key]}
+    return {"mesh": name,
+            "views": [row(f"views_{n}", views=n, fitted_views=n - n // base.test_every
+                          - len(runs[f"views_{n}"].validation_views)) for n in s.framing_views],
+            "resolution": [row(f"res_{r}", resolution=r) for r in s.framing_resolutions]}
+
+
 def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True,
                 pool: PoolSettings | None = None) -> dict:
     """Run the bench in ``out_dir/morph_work`` (kept while it runs: a killed bench resumes; removed at the end)."""
@@ -130,16 +236,57 @@ def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True
     pool = pool or PoolSettings(workers=cores, threads=1)
     work = Path(out_dir) / "morph_work"
     t0 = time.perf_counter()
-    cases = {c: bench_case(c, work, s, pool, show_progress) for c in s.cases}
+    result: dict = {"settings": asdict(s)}
+    if "cases" in s.parts:
+        cases = {c: bench_case(c, work, s, pool, show_progress) for c in s.cases}
+        first = cases[s.cases[0]]
+        result.update({k: first[k] for k in ("chamfer_input", "chamfer_morphed", "psnr_heldout_input",
+                                             "psnr_heldout_morphed", "spikes", "s_per_iter_10k_4views_128",
+                                             "s_per_iter_baseline", "sweep", "chosen_vertices")})
+        result.update(chamfer_reduction=first["chamfer_reduction"], cases=cases)
+        result["chart"] = str(morph_chart(result, Path(out_dir) / "morph_speed_accuracy.png"))
+    if "suite" in s.parts:
+        result["suite"] = bench_suite(work, s, pool, show_progress)
+        result["suite_chart"] = str(suite_chart(result["suite"], Path(out_dir) / "morph_suite.png"))
+    if "framing" in s.parts:
+        result["framing"] = bench_framing(work, s, pool, show_progress)
+    result["seconds"] = time.perf_counter() - t0
     shutil.rmtree(work, ignore_errors=True)
-    first = cases[s.cases[0]]
-    result = {**{k: first[k] for k in ("chamfer_input", "chamfer_morphed", "psnr_heldout_input",
-                                        "psnr_heldout_morphed", "spikes", "s_per_iter_10k_4views_128",
-                                        "s_per_iter_baseline", "sweep", "chosen_vertices")},
-              "chamfer_reduction": first["chamfer_reduction"], "cases": cases, "settings": asdict(s),
-              "seconds": time.perf_counter() - t0}
-    result["chart"] = str(morph_chart(result, Path(out_dir) / "morph_speed_accuracy.png"))
     return result
+
+
+def suite_chart(suite: dict, path: Path) -> Path:
+    """Chamfer reduction against time for every suite mesh (the runs' traces), the target as a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from foundation.imageio import save_figure
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for name, r in suite["meshes"].items():
+        tr = [t for t in r["trace"] if t["chamfer"] is not None]
+        if not tr:
+            continue
+        # The trace's Chamfer uses a coarser estimator than the headline figure: relative to the coarse input
+        # measured with the same estimator.
+        c0 = r["trace_chamfer_input"]
+        ax[0].plot([t["seconds"] for t in tr], [1 - t["chamfer"] / c0 for t in tr], "-", label=f"{name} ({r['kind']})")
+        vl = [t for t in r["trace"] if t["validation_l1"] is not None]
+        if vl:
+            ax[1].plot([t["iteration"] for t in vl], [t["validation_l1"] / vl[0]["validation_l1"] for t in vl], "-",
+                       label=name)
+    ax[0].axhline(suite["targets"]["chamfer_reduction"], color="gray", ls="--", lw=0.8)
+    ax[0].set_xlabel("seconds (one run per worker, 1 thread each)")
+    ax[0].set_ylabel("Chamfer reduction vs the coarse input")
+    ax[1].set_xlabel("iteration")
+    ax[1].set_ylabel("validation L1 / at start (photos not fitted)")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(fontsize=7)
+    fig.suptitle("morph generalisation suite at the same defaults")
+    return save_figure(fig, path)
 
 
 def morph_chart(result: dict, path: Path) -> Path:
