@@ -780,7 +780,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="keep folds: skip the final unfolding of triangles flipped w.r.t. the start (reported)")
     _opt(mr, MorphSettings, "validation_views",
          help="training photos kept out of the fit to watch convergence (0: fit all)")
-    _opt(mr, MorphSettings, "early_stop", help="stop when the validation loss stops improving (--iterations caps it)")
+    _opt(mr, MorphSettings, "early_stop", "--no-early-stop",
+         help="run all --iterations (default: stop when the validation loss stops improving; --iterations caps it)")
     _opt(mr, MorphSettings, "lambda_start", type=float,
          help="large-steps λ at the start, falling to --lambda over the warm-up (default: constant λ)")
     _opt(mr, MorphSettings, "seed")

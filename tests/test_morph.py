@@ -182,6 +182,10 @@ def test_a_users_hdri_travels_with_the_benchmark(tmp_path):
     b = load_morph_benchmark(moved)
     assert b.meta.hdri == str(moved / "hdri.exr") and (moved / "hdri.exr").is_file()
     assert morph_scene(b.coarse, "lit", b.meta.hdri) is not None
+    assert json.loads((moved / "morph_benchmark.json").read_text())["settings"]["hdri"] == "hdri.exr"  # no path
+    bundled = make_morph_benchmark(ARMADILLO, tmp_path / "d", replace(s, hdri=str(HDRI_DIR / "forest.exr")),
+                                   show_progress=False)
+    assert load_morph_benchmark(bundled).meta.hdri == "forest" and not (bundled / "hdri.exr").exists()
     for bad, match in ((tmp_path / "none.exr", "none.exr: no such HDRI file"),
                        ("no_such_name", "not a bundled environment map")):
         with pytest.raises(UsageError, match=match):

@@ -372,7 +372,8 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
     with atomic_dir(out, MARKER) as tmp:
         # The benchmark carries its own copy of the geometry (self-contained folder) and of the user's HDRIs.
         shutil.copyfile(scan, tmp / "mesh.obj")
-        own = {h: f"hdri/{hdri_label(h)}.exr" for h in s.heldout_hdris if hdri_path(h).parent != HDRI_DIR}
+        own = {h: f"hdri/{hdri_label(h)}.exr" for h in s.heldout_hdris
+               if hdri_path(h).resolve().parent != HDRI_DIR.resolve()}
         if own:
             (tmp / "hdri").mkdir()
             for h, rel in own.items():
@@ -421,7 +422,7 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
         imageio.write_png(tmp / "observation_v0_l0.png", obs["v0_l0"])
         meta = FaceBenchmarkMeta(
             scan=str(scan), mesh="mesh.obj",
-            settings=replace(s, heldout_hdris=tuple(own.get(h, h) for h in s.heldout_hdris)), lights=lights, views=[tuple(map(float, v)) for v in views],
+            settings=replace(s, heldout_hdris=tuple(own.get(h, hdri_label(h)) for h in s.heldout_hdris)), lights=lights, views=[tuple(map(float, v)) for v in views],
             centre=tuple(map(float, centre)), radius=radius, front=tuple(map(float, front)),
             heldout_camera=HeldoutCamera(tuple(map(float, views[0])), tuple(map(float, centre)), fov),
             camera_fov=fov, seconds=time.perf_counter() - t0)

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -409,7 +409,7 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
     out = Path(out)
     rng = np.random.default_rng(s.seed)
     env = envmap(s.hdri)  # validated before any work
-    user_hdri = hdri_path(s.hdri) if hdri_path(s.hdri).parent != HDRI_DIR else None
+    user_hdri = hdri_path(s.hdri) if hdri_path(s.hdri).resolve().parent != HDRI_DIR.resolve() else None
     if str(source) != "village":
         load_mesh_any(source)  # a missing, unreadable or degenerate mesh is named before the folder is touched
     t0 = time.perf_counter()
@@ -503,10 +503,13 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
         write_ply(tmp / "coarse.ply", cv, cf, ccol)
         imageio.write_png(tmp / "preview_view00.png", photos["view00"])
         test = [i for i in range(s.n_views) if i % s.test_every == s.test_every - 1]
+        # Lighting by name, never by path: a bundled HDRI's name, or the copy inside the benchmark.
+        recorded_hdri = "hdri.exr" if user_hdri is not None else hdri_path(s.hdri).stem
         meta = MorphBenchmarkMeta(
-            source="village" if kind == "village" else Path(source).name, kind=kind, settings=s, cameras=cams,
+            source="village" if kind == "village" else Path(source).name, kind=kind,
+            settings=replace(s, hdri=recorded_hdri), cameras=cams,
             fov=fov, train=[i for i in range(s.n_views) if i not in test], test=test, scene_size=size,
-            centre=centre.tolist(), hdri="hdri.exr" if user_hdri is not None else s.hdri, degradation=log,
+            centre=centre.tolist(), hdri=recorded_hdri, degradation=log,
             gt_parts=sorted(k for k in shapes), seconds=time.perf_counter() - t0,
             source_sha256=None if kind == "village" else file_digest(source, 64))
         write_json(tmp / MARKER, to_json(meta))  # last: its presence marks a complete benchmark

@@ -29,7 +29,7 @@ class MorphBenchSettings:
     suite: tuple[str, ...] = SUITE  #: suite meshes (inverse.morph.suite); "village"/"armadillo" may be added
     framing_views: tuple[int, ...] = (8, 16, 32)
     framing_resolutions: tuple[int, ...] = (64, 128, 192)
-    iterations: int = 300
+    iterations: int = 600  #: the cap of the main and suite runs (they stop early: MorphSettings.early_stop)
     sweep_vertices: tuple[int, ...] = (2000, 4000, 8000, 16000)
     sweep_iterations: int = 120
     speed_vertices: int = 10_000
