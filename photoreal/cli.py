@@ -186,9 +186,12 @@ def _cmd_bench_morph(a) -> int:
     finally:
         ray_shutdown()
     write_json(out, result)
-    _print({k: result[k] for k in ("chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input",
-                                   "psnr_heldout_morphed", "spikes", "s_per_iter_10k_4views_128",
-                                   "s_per_iter_baseline", "chosen_vertices")})
+    shown = {k: result[k] for k in ("chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input",
+                                    "psnr_heldout_morphed", "spikes", "s_per_iter_10k_4views_128",
+                                    "s_per_iter_baseline", "chosen_vertices") if k in result}
+    if "suite" in result:
+        shown.update(suite_mean=result["suite"]["mean"], suite_failing=result["suite"]["failing"])
+    _print(shown)
     return 0
 
 

@@ -131,13 +131,19 @@ def test_morph_improves_photos_and_resumes_exactly(small_armadillo, tmp_path):
 
 
 def test_early_stop_ends_the_run_and_a_resumed_run_stays_ended(small_armadillo, tmp_path):
-    # min_improvement 0.9 cannot be met: the rule fires at the first check at or after min_iterations.
+    # min_improvement 0.9 cannot be met: the plateau is declared at the first check at or after min_iterations
+    # (step 4), the learning rates anneal over max(0.33 × 4, check_every) = 2 iterations, and the run ends at 6.
     s = MorphSettings(iterations=40, resolution=32, min_vertices=None, early_stop=True, check_every=2,
                       patience=1, min_improvement=0.9, min_iterations=4, validation_fraction=0.5)
     r = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
-    assert r.stopped_early and r.iterations == 4 and r.training.steps == 4
+    assert r.stopped_early and r.iterations == 6 and r.training.steps == 6
+    assert [t.iteration for t in r.trace] == [0, 2, 4, 6]
     again = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
-    assert again.iterations == 4 and again.training.loss_last == r.training.loss_last
+    assert again.iterations == 6 and again.training.loss_last == r.training.loss_last
+    # interrupted inside the anneal and resumed: the same run
+    assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=5) is None
+    resumed = run_morph(small_armadillo, tmp_path / "b", s, show_progress=False)
+    assert resumed.iterations == 6 and resumed.training.loss_last == r.training.loss_last
     with pytest.raises(UsageError, match="early_stop needs validation_views"):
         MorphSettings(early_stop=True, validation_views=0)
 
