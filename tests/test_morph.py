@@ -344,6 +344,26 @@ def _box(n=8):
     return uniq, inv.ravel()[f]
 
 
+def test_pleats_are_found_without_a_reference_and_ironed_out():
+    from inverse.morph.mesh_edit import pleats, unfold_pleats
+
+    v, f = _sphere(1.0, 20)
+    assert not pleats(v, f).any()
+    # A wrinkle: one vertex carried past its neighbour along the surface turns part of its fan over.
+    wrinkled = v.copy()
+    k = 10 * 40 + 7  # a vertex of the equator band
+    wrinkled[k] = v[k] + 2.0 * (v[k + 1] - v[k])
+    bad = pleats(wrinkled, f)
+    assert bad.any() and set(np.nonzero(bad)[0]) <= set(np.nonzero((f == k).any(axis=1))[0])
+    fixed, rep = unfold_pleats(wrinkled, f)
+    assert rep.pleats_before == int(bad.sum()) and rep.pleats_after == 0 and not pleats(fixed, f).any()
+    far = np.linalg.norm(v - v[k], axis=1) > 0.5
+    np.testing.assert_array_equal(fixed[far], wrinkled[far])  # only the wrinkle's neighbourhood moved
+    same, rep0 = unfold_pleats(v, f)
+    np.testing.assert_array_equal(same, v)
+    assert rep0.pleats_before == 0 and rep0.moved_vertices == 0
+
+
 def test_planarity_prior_closed_form_gradient_and_pairs():
     """Hinge of two triangles: prior = d/(d+σ) with d = 1 − cos θ (closed form); gradient = central
     differences (rtol 1e-3); a cube has 3F/2 consistent pairs, a flipped face drops its three edges."""

@@ -54,7 +54,7 @@ from foundation.scene import mitsuba_log_level
 from .benchmark import MorphBenchmark
 from .evaluate import MorphEvaluation, evaluate_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
-from .mesh_edit import RepairReport, remesh, repair_flips, undo_flips
+from .mesh_edit import PleatReport, RepairReport, remesh, repair_flips, undo_flips, unfold_pleats
 from .scene import MODES, morph_scene, photo_tensors, render_views
 
 
@@ -80,7 +80,8 @@ class MorphSettings:
     remesh_at: tuple[int, ...] = ()  #: iterations after which to remesh isotropically (pymeshlab)
     checkpoint_every: int = 20
     forbid_flips: bool = False  #: undo a step at vertices of triangles it flips w.r.t. the start
-    repair_flips: bool = True  #: after the run, unfold triangles flipped w.r.t. the start (local smoothing; reported)
+    #: after the run, unfold triangles flipped w.r.t. the start, then iron out pleats (local smoothing; reported)
+    repair_flips: bool = True
     #: weight of the edge-preserving planarity prior (mean over interior edges of ρ(1 − n_a·n_b), ρ(d) = d/(d+σ));
     #: 0 = image loss only (the thesis). Dihedrals well above ``planarity_angle`` (house corners, ridges) are left
     #: alone. None = auto: ``planarity_auto_weight`` for man-made scenes (the input's largest plane holds at least
@@ -179,6 +180,7 @@ class MorphResult(MorphEvaluation):
     training: TrainingSummary
     planarity: PlanarityDecision | None = None
     repair: RepairReport | None = None
+    pleats: PleatReport | None = None  #: the final ironing of pleats (after the unfolding of flips)
     pretrain_loss_last: float | None = None  #: GCN only: identity pre-training
     trace: list[TracePoint] = field(default_factory=list)
     stopped_early: bool = False  #: the validation loss stopped improving before ``settings.iterations``
@@ -402,8 +404,16 @@ class MorphStage(DrJitStage):
         s = self.s
         v_out, c_out = self.vertices(), self.colours()
         repair = None
+        pleat_report = None
         if s.repair_flips and not s.remesh_at:
             v_out, repair = repair_flips(v_out, self.faces, self.v_start)
+            v_unfolded, pleat_report = unfold_pleats(v_out, self.faces)
+            # the pleats' smoothing must not bring back a flip w.r.t. the start
+            flips = np.sum(face_normals(v_unfolded, self.faces) * face_normals(self.v_start, self.faces), axis=1) < 0
+            if not flips.any():
+                v_out = v_unfolded
+            else:
+                pleat_report = None
         write_ply(self.out / "morphed.ply", v_out, self.faces, np.clip(c_out, 0, 1))
         seconds = self.setup_seconds + run.train_seconds
         self.close()
@@ -420,7 +430,8 @@ class MorphStage(DrJitStage):
                 t.chamfer = quick(v, self.faces)
         return MorphResult(**vars(ev), seconds=seconds, iterations=run.step, vertices=int(len(v_out)),
                            method=s.parameterisation, settings=s, training=run.summary(),
-                           planarity=self.planarity, repair=repair, trace=self.trace, stopped_early=run.stopped,
+                           planarity=self.planarity, repair=repair, pleats=pleat_report, trace=self.trace,
+                           stopped_early=run.stopped,
                            validation_views=list(self.val_ids), validation_seconds=self.validation_seconds,
                            trace_chamfer_input=trace_in)
 
