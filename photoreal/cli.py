@@ -786,7 +786,8 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "early_stop", "--no-early-stop",
          help="run all --iterations (default: stop when the validation loss stops improving; --iterations caps it)")
     _opt(mr, MorphSettings, "lambda_start", type=float,
-         help="large-steps λ at the start, falling to --lambda over the warm-up (default: constant λ)")
+         help="large-steps λ at the start, falling geometrically to --lambda over the first 30%% of the iterations "
+              "(the same value as --lambda: constant λ)")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

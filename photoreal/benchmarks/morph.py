@@ -155,6 +155,7 @@ def suite_row(name: str, m: MorphResult) -> dict:
                                          "start": m.facing_against_truth_area_start,
                                          "morphed": m.facing_against_truth_area},
            "normal_consistency": {"input": m.normal_consistency_input, "morphed": m.normal_consistency_morphed},
+           "pleats": asdict(m.pleats) if m.pleats else None,
            "iterations": m.iterations, "stopped_early": m.stopped_early, "trace_chamfer_input": m.trace_chamfer_input,
            "s_per_iteration": m.seconds / max(m.iterations, 1), "validation_seconds": m.validation_seconds,
            "trace": [{"iteration": t.iteration, "seconds": t.seconds, "validation_l1": t.validation_l1,
