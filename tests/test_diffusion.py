@@ -131,7 +131,11 @@ def test_gbuffer_recomposition_matches_a_path_traced_render(tiny_views):
     norms = np.linalg.norm(n, axis=-1)
     assert norms.max() < 1.0 + 1e-4 and (norms[~hit] == 0).all()
     # pixel-filtered unit normals: 1 inside the silhouette, shorter only where the filter averages edges/background
-    assert np.median(norms[hit]) > 0.97, np.median(norms[hit])
+    # (judged away from the silhouette: the framed object is small at this resolution, so edges are many)
+    from scipy import ndimage
+
+    inner = np.stack([ndimage.binary_erosion(h, iterations=1) for h in hit.reshape(-1, *hit.shape[-2:])])
+    assert np.median(norms[inner.reshape(hit.shape)]) > 0.97, np.median(norms[inner.reshape(hit.shape)])
 
 
 @pytest.mark.slow

@@ -17,13 +17,14 @@ Other features use only the names below.
 """
 
 from .benchmark import (ARTIFACT_REGIONS, Camera, MorphBenchmark, MorphBenchmarkMeta, MorphBenchmarkSettings,
-                        artifact_masks, load_morph_benchmark, make_morph_benchmark, sensor_dict)
+                        artifact_masks, load_morph_benchmark, make_morph_benchmark, sensor_dict, silhouette_margins)
 from .evaluate import MorphEvaluation, evaluate_morph
 from .gcn import GCNSettings, run_gcn_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
-from .mesh_edit import RepairReport, remesh, repair_flips
+from .mesh_edit import PleatReport, RepairReport, remesh, repair_flips, unfold_pleats
 from .batch import load_result, run_item
-from .run import MorphResult, MorphSettings, PlanarityDecision, run_morph, start_mesh
+from .run import MorphResult, MorphSettings, PlanarityDecision, TracePoint, run_morph, start_mesh
+from .suite import SUITE, KINDS, suite_mesh
 from .scene import MODES, morph_scene, photo_at, render_views
 
 __all__ = [
@@ -32,4 +33,5 @@ __all__ = [
     "RepairReport", "artifact_masks", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "remesh",
     "render_views", "repair_flips", "run_gcn_morph", "run_item", "run_morph", "sensor_dict", "start_mesh",
+    "KINDS", "PleatReport", "SUITE", "TracePoint", "silhouette_margins", "suite_mesh", "unfold_pleats",
 ]

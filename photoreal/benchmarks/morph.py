@@ -13,10 +13,8 @@ from foundation import validate
 from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
-from inverse.morph import (MorphBenchmarkSettings, MorphResult, MorphSettings, load_morph_benchmark,
-                           make_morph_benchmark, run_morph)
-from inverse.morph.benchmark import silhouette_margins
-from inverse.morph.suite import KINDS, SUITE, suite_mesh
+from inverse.morph import (KINDS, SUITE, MorphBenchmarkSettings, MorphResult, MorphSettings, load_morph_benchmark,
+                           make_morph_benchmark, run_morph, silhouette_margins, suite_mesh)
 
 
 @dataclass
