@@ -40,11 +40,16 @@ def bundled_hdris() -> list[str]:
     return sorted(p.stem for p in HDRI_DIR.glob("*.exr"))
 
 
+def _names_a_file(name_or_path: str | os.PathLike) -> bool:
+    s = str(name_or_path)
+    return Path(s).suffix.lower() == ".exr" or os.sep in s
+
+
 def hdri_path(name_or_path: str | os.PathLike) -> Path:
     """A bundled HDRI by name (``sunrise``) or an EXR file; the error names what was asked for."""
     s = str(name_or_path)
     p = Path(s)
-    if p.suffix.lower() == ".exr" or os.sep in s:
+    if _names_a_file(s):
         if not p.is_file():
             raise UsageError(f"{p}: no such HDRI file")
         return p
@@ -57,8 +62,7 @@ def hdri_path(name_or_path: str | os.PathLike) -> Path:
 
 def hdri_label(name_or_path: str | os.PathLike) -> str:
     """A short name for an HDRI: the bundled name, or a file's stem (image layer names, figure captions)."""
-    s = str(name_or_path)
-    return Path(s).stem if Path(s).suffix.lower() == ".exr" or os.sep in s else s
+    return Path(name_or_path).stem if _names_a_file(name_or_path) else str(name_or_path)
 
 
 @functools.lru_cache(maxsize=16)

@@ -38,23 +38,30 @@ def triangle_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
 
 
-def facing_against_truth(v: np.ndarray, f: np.ndarray, gv: np.ndarray, gf: np.ndarray, n_ref: int = 1_000_000,
-                         seed: int = 0) -> dict:
+class TruthSurface:
+    """A dense area-uniform sampling of a ground-truth surface (``n`` points), their normals and a k-d tree:
+    built once, queried for every mesh compared with that truth."""
+
+    def __init__(self, gv: np.ndarray, gf: np.ndarray, n: int = 1_000_000, seed: int = 0):
+        from scipy.spatial import cKDTree
+
+        pts, fid, _ = sample_surface(gv, gf, n, np.random.default_rng(seed))
+        self.normals = face_normals(gv, gf)[fid]
+        self.tree = cKDTree(pts)
+
+
+def facing_against_truth(v: np.ndarray, f: np.ndarray, truth: TruthSurface) -> dict:
     """Triangles facing against the ground truth at the truth's surface point nearest their centroid.
 
     ``count`` and ``area_fraction`` (share of the mesh's area): meshes with different triangle counts (a
     coarse input and its remeshed morph) compare by the fraction. The nearest point comes from a dense
-    area-uniform sampling of the truth (``n_ref`` points), not from the truth's triangle centroids: a large
+    sampling of the truth (:class:`TruthSurface`), not from the truth's triangle centroids: a large
     truth triangle's centroid can be far from the part of it a small triangle lies on (a house wall is two
     triangles), and the nearest centroid then belongs to another wall. Orientation is judged against the
     truth, not against the starting mesh: a morph that *unfolds* a fold of its input does not count as flipping.
     """
-    from scipy.spatial import cKDTree
-
-    pts, fid, _ = sample_surface(gv, gf, n_ref, np.random.default_rng(seed))
-    gn = face_normals(gv, gf)[fid]
-    idx = cKDTree(pts).query(v[f].mean(axis=1))[1]
-    against = np.sum(face_normals(v, f) * gn[idx], axis=1) < 0
+    idx = truth.tree.query(v[f].mean(axis=1))[1]
+    against = np.sum(face_normals(v, f) * truth.normals[idx], axis=1) < 0
     area = triangle_areas(v, f)
     return {"count": int(against.sum()), "area_fraction": float(area[against].sum() / max(area.sum(), 1e-30))}
 
@@ -71,7 +78,7 @@ def vertex_neighbours_mean(x: np.ndarray, f: np.ndarray) -> np.ndarray:
     return (a @ x) / np.maximum(deg, 1)[:, None]
 
 
-def spikes(v0: np.ndarray, v1: np.ndarray, f: np.ndarray, gv: np.ndarray, gf: np.ndarray, k: float = 3.0) -> dict:
+def spikes(v0: np.ndarray, v1: np.ndarray, f: np.ndarray, k: float = 3.0) -> dict:
     """Spikes and folds a morph made, judged against its start ``v0`` (same topology ``f``).
 
     * ``spike_vertices``: vertices whose displacement departs from the mean displacement of their 1-ring
@@ -81,14 +88,11 @@ def spikes(v0: np.ndarray, v1: np.ndarray, f: np.ndarray, gv: np.ndarray, gf: np
       earlier definition of a spike; coherent large moves count, reported beside).
     * ``inverted_triangles``: triangles whose normal flipped relative to the start (folds).
     * ``spikes`` = spike vertices + inverted triangles.
-    * ``facing_against_truth`` / ``facing_against_truth_area``: see :func:`facing_against_truth`.
     """
     d = v1 - v0
     ell = edge_lengths(v0, f)
     spike = np.linalg.norm(d - vertex_neighbours_mean(d, f), axis=1) > k * ell
     far = np.linalg.norm(d, axis=1) > k * ell
     flipped = int((np.sum(face_normals(v0, f) * face_normals(v1, f), axis=1) < 0).sum())
-    fa = facing_against_truth(v1, f, gv, gf)
     return {"spike_vertices": int(spike.sum()), "far_moved_vertices": int(far.sum()), "inverted_triangles": flipped,
-            "facing_against_truth": fa["count"], "facing_against_truth_area": fa["area_fraction"],
             "spikes": int(spike.sum() + flipped)}

@@ -45,17 +45,17 @@ def test_spikes_and_inverted_triangles():
     v, f = _sphere(1.0, 10)
     moved = v.copy()
     moved[50] *= 3.0  # one vertex pulled far out: a spike
-    sp = spikes(v, moved, f, v, f)
+    sp = spikes(v, moved, f)
     assert sp["spike_vertices"] == 1
     flipped = v.copy()
     a, b, c = f[100]
     flipped[a] = v[b] + 1.5 * (v[a] - v[b]) * -1  # reflect one vertex through its neighbour: fold
-    assert spikes(v, flipped, f, v, f)["inverted_triangles"] >= 1
+    assert spikes(v, flipped, f)["inverted_triangles"] >= 1
     # A region moving together (an eroded part growing back) is not a spike, though it moved far.
     cap = v[:, 1] > 0.5
     grown = v.copy()
     grown[cap] += [0.0, 2.0, 0.0]
-    sp = spikes(v, grown, f, v, f)
+    sp = spikes(v, grown, f)
     assert sp["far_moved_vertices"] == int(cap.sum()) and sp["spike_vertices"] < 0.5 * cap.sum()
 
 

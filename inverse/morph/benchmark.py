@@ -409,7 +409,8 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
     out = Path(out)
     rng = np.random.default_rng(s.seed)
     env = envmap(s.hdri)  # validated before any work
-    user_hdri = hdri_path(s.hdri) if hdri_path(s.hdri).resolve().parent != HDRI_DIR.resolve() else None
+    light = hdri_path(s.hdri)
+    user_hdri = light if light.resolve().parent != HDRI_DIR.resolve() else None
     if str(source) != "village":
         load_mesh_any(source)  # a missing, unreadable or degenerate mesh is named before the folder is touched
     t0 = time.perf_counter()
@@ -504,7 +505,7 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
         imageio.write_png(tmp / "preview_view00.png", photos["view00"])
         test = [i for i in range(s.n_views) if i % s.test_every == s.test_every - 1]
         # Lighting by name, never by path: a bundled HDRI's name, or the copy inside the benchmark.
-        recorded_hdri = "hdri.exr" if user_hdri is not None else hdri_path(s.hdri).stem
+        recorded_hdri = "hdri.exr" if user_hdri is not None else light.stem
         meta = MorphBenchmarkMeta(
             source="village" if kind == "village" else Path(source).name, kind=kind,
             settings=replace(s, hdri=recorded_hdri), cameras=cams,

@@ -13,7 +13,7 @@ import mitsuba as mi
 
 from foundation import imageio
 from foundation.mesh import load_mesh_any, write_ply
-from foundation.mesh_metrics import chamfer, facing_against_truth, spikes
+from foundation.mesh_metrics import TruthSurface, chamfer, facing_against_truth, spikes
 from foundation.metrics import ImageMetrics, image_metrics
 
 from .benchmark import MorphBenchmark, sensor_dict
@@ -80,12 +80,12 @@ def evaluate_morph(bench: MorphBenchmark, v_in, f_in, c_in, v_out, f_out, c_out,
     mean = {n: ImageMetrics.mean(ms) for n, ms in per.items()}
     v0, f0 = start if start is not None else (v_in, f_in)
     if len(v0) == len(v_out) and np.array_equal(f0, f_out):
-        sp = spikes(v0, v_out, f_out, gv, gf)
+        sp = spikes(v0, v_out, f_out)
     else:  # remeshed during the run: no per-vertex displacement to judge
-        fa = facing_against_truth(v_out, f_out, gv, gf)
-        sp = {"spike_vertices": -1, "far_moved_vertices": -1, "inverted_triangles": -1, "spikes": -1,
-              "facing_against_truth": fa["count"], "facing_against_truth_area": fa["area_fraction"]}
-    fa_in, fa_start = facing_against_truth(v_in, f_in, gv, gf), facing_against_truth(v0, f0, gv, gf)
+        sp = {"spike_vertices": -1, "far_moved_vertices": -1, "inverted_triangles": -1, "spikes": -1}
+    truth = TruthSurface(gv, gf)
+    fa_out, fa_in = facing_against_truth(v_out, f_out, truth), facing_against_truth(v_in, f_in, truth)
+    fa_start = fa_in if start is None else facing_against_truth(v0, f0, truth)
     return MorphEvaluation(
         chamfer_input=ch_in["chamfer"], chamfer_morphed=ch_out["chamfer"],
         chamfer_reduction=1.0 - ch_out["chamfer"] / ch_in["chamfer"],
@@ -95,7 +95,7 @@ def evaluate_morph(bench: MorphBenchmark, v_in, f_in, c_in, v_out, f_out, c_out,
         heldout_input=mean["input"], heldout_morphed=mean["morphed"],
         spike_vertices=sp["spike_vertices"], inverted_triangles=sp["inverted_triangles"], spikes=sp["spikes"],
         far_moved_vertices=sp["far_moved_vertices"],
-        facing_against_truth=sp["facing_against_truth"], facing_against_truth_area=sp["facing_against_truth_area"],
+        facing_against_truth=fa_out["count"], facing_against_truth_area=fa_out["area_fraction"],
         facing_against_truth_input=fa_in["count"], facing_against_truth_area_input=fa_in["area_fraction"],
         facing_against_truth_start=fa_start["count"], facing_against_truth_area_start=fa_start["area_fraction"],
         scene_size=meta.scene_size)

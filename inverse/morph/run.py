@@ -233,7 +233,7 @@ class MorphStage(DrJitStage):
         self.train_ids = [i for i in meta.train if i not in self.val_ids]
         self.trace: list[TracePoint] = []
         self.snapshots: list[np.ndarray] = []  #: vertices at the trace points (same topology only)
-        self.best_val, self.since_best, self.validation_seconds = float("inf"), 0, 0.0
+        self.validation_seconds = 0.0
         self.anneal: tuple[int, int, float] | None = None  #: (start step, length, lr factor then) once on a plateau
         self.lam = s.lambda_start if s.lambda_start and s.parameterisation == "large_steps" else s.lambda_
         self._build(v0, v0, f0, c0)
@@ -284,7 +284,6 @@ class MorphStage(DrJitStage):
         return {"faces": self.faces, "v_ref": self.v_ref, "vertices": self.vertices(), "colours": self.colours(),
                 "optimizer": optimizer_state(self.opt), "rng": rng_state(self.rng), "lambda": self.lam,
                 "trace": [to_json(t) for t in self.trace], "snapshots": list(self.snapshots),
-                "best_val": self.best_val, "since_best": self.since_best,
                 "anneal": list(self.anneal) if self.anneal else None,
                 "validation_seconds": self.validation_seconds}
 
@@ -295,7 +294,6 @@ class MorphStage(DrJitStage):
         set_rng_state(self.rng, tree["rng"])
         self.trace = [from_json(TracePoint, t, "morph checkpoint: trace") for t in tree["trace"]]
         self.snapshots = [np.asarray(x) for x in tree["snapshots"]]
-        self.best_val, self.since_best = float(tree["best_val"]), int(tree["since_best"])
         a = tree["anneal"]
         self.anneal = (int(a[0]), int(a[1]), float(a[2])) if a is not None else None
         self.validation_seconds = float(tree["validation_seconds"])
@@ -324,14 +322,23 @@ class MorphStage(DrJitStage):
             self.snapshots.append(self.vertices().astype(np.float32))
         if val is None:
             return
-        if val < self.best_val * (1.0 - s.min_improvement):
-            self.best_val, self.since_best = val, 0
-        else:
-            self.since_best += 1
-        if s.early_stop and self.anneal is None and self.since_best >= s.patience and run.step >= s.min_iterations:
+        if s.early_stop and self.anneal is None and self.checks_without_gain() >= s.patience \
+                and run.step >= s.min_iterations:
             length = max(int(round(s.anneal_fraction * run.step)), s.check_every)
             if run.step + length < s.iterations:  # else the linear decay over the cap ends sooner anyway
                 self.anneal = (run.step, length, self.lr_factor(run.step))
+
+    def checks_without_gain(self) -> int:
+        """Validation checks since the last one that improved on the best so far by ``min_improvement``."""
+        best, since = float("inf"), 0
+        for t in self.trace:
+            if t.validation_l1 is None:
+                continue
+            if t.validation_l1 < best * (1.0 - self.s.min_improvement):
+                best, since = t.validation_l1, 0
+            else:
+                since += 1
+        return since
 
     def lr_factor(self, it: int) -> float:
         """Learning-rate factor at iteration ``it``: linear to lr_final over the cap, or the plateau's anneal."""
@@ -414,8 +421,8 @@ class MorphStage(DrJitStage):
             flips = np.sum(face_normals(v_unfolded, self.faces) * face_normals(self.v_start, self.faces), axis=1) < 0
             if not flips.any():
                 v_out = v_unfolded
-            else:
-                pleat_report = None
+            else:  # kept as it was: the report says so
+                pleat_report = PleatReport(pleat_report.pleats_before, pleat_report.pleats_before, 0, 0.0)
         write_ply(self.out / "morphed.ply", v_out, self.faces, np.clip(c_out, 0, 1))
         seconds = self.setup_seconds + run.train_seconds
         self.close()

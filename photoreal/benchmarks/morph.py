@@ -99,9 +99,7 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, pool: PoolSettings,
                          show_progress=show_progress)
 
     def item(key: str, settings: MorphSettings, **kw) -> Item:
-        out = work / f"{case}_{key}"
-        return Item(key, "inverse.morph:run_item", (str(bench.path), str(out), settings), kw,
-                    output=str(out / "metrics.json"), loader="inverse.morph:load_result")
+        return _item(key, bench.path, work / f"{case}_{key}", settings, **kw)
 
     # Sweep over mesh resolution; stability (shorter runs): batch sizes, plain Adam vs large steps, few views,
     # GCN image-only — raw method behaviour: no final unfolding, so folds and spikes show as they are.
@@ -169,8 +167,9 @@ def suite_row(name: str, m: MorphResult) -> dict:
     return row
 
 
-def _item(key: str, bench_dir: Path, out: Path, settings: MorphSettings) -> Item:
-    return Item(key, "inverse.morph:run_item", (str(bench_dir), str(out), settings), {},
+def _item(key: str, bench_dir: Path, out: Path, settings: MorphSettings, **kw) -> Item:
+    """One morph run of the pool (resumable: a finished run's metrics.json is its value)."""
+    return Item(key, "inverse.morph:run_item", (str(bench_dir), str(out), settings), kw,
                 output=str(out / "metrics.json"), loader="inverse.morph:load_result")
 
 
