@@ -292,7 +292,7 @@ def _run_pool(items: list[Item], s: PoolSettings):
                                         initializer=_pool_init, initargs=(s.threads,)) as ex:
                 started = {it.key: str(Path(marks) / f"{round_no}-{k}") for k, it in enumerate(queue)}
                 futures = {ex.submit(execute, it, s.threads, "", started[it.key]): it for it in queue}
-                queue = []
+                queue, before = [], len(futures)
                 for fut in cf.as_completed(futures):
                     it = futures[fut]
                     try:
@@ -306,6 +306,11 @@ def _run_pool(items: list[Item], s: PoolSettings):
                         queue.append(it)
                         continue
                     yield r
+            if len(queue) == before and not any(Path(p).exists() for p in started.values()):
+                # No item even began: the workers die while starting (e.g. a script that starts a pool at import
+                # time without ``if __name__ == "__main__":``, which spawn re-runs in every worker).
+                raise FailureError(f"every worker process died before starting an item ({before} items pending); "
+                                   "a script that uses the pool must guard its work with if __name__ == '__main__'")
     for it in suspects:
         while True:
             attempts[it.key] += 1
