@@ -24,6 +24,15 @@ HDRI_DIR = ASSETS / "hdri"
 MESHES = ASSETS / "meshes"
 FACE = ASSETS / "face"
 ARMADILLO = MESHES / "armadillo.ply"
+NEURAL = ASSETS / "neural"
+
+
+def bundled_basis() -> Path:
+    """The vendored universal neural-BTF basis (seed 002 MLPs, ``scenes/assets/neural/basis.npz``)."""
+    p = NEURAL / "basis.npz"
+    if not p.is_file():
+        raise UsageError(f"{p}: the bundled neural basis is missing (a broken checkout?)")
+    return p
 
 
 def pymeshlab_sample(name: str) -> Path:
