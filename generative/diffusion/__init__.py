@@ -6,6 +6,9 @@ module             what
 ``core``           config, conditional pixel-space UNet (diffusers), v-prediction loss, DDIM + CFG
 ``renderer``       intrinsic-conditioned diffusion renderer: G-buffer data, training stage, sampling
 ``decomposition`` intrinsic decomposition network (image → A, I, S, N) trained on procedural Mitsuba scenes
+``material_data``  seed 002's generative dataset: many fitted neural materials, path-traced swatches, keywords
+``materials``      diffusion over [T_off ‖ T_rgb] (circular, shifted cosine, Min-SNR, cube root, multiscale, CFG)
+``material_eval``  family classifier, feature spaces, baselines, aligned ꟻLIP, seam ratio
 =================  ==========================================================================
 
 Other features and the application use only the names below.
@@ -21,7 +24,20 @@ from .renderer import (DECOMPOSED, GLOBAL_SOURCES, condition_to_layers, from_tar
                        model_to_photo, photo_to_model, render_benchmark, render_gbuffers, render_scene_file,
                        render_views, train_diffrender)
 
+from .material_data import (VOCABULARY, MaterialDataSettings, MaterialSet, build_material_dataset, decode_swatches,
+                            load_material_dataset, parse_keywords)
+from .material_eval import (ClassifierSettings, aligned_flip, classify, copy_baseline, crop_baseline, decode_all,
+                            gaussian_baseline, mean_pairwise, mnv2_features, nearest_distances, seam_ratio,
+                            train_classifier)
+from .materials import (MaterialPrompt, MatDiffSettings, generate_material, load_matdiff, sample_materials,
+                        split_features, train_matdiff)
+
 __all__ = [
+    "VOCABULARY", "MaterialDataSettings", "MaterialSet", "build_material_dataset", "decode_swatches",
+    "load_material_dataset", "parse_keywords", "ClassifierSettings", "aligned_flip", "classify", "copy_baseline",
+    "crop_baseline", "decode_all", "gaussian_baseline", "mean_pairwise", "mnv2_features", "nearest_distances",
+    "seam_ratio", "train_classifier", "MaterialPrompt", "MatDiffSettings", "generate_material", "load_matdiff",
+    "sample_materials", "split_features", "train_matdiff",
     "DECOMPOSED", "DecompDataSettings", "DecompResult", "DecompSettings", "Decomposer", "condition_to_layers", "decompose",
     "from_target_space", "heldout_psnr", "intrinsic_layers", "load_decomp_data", "load_decomposer", "photographs",
     "procedural_scene", "render_decomp_data", "target_space", "train_decomposer",
