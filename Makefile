@@ -27,7 +27,7 @@ demo: $(STAMP)
 
 # Two test processes, one Dr.Jit/torch thread each (tests/conftest.py): bit-reproducible runs, both cores busy.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2
+	$(BIN)/python -m pytest -q -n 2 --durations=12
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 -m "not slow"
@@ -41,6 +41,7 @@ bench: $(STAMP)
 	$(BIN)/photoreal bench gan --json out/bench/gan.json
 	$(BIN)/photoreal bench scale --json out/bench/scale.json
 	$(BIN)/photoreal bench diffrender --json out/bench/diffrender.json
+	$(BIN)/photoreal bench matdiff --json out/bench/matdiff.json
 
 clean:
 	rm -rf out .pytest_cache

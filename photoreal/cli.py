@@ -274,6 +274,22 @@ def _cmd_bench_diffrender(a) -> int:
     return 0
 
 
+def _cmd_bench_matdiff(a) -> int:
+    from foundation.files import write_json
+
+    from .benchmarks.matdiff import MatDiffBenchSettings, bench_matdiff, charts, samples_figure
+
+    out = _bench_out(a)
+    result = bench_matdiff(_settings(MatDiffBenchSettings, a), out_dir=out.parent)
+    result["charts"] = charts(result, out.with_name(out.stem + "_speed.png"))
+    result["samples_figure"] = samples_figure(out.parent / "matdiff_work", out.with_name(out.stem + "_samples.png"))
+    write_json(out, result)
+    _print({k: result[k] for k in ("classifier_accuracy_real", "keyword_accuracy", "kid_classifier", "kid_mnv2",
+                                   "nn_distance_ratio", "diversity", "exemplar_flip", "seam_error", "sample_seconds",
+                                   "chosen_steps", "verdict")})
+    return 0
+
+
 # -- face -----------------------------------------------------------------------------------------------------------
 
 
@@ -478,6 +494,44 @@ def _cmd_btf_fit(a) -> int:
     if a.json:
         write_json(a.json, m)
     print(json.dumps(m))
+    return 0
+
+
+def _cmd_btf_dataset(a) -> int:
+    from foundation.pool import ray_shutdown
+    from generative.diffusion import MaterialDataSettings, build_material_dataset, load_material_dataset
+
+    s = _settings(MaterialDataSettings, a)
+    if a.basis and not Path(a.basis).is_file():
+        raise _usage(f"--basis {a.basis}: no such file")
+    try:
+        build_material_dataset(a.out, s, basis=a.basis, pool=_pool(a))
+    finally:
+        ray_shutdown()
+    ds = load_material_dataset(a.out)
+    print(json.dumps({"out": str(a.out), "materials": len(ds.names), "heldout": int(ds.heldout.sum()),
+                      "fit_psnr_median": float(sorted(ds.psnr)[len(ds.psnr) // 2])}))
+    return 0
+
+
+def _cmd_btf_train_diffusion(a) -> int:
+    from foundation.records import to_json
+    from generative.diffusion import MatDiffSettings, load_material_dataset, train_matdiff
+
+    s = _settings(MatDiffSettings, a)
+    ds = load_material_dataset(a.data)
+    r = train_matdiff(ds.subset(~ds.heldout), a.out, s)
+    print(json.dumps({"run": str(a.out), "materials": r.materials, "parameters": r.parameters,
+                      "training": to_json(r.training)}, default=str))
+    return 0
+
+
+def _cmd_btf_generate(a) -> int:
+    from generative.diffusion import generate_material
+
+    if not a.keywords and not a.image and not a.unconditional:
+        raise _usage("give --keywords WORDS, --image PHOTO (or both), or --unconditional")
+    print(json.dumps(generate_material(a.run, a.out, a.keywords, a.image, a.seed, a.size, a.steps, a.guidance)))
     return 0
 
 
@@ -700,6 +754,14 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bd, DiffRenderBenchSettings, "cyclegan_seconds", type=float)
     _opt(bd, DiffRenderBenchSettings, "seed")
     bd.set_defaults(func=_cmd_bench_diffrender)
+    from .benchmarks.matdiff import MatDiffBenchSettings
+
+    bm = bsub.add_parser("matdiff", help="material diffusion: keyword/exemplar conditioning, KID vs baselines, "
+                         "memorisation, seams, speed, ablations, dataset sweep (builds/continues its dataset first)")
+    for name in ("data", "count", "train_seconds", "ablation_seconds", "samples", "steps", "guidance", "seed"):
+        _opt(bm, MatDiffBenchSettings, name)
+    _opt(bm, MatDiffBenchSettings, "ablations", "--no-ablations", help="skip the ablation runs")
+    bm.set_defaults(func=_cmd_bench_matdiff)
     bs = bsub.add_parser("scale", help="a batch of renders serially, on a process pool and on Ray (identical?)")
     for name in ("items", "resolution", "spp"):
         _opt(bs, ScaleBenchSettings, name)
@@ -831,6 +893,37 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(tf, OptimSettings, "seed")
     _pool_opts(tf)
     tf.set_defaults(func=_cmd_btf_fit)
+
+    from generative.diffusion import MaterialDataSettings, MatDiffSettings
+
+    td = tsub.add_parser("dataset", help="many fitted materials for the material diffusion model: BTFs, fits, "
+                         "path-traced swatches, keywords (resumes; every core)")
+    td.add_argument("--out", required=True, help="dataset folder")
+    for name in ("count", "tex_res", "slices", "spp", "fit_iterations", "seed"):
+        _opt(td, MaterialDataSettings, name)
+    td.add_argument("--basis", default=None, help="universal basis .npz (default: the bundled one)")
+    _pool_opts(td)
+    td.set_defaults(func=_cmd_btf_dataset)
+    tt = tsub.add_parser("train-diffusion", help="train the material diffusion model on a dataset's training "
+                         "materials (resumes)")
+    tt.add_argument("data", help="folder made by `btf dataset`")
+    tt.add_argument("--out", required=True, help="run folder (checkpoint.npz, metrics.json)")
+    _opt(tt, MatDiffSettings, "max_seconds", "--seconds", type=float, help="training budget (summed over resumes)")
+    for name in ("steps", "batch", "lr", "widths", "seed"):
+        _opt(tt, MatDiffSettings, name, **({"type": int} if name == "widths" else {}))
+    tt.set_defaults(func=_cmd_btf_train_diffusion)
+    tg = tsub.add_parser("generate", help="a new material from keywords and/or an exemplar image; loads in "
+                         "neural_btf with the basis the model was trained on")
+    tg.add_argument("--run", required=True, help="run folder of `btf train-diffusion`")
+    tg.add_argument("--keywords", default=None, help="e.g. 'rough red leather' (family, colour, finish words)")
+    tg.add_argument("--image", default=None, help="exemplar photo (PNG/JPG/EXR, or brick/grass/gravel)")
+    tg.add_argument("--unconditional", action="store_true", help="neither keywords nor image")
+    tg.add_argument("--seed", type=int, default=0)
+    tg.add_argument("--size", type=int, default=32, help="texels per side (any multiple of 4: tiles seamlessly)")
+    tg.add_argument("--steps", type=int, default=25, help="DDIM steps (default: 25)")
+    tg.add_argument("--guidance", type=float, default=2.0, help="classifier-free guidance (default: 2)")
+    tg.add_argument("--out", required=True, help="material .npz")
+    tg.set_defaults(func=_cmd_btf_generate)
 
     _add_gan_parser(sub)
     _add_diffrender_parser(sub)

@@ -1,0 +1,351 @@
+"""`photoreal bench matdiff`: generative neural materials (seed 002 §3.2, §4.4) against baselines.
+
+1. **Dataset** (``data``; built or continued first, on every core): ``count`` fitted materials over the 8
+   families; the last 1/8 of each family is held out. Reported separately: build seconds, fit PSNR.
+2. **Family classifier** trained on the path-traced swatches of the training materials; accuracy on the
+   held-out materials' path-traced swatches and on their decoded fits.
+3. **Main model** (``train_seconds``), then with ``steps`` DDIM steps and guidance ``guidance``:
+   keyword accuracy (held-out materials' keyword triples, and family words alone) under the classifier;
+   KID/FID of unconditional samples against the held-out materials (decoded fits, the same image formation
+   as every generated material) in the classifier's and MobileNetV2's feature spaces, beside the baselines
+   (training copies, the training Gaussian, random crops); memorisation (nearest-training distance of samples
+   over that of held-out materials) and diversity; exemplar conditioning (aligned ꟻLIP to the held-out
+   material's path-traced swatches) against unconditional samples and nearest-neighbour retrieval; the seam
+   ratio of samples at 2× the training size.
+4. **Speed**: seconds per sample at 64² and 256² against DDIM steps, quality (keyword accuracy, KID) against
+   steps at the training size; the chosen step count = the fewest within ``tolerance`` of the best accuracy.
+5. **Ablations** at equal training time (``ablation_seconds`` each): the full recipe and each of the seed's
+   choices switched off in turn. **Dataset sweep**: the same budget on the first k materials per family.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from foundation import validate
+from foundation.features import fid, kid
+from foundation.threads import torch_threads
+
+ABLATIONS = {  # name → the MatDiffSettings fields that switch one choice off
+    "full": {},
+    "no circular padding": {"circular": False},
+    "epsilon instead of v": {"prediction": "epsilon"},
+    "no schedule shift": {"shift_base": 0},
+    "no Min-SNR weighting": {"min_snr_gamma": 0.0},
+    "no cube-root scaling": {"cube_root": False},
+    "no multiscale loss": {"multiscale": False},
+    "no CFG (never dropped, guidance 1)": {"cfg": False},
+}
+
+
+@dataclass
+class MatDiffBenchSettings:
+    data: str = "out/matdiff/data"  #: dataset folder (built, or continued, first)
+    count: int = 256  #: materials of the dataset
+    train_seconds: float = 900.0  #: the main model's training budget
+    ablation_seconds: float = 120.0  #: each ablation / dataset-sweep run
+    classifier_seconds: float = 90.0
+    sweep_per_family: tuple[int, ...] = (4, 12)  #: training materials per family of the sweep (plus all: "full")
+    samples: int = 64  #: unconditional samples of each method for KID / memorisation / diversity
+    steps: int = 25  #: DDIM steps of the main evaluation (the speed sweep reports others)
+    guidance: float = 2.0
+    quality_steps: tuple[int, ...] = (10, 25, 50)
+    speed_sizes: tuple[int, ...] = (64, 256)
+    speed_steps: tuple[int, ...] = (10, 25)
+    tolerance: float = 0.05  #: keyword accuracy within this of the best counts as as good
+    ablations: bool = True
+    seed: int = 0
+
+    def __post_init__(self):
+        validate.integer("count", self.count, 8)
+        for k in ("train_seconds", "ablation_seconds", "classifier_seconds"):
+            validate.positive(k, getattr(self, k))
+        validate.integer("samples", self.samples, 4)
+        validate.integer("steps", self.steps, 1, 1000)
+        validate.non_negative("guidance", self.guidance)
+        validate.seed("seed", self.seed)
+
+
+class _Judge:
+    """Decodes feature textures and scores them against the held-out materials."""
+
+    def __init__(self, basis, classifier, held_dec: np.ndarray, train_dec: np.ndarray, channels: int):
+        from generative.diffusion import classify, mnv2_features
+
+        self.basis, self.classifier, self.channels = basis, classifier, channels
+        self.res = held_dec.shape[2]  #: the training texture size
+        self.ref_cls = classify(classifier, held_dec)[1]
+        self.ref_mn = mnv2_features(held_dec)
+        self.train_mn = mnv2_features(train_dec)
+
+    def decode(self, features: np.ndarray) -> np.ndarray:
+        from generative.diffusion import decode_all
+
+        return decode_all(self.basis, features, self.channels)
+
+    def score(self, decoded: np.ndarray) -> dict:
+        from generative.diffusion import classify, mnv2_features
+
+        pred, fc = classify(self.classifier, decoded)
+        fm = mnv2_features(decoded)
+        return {"pred": pred, "cls": fc, "mn": fm, "kid_classifier": kid(fc, self.ref_cls),
+                "kid_mnv2": kid(fm, self.ref_mn), "fid_classifier": fid(fc, self.ref_cls)}
+
+
+def _keyword_eval(model, ms, judge: _Judge, prompts: list, families: np.ndarray, steps: int, guidance: float,
+                  seed: int) -> dict:
+    from generative.diffusion import MaterialPrompt, sample_materials
+
+    t = time.perf_counter()
+    f = sample_materials(model, ms, [MaterialPrompt(p) for p in prompts], judge.res, steps, guidance, seed)
+    secs = time.perf_counter() - t
+    sc = judge.score(judge.decode(f))
+    return {"accuracy": float(np.mean(sc["pred"] == families)), "kid_classifier": sc["kid_classifier"],
+            "kid_mnv2": sc["kid_mnv2"], "seconds_per_sample": secs / len(prompts), "features": f}
+
+
+def _seam(model, ms, judge: _Judge, size: int, n: int, seed: int, steps: int) -> float:
+    from generative.diffusion import MaterialPrompt, sample_materials, seam_ratio
+
+    f = sample_materials(model, ms, [MaterialPrompt()] * n, size, steps, 1.0, seed)
+    return float(np.mean([seam_ratio(d[0]) for d in judge.decode(f)]))
+
+
+def _short_eval(model, ms, judge, held, s: MatDiffBenchSettings) -> dict:
+    """What an ablation or sweep run is judged by: keyword-triple samples of the held-out materials, seams at 2× size."""
+    r = _keyword_eval(model, ms, judge, held.keywords, held.families, s.steps, s.guidance if ms.cfg else 1.0, s.seed)
+    r.pop("features")
+    r["seam_ratio_2x"] = _seam(model, ms, judge, 2 * judge.res, 4, s.seed, s.steps)
+    return r
+
+
+def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "out/bench",
+                  show_progress: bool = True) -> dict:
+    from foundation.assets import bundled_basis
+    from foundation.pool import PoolSettings, default_workers
+    from foundation.files import read_json
+    from foundation.records import from_json
+    from generative.diffusion import (ClassifierSettings, MaterialDataSettings, MaterialPrompt, MatDiffSettings,
+                                      aligned_flip, build_material_dataset, classify, copy_baseline, crop_baseline,
+                                      gaussian_baseline, load_material_dataset, mean_pairwise, mnv2_features,
+                                      nearest_distances, sample_materials, train_classifier, train_matdiff,
+                                      load_matdiff)
+    from inverse.btf import FAMILIES
+    from mi_plugins.neural_basis import load_basis
+
+    s = s or MatDiffBenchSettings()
+    work = Path(out_dir) / "matdiff_work"
+    work.mkdir(parents=True, exist_ok=True)
+    result: dict = {"settings": asdict(s)}
+    t0 = time.perf_counter()
+    index_path = Path(s.data) / "index.json"
+    # An existing dataset is continued with its own settings (made by `photoreal btf dataset` with other flags).
+    data_settings = (from_json(MaterialDataSettings, read_json(index_path, "material dataset index")["settings"],
+                               str(index_path)) if index_path.is_file() else MaterialDataSettings(count=s.count))
+    build_material_dataset(s.data, data_settings,
+                           pool=PoolSettings(workers=default_workers(), threads=1), progress=show_progress)
+    index = read_json(Path(s.data) / "index.json", "material dataset index")
+    ds = load_material_dataset(s.data)
+    train, held = ds.subset(~ds.heldout), ds.subset(ds.heldout)
+    fams = [f for f in dict.fromkeys(e["family"] for e in index["materials"])]
+    result["dataset"] = {
+        "materials": len(ds.names), "train": len(train.names), "heldout": len(held.names),
+        "fit_psnr_heldout_slices": {"median": float(np.median(ds.psnr)),
+                                    "per_family_median": {f: float(np.median(ds.psnr[ds.families == FAMILIES.index(f)]))
+                                                          for f in fams}},
+        "fit_seconds_per_material": float(np.mean([e["fit_seconds"] for e in index["materials"]])),
+        "build_seconds_last_call": float(index.get("seconds_last_batch", 0.0)),
+        "keywords_seen": sorted({w for k in ds.keywords for w in k})}
+    basis = load_basis(bundled_basis())
+    with torch_threads(0):
+        from generative.diffusion import decode_all
+
+        held_dec, train_dec = decode_all(basis, held.features), decode_all(basis, train.features)
+        clf = train_classifier(train.swatches, train.families, work / "classifier",
+                               ClassifierSettings(max_seconds=s.classifier_seconds, seed=s.seed), show_progress)
+        result["classifier_accuracy_real"] = float(np.mean(classify(clf, held.swatches)[0] == held.families))
+        result["classifier_accuracy_decoded_fits"] = float(np.mean(classify(clf, held_dec)[0] == held.families))
+        judge = _Judge(basis, clf, held_dec, train_dec, ds.features.shape[1] // 2)
+
+        # -- main model ---------------------------------------------------------------------------------------------
+        main_dir = work / f"main_{int(s.train_seconds)}s"
+        r = train_matdiff(train, main_dir, MatDiffSettings(max_seconds=s.train_seconds, seed=s.seed),
+                          show_progress=show_progress)
+        model, ms = load_matdiff(main_dir)
+        result["main"] = {"settings": asdict(ms), "training": read_json(main_dir / "metrics.json", "metrics")}
+        kw = _keyword_eval(model, ms, judge, held.keywords, held.families, s.steps, s.guidance, s.seed)
+        fam_prompts = [[f, None, None] for f in (held.keywords[i][0] for i in range(len(held.names)))]
+        kwf = _keyword_eval(model, ms, judge, fam_prompts, held.families, s.steps, s.guidance, s.seed + 1)
+        result["keyword_accuracy"] = kw["accuracy"]
+        result["keyword_accuracy_family_word_only"] = kwf["accuracy"]
+
+        rng = np.random.default_rng(s.seed)
+        n = s.samples
+        uncond = sample_materials(model, ms, [MaterialPrompt()] * n, judge.res, s.steps, 1.0, s.seed + 2)
+        methods = {"diffusion": uncond, "diffusion_keywords": kw["features"],
+                   "copy": copy_baseline(train.features, n, rng), "gaussian": gaussian_baseline(train.features, n, rng),
+                   "crop": crop_baseline(train.features, n, rng)}
+        scores = {k: judge.score(judge.decode(v)) for k, v in methods.items()}
+        scores["heldout_real"] = {"mn": judge.ref_mn}
+        result["kid_classifier"] = {k: v["kid_classifier"] for k, v in scores.items() if "kid_classifier" in v}
+        result["kid_mnv2"] = {k: v["kid_mnv2"] for k, v in scores.items() if "kid_mnv2" in v}
+        result["fid_classifier"] = {k: v["fid_classifier"] for k, v in scores.items() if "fid_classifier" in v}
+        result["family_share_unconditional"] = np.bincount(scores["diffusion"]["pred"], minlength=8).tolist()
+
+        # memorisation and diversity (MobileNetV2 space of the swatch mosaic)
+        ref_nn = nearest_distances(judge.ref_mn, judge.train_mn)
+        nn = {k: float(np.median(nearest_distances(v["mn"], judge.train_mn)) / np.median(ref_nn))
+              for k, v in scores.items() if k != "heldout_real"}
+        result["nn_distance_ratio"] = nn["diffusion"]
+        result["nn_distance_ratio_all"] = nn
+        result["nn_distance_heldout_median"] = float(np.median(ref_nn))
+        result["diversity"] = mean_pairwise(scores["diffusion"]["mn"])
+        result["diversity_all"] = {k: mean_pairwise(v["mn"]) for k, v in scores.items()}
+        result["diversity_train"] = mean_pairwise(judge.train_mn)
+
+        # exemplar conditioning: the held-out material's path-traced swatch 0 as the image prompt
+        ex = sample_materials(model, ms, [MaterialPrompt(None, held.swatches[i, 0]) for i in range(len(held.names))],
+                              judge.res, s.steps, s.guidance, s.seed + 3)
+        ex_dec = judge.decode(ex)
+        un_dec = judge.decode(uncond[:len(held.names)])
+        q = mnv2_features(np.repeat(held.swatches[:, :1], 4, 1))
+        pool_ = mnv2_features(np.repeat(train.swatches[:, :1], 4, 1))
+        nearest = np.argmin(((q[:, None] - pool_[None]) ** 2).sum(-1), 1)
+        ret_dec = train_dec[nearest]
+        fl = {name: [aligned_flip(d[i], held.swatches[i]) for i in range(len(held.names))]
+              for name, d in (("diffusion", ex_dec), ("unconditional", un_dec), ("retrieval", ret_dec),
+                              ("fit_of_the_exemplar_material", held_dec))}
+        result["exemplar_flip"] = {k: float(np.mean(v)) for k, v in fl.items()}
+        result["exemplar_flip_std"] = {k: float(np.std(v)) for k, v in fl.items()}
+        result["exemplar_family_accuracy"] = float(np.mean(classify(clf, ex_dec)[0] == held.families))
+
+        # tiling
+        result["seam_error"] = _seam(model, ms, judge, 2 * judge.res, 8, s.seed + 4, s.steps)  # 2× the training size
+        result["seam_error_training_size"] = _seam(model, ms, judge, judge.res, 8, s.seed + 4, s.steps)
+        from generative.diffusion import seam_ratio
+
+        result["seam_error_heldout_fits"] = float(np.mean([seam_ratio(d[0]) for d in held_dec]))
+        result["seam_error_crop_baseline"] = float(np.mean([seam_ratio(d[0]) for d in judge.decode(methods["crop"][:8])]))
+
+        # speed and quality against steps
+        sp: dict = {}
+        for size in s.speed_sizes:
+            for st in s.speed_steps:
+                t = time.perf_counter()
+                sample_materials(model, ms, [MaterialPrompt(["leather", None, None])], size, st, s.guidance, s.seed)
+                sp[f"{size}_steps{st}"] = time.perf_counter() - t
+        result["sample_seconds"] = sp
+        qs = []
+        for st in s.quality_steps:
+            e = kw if st == s.steps else _keyword_eval(model, ms, judge, held.keywords, held.families, st, s.guidance, s.seed)
+            qs.append({"steps": st, "accuracy": e["accuracy"], "kid_mnv2": e["kid_mnv2"],
+                       "kid_classifier": e["kid_classifier"], "seconds_per_sample": e["seconds_per_sample"]})
+        best = max(q["accuracy"] for q in qs)
+        result["quality_vs_steps"] = qs
+        result["chosen_steps"] = min(q["steps"] for q in qs if q["accuracy"] >= best - s.tolerance)
+        np.savez_compressed(work / "samples.npz", keyword=kw["features"], exemplar=ex, unconditional=uncond[:16],
+                            held_swatches=held.swatches, held_keywords=np.array([" ".join(k) for k in held.keywords]))
+
+        # ablations and dataset sweep at equal time
+        rows = []
+        if s.ablations:
+            for name, change in ABLATIONS.items():
+                d = work / ("ablation_" + name.split(" (")[0].replace(" ", "_")) / f"{int(s.ablation_seconds)}s"
+                train_matdiff(train, d, MatDiffSettings(max_seconds=s.ablation_seconds, seed=s.seed, **change),
+                              show_progress=show_progress)
+                m, mss = load_matdiff(d)
+                row = {"name": name, **_short_eval(m, mss, judge, held, s),
+                       "steps_trained": read_json(d / "metrics.json", "metrics")["training"]["steps"]}
+                rows.append(row)
+        result["ablation"] = rows
+        sweep = []
+        for k in s.sweep_per_family:
+            sub = load_material_dataset(s.data, limit=k)
+            sub = sub.subset(np.isin(sub.names, train.names))  # the first k of each family: never held out
+            if len(sub.names) >= len(train.names):
+                continue
+            d = work / f"sweep_{k}" / f"{int(s.ablation_seconds)}s"
+            train_matdiff(sub, d, MatDiffSettings(max_seconds=s.ablation_seconds, seed=s.seed), show_progress=show_progress)
+            m, mss = load_matdiff(d)
+            sweep.append({"train_materials": len(sub.names), **_short_eval(m, mss, judge, held, s)})
+        if rows:
+            sweep.append({"train_materials": len(train.names), **{k: v for k, v in rows[0].items() if k != "name"}})
+        result["dataset_sweep"] = sweep
+    result["seconds"] = time.perf_counter() - t0
+    result["verdict"] = _verdict(result)
+    return result
+
+
+def _verdict(r: dict) -> dict:
+    k1, k2 = r["kid_classifier"], r["kid_mnv2"]
+    return {
+        "keyword_accuracy_at_least_0.7": r["keyword_accuracy"] >= 0.7,
+        "beats_gaussian_kid_both": k1["diffusion"] < k1["gaussian"] and k2["diffusion"] < k2["gaussian"],
+        "beats_crop_kid_both": k1["diffusion"] < k1["crop"] and k2["diffusion"] < k2["crop"],
+        "not_copies": r["nn_distance_ratio"] >= 1.0,
+        "exemplar_beats_unconditional_flip": r["exemplar_flip"]["diffusion"] < r["exemplar_flip"]["unconditional"],
+        "exemplar_beats_retrieval_flip": r["exemplar_flip"]["diffusion"] < r["exemplar_flip"]["retrieval"],
+    }
+
+
+def charts(result: dict, out: Path) -> list[str]:
+    """Speed / quality vs steps, and the dataset sweep and ablations."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from foundation.imageio import save_figure
+
+    fig, ax = plt.subplots(1, 3, figsize=(14, 4))
+    sp = result["sample_seconds"]
+    for size in sorted({int(k.split("_")[0]) for k in sp}):
+        pts = sorted((int(k.split("steps")[1]), v) for k, v in sp.items() if k.startswith(f"{size}_"))
+        ax[0].plot(*zip(*pts), "o-", label=f"{size}²")
+    ax[0].set(xlabel="DDIM steps", ylabel="seconds per sample (2 cores, CFG)", title="sampling time")
+    ax[0].legend()
+    q = result["quality_vs_steps"]
+    ax[1].plot([e["steps"] for e in q], [e["accuracy"] for e in q], "o-", label="keyword accuracy")
+    ax[1].plot([e["steps"] for e in q], [e["kid_mnv2"] for e in q], "s--", label="KID (MobileNetV2)")
+    ax[1].axvline(result["chosen_steps"], color="grey", lw=0.8)
+    ax[1].set(xlabel="DDIM steps", title=f"quality vs steps (chosen {result['chosen_steps']})")
+    ax[1].legend()
+    sw = result["dataset_sweep"]
+    if sw:
+        ax[2].plot([e["train_materials"] for e in sw], [e["accuracy"] for e in sw], "o-", label="keyword accuracy")
+        ax[2].plot([e["train_materials"] for e in sw], [e["kid_mnv2"] for e in sw], "s--", label="KID (MobileNetV2)")
+        ax[2].set(xlabel="training materials", title="dataset size (equal training time)")
+        ax[2].legend()
+    fig.tight_layout()
+    return [str(save_figure(fig, out))]
+
+
+def samples_figure(work: Path, out: Path) -> str:
+    """Decoded swatches (view 0): keyword samples with their prompts, exemplar → sample pairs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from foundation.assets import bundled_basis
+    from foundation.imageio import linear_to_srgb, save_figure
+    from generative.diffusion import decode_all
+    from mi_plugins.neural_basis import load_basis
+
+    z = np.load(work / "samples.npz")
+    basis = load_basis(bundled_basis())
+    n = min(8, len(z["keyword"]))
+    kw, ex = decode_all(basis, z["keyword"][:n]), decode_all(basis, z["exemplar"][:n])
+    fig, ax = plt.subplots(3, n, figsize=(1.6 * n, 5.2))
+    for i in range(n):
+        for r, (img, title) in enumerate(((kw[i, 0], z["held_keywords"][i]), (z["held_swatches"][i, 0], "exemplar"),
+                                          (ex[i, 0], "from exemplar"))):
+            ax[r, i].imshow(np.clip(linear_to_srgb(np.clip(img, 0, 1)), 0, 1))
+            ax[r, i].set_title(str(title), fontsize=7)
+            ax[r, i].axis("off")
+    fig.tight_layout()
+    return str(save_figure(fig, out))
