@@ -756,19 +756,19 @@ def build_parser() -> argparse.ArgumentParser:
     bd.set_defaults(func=_cmd_bench_diffrender)
     from .benchmarks.matdiff import MatDiffBenchSettings
 
-    bm = bsub.add_parser("matdiff", help="material diffusion: keyword/exemplar conditioning, KID vs baselines, "
+    bmd = bsub.add_parser("matdiff", help="material diffusion: keyword/exemplar conditioning, KID vs baselines, "
                          "memorisation, seams, speed, ablations, dataset sweep (builds/continues its dataset first)")
     for name in ("data", "count", "train_seconds", "ablation_seconds", "samples", "steps", "guidance", "seed"):
-        _opt(bm, MatDiffBenchSettings, name)
-    _opt(bm, MatDiffBenchSettings, "ablations", "--no-ablations", help="skip the ablation runs")
-    bm.set_defaults(func=_cmd_bench_matdiff)
+        _opt(bmd, MatDiffBenchSettings, name)
+    _opt(bmd, MatDiffBenchSettings, "ablations", "--no-ablations", help="skip the ablation runs")
+    bmd.set_defaults(func=_cmd_bench_matdiff)
     bs = bsub.add_parser("scale", help="a batch of renders serially, on a process pool and on Ray (identical?)")
     for name in ("items", "resolution", "spp"):
         _opt(bs, ScaleBenchSettings, name)
     _opt(bs, ScaleBenchSettings, "ray", "--no-ray", help="leave out the Ray configuration")
     _opt(bs, ScaleBenchSettings, "material_item", "--no-material", help="leave out timing one BTF material")
     bs.set_defaults(func=_cmd_bench_scale)
-    for q in (bp, bm, bb, bf, bg, bd, bs):
+    for q in (bp, bm, bb, bf, bg, bd, bmd, bs):
         q.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
 
     f = sub.add_parser("face", help="face material fitting in UV space (seed 003)")
