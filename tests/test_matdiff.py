@@ -177,6 +177,8 @@ def test_bad_input_names_the_thing(tmp_path, capsys):
     assert "checkpoint" in capsys.readouterr().err
     assert main(["btf", "generate", "--run", str(tmp_path), "--out", str(tmp_path / "x.npz")]) == 2
     assert "--keywords" in capsys.readouterr().err
+    assert main(["btf", "generate", "--run", str(tmp_path), "--keywords", "wood", "--out", str(tmp_path / "x.png")]) == 2
+    assert ".npz" in capsys.readouterr().err
     with pytest.raises(UsageError, match="at least 2"):
         mm.train_matdiff(_toy_set(1), tmp_path / "r", mm.MatDiffSettings(**TINY))
     with pytest.raises(UsageError, match="divide by"):

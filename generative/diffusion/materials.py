@@ -460,7 +460,7 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
     from .material_data import parse_keywords
 
     out = check_output_file(out, "--out")
-    if str(out).endswith(".npz") is False:
+    if out.suffix != ".npz":
         raise UsageError(f"--out {out}: a material is an .npz file")
     validate.seed("seed", seed)
     model, s = load_matdiff(run)
