@@ -65,8 +65,28 @@ class FaceBenchmarkSettings:
     normal_strength_deg: float = 10.0  #: RMS tilt of the ground-truth normal map
     s_disp: float = 0.01
     seed: int = 0
+    #: the BSDF the observations are rendered with: ``ggx_uv`` (the fitting model itself) or Mitsuba's builtin
+    #: ``principled`` (a model the fit does not know: Burley diffuse, its own Fresnel; its ``specular`` is a scalar in
+    #: Mitsuba 3, so the truth's specular map is its mean there)
+    observation_bsdf: str = "ggx_uv"
+    #: ``directional`` (one light per observation, direct lighting, as the fit models it) or ``hdri`` (each of the
+    #: ``n_lights`` observations lit by a real HDRI of ``lighting_hdris`` at a seeded rotation, path traced with
+    #: interreflection; the fit then sees one directional "key light" per HDRI, its initial direction the HDRI's
+    #: radiance-weighted mean direction)
+    lighting: str = "directional"
+    lighting_hdris: tuple[str, ...] = ("city", "courtyard", "studio", "sunrise")
+    observation_spp: int = 64  #: paths per texel of an HDRI-lit observation (directional lighting is exact at 1)
+    max_depth: int = 2  #: path length of the observations (2: direct light only; > 2 adds interreflection)
+    albedo_blur: float = 0.0  #: rendered albedo blurred by this many texels at uv_res 256 (a thin subsurface-like spread)
 
     def __post_init__(self):
+        validate.one_of("observation_bsdf", self.observation_bsdf, ("ggx_uv", "principled"))
+        validate.one_of("lighting", self.lighting, ("directional", "hdri"))
+        validate.integer("observation_spp", self.observation_spp, 1, 1 << 16)
+        validate.integer("max_depth", self.max_depth, 2, 64)
+        validate.non_negative("albedo_blur", self.albedo_blur)
+        if self.lighting == "hdri" and not self.lighting_hdris:
+            raise UsageError("lighting_hdris: at least one HDRI is needed for lighting = hdri")
         validate.integer("uv_res", self.uv_res, 8, 4096)
         validate.integer("n_lights", self.n_lights, 1, 64)
         validate.integer("render_res", self.render_res, 8, 4096)
@@ -93,6 +113,8 @@ class Light:
     kind: str
     to_light: tuple[float, float, float]
     irradiance: tuple[float, float, float]
+    hdri: str | None = None  #: kind "hdri": the environment that really lit the observation (to_light: its key direction)
+    rotation_deg: float = 0.0  #: the environment's rotation about +y
 
 
 @dataclass
@@ -163,7 +185,7 @@ def training_lights(front: np.ndarray, n: int, irradiance: float, seed: int,
 # -- ground-truth maps ---------------------------------------------------------------------
 
 
-def _smooth_noise(rng: np.random.Generator, res: int, cells: int) -> np.ndarray:
+def smooth_noise(rng: np.random.Generator, res: int, cells: int) -> np.ndarray:
     """Bicubic-upsampled random grid in [-1, 1] (periodic-free value noise)."""
     from scipy.ndimage import zoom
 
@@ -181,7 +203,7 @@ def skin_relief(res: int, rng: np.random.Generator) -> np.ndarray:
     pores = pores / (pores.std() + 1e-12)
     wrinkles = gaussian_filter(rng.normal(size=(res, res)), sigma=(0.7 * res / 256, 6.0 * res / 256))
     wrinkles = wrinkles / (wrinkles.std() + 1e-12)
-    broad = _smooth_noise(rng, res, 6)
+    broad = smooth_noise(rng, res, 6)
     h = 0.35 * pores + 0.45 * wrinkles + 0.6 * broad
     return (h - h.min()) / (h.max() - h.min())
 
@@ -222,8 +244,8 @@ def ground_truth_maps(mesh: UVMesh, geo: GeometryMaps, s: FaceBenchmarkSettings)
     albedo = imageio.srgb_to_linear(np.asarray(tex, np.float32) / 255.0)
     height = skin_relief(res, rng)
     normal = normals_from_height(height, geo, s.normal_strength_deg)
-    roughness = np.clip(0.45 + 0.15 * _smooth_noise(rng, res, 5), 0.25, 0.7)
-    specular = np.clip(0.45 + 0.2 * _smooth_noise(rng, res, 5), 0.15, 0.8)
+    roughness = np.clip(0.45 + 0.15 * smooth_noise(rng, res, 5), 0.25, 0.7)
+    specular = np.clip(0.45 + 0.2 * smooth_noise(rng, res, 5), 0.15, 0.8)
     return {
         "albedo": albedo.astype(np.float32),
         "normal": normal,
@@ -241,21 +263,28 @@ def _bitmap(arr: np.ndarray) -> dict:
     return {"type": "bitmap", "raw": True, "data": mi.TensorXf(np.ascontiguousarray(arr, np.float32))}
 
 
-def material_dict(maps: dict[str, np.ndarray], s_disp: float) -> dict:
-    """ggx_uv (two-sided) with the given UV maps. Displacement shades as bump in the plugin."""
-    bsdf = {
+def material_dict(maps: dict[str, np.ndarray], s_disp: float, bsdf: str = "ggx_uv") -> dict:
+    """ggx_uv (two-sided) with the given UV maps; displacement shades as bump in the plugin. ``principled``: Mitsuba's
+    builtin with the same maps (roughness, base colour; its scalar ``specular`` = the map's mean) under a
+    ``normalmap``."""
+    if bsdf == "principled":
+        inner = {"type": "normalmap", "normalmap": _bitmap(maps["normal"] * 0.5 + 0.5),
+                 "bsdf": {"type": "principled", "base_color": _bitmap(maps["albedo"]),
+                          "roughness": _bitmap(maps["roughness"]), "specular": float(np.mean(maps["specular"]))}}
+        return {"type": "twosided", "bsdf": inner}
+    inner = {
         "type": "ggx_uv",
         "albedo": _bitmap(maps["albedo"]),
         "normal": _bitmap(maps["normal"] * 0.5 + 0.5),
         "roughness": _bitmap(maps["roughness"]),
         "specular": _bitmap(maps["specular"]),
     }
-    return {"type": "twosided", "bsdf": bsdf}
+    return {"type": "twosided", "bsdf": inner}
 
 
 def scan_scene(mesh_path: Path, maps: dict, s: FaceBenchmarkSettings, emitters: dict,
-               sensor: dict | None = None, integrator: dict | None = None) -> mi.Scene:
-    shape = {"type": "obj", "filename": str(mesh_path), "bsdf": material_dict(maps, s.s_disp),
+               sensor: dict | None = None, integrator: dict | None = None, bsdf: str = "ggx_uv") -> mi.Scene:
+    shape = {"type": "obj", "filename": str(mesh_path), "bsdf": material_dict(maps, s.s_disp, bsdf),
              "face_normals": False}
     d = {"type": "scene", "integrator": integrator or {"type": "path", "max_depth": 2}, "scan": shape, **emitters}
     if sensor is not None:
@@ -286,35 +315,56 @@ def _texel_interactions(scene: mi.Scene, geo: GeometryMaps) -> tuple[np.ndarray,
 
 
 def texel_observation(scene: mi.Scene, geo: GeometryMaps, eye: np.ndarray, radius: float,
-                      seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                      seed: int = 0, spp: int = 1, grazing_cos: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Radiance seen from ``eye`` at every texel's 3D point, and the texels actually seen.
 
-    One ray per covered texel through its point; seen = first hit within
-    1e-3·radius of the point, on the front side of its shading normal (the
-    UV-space shader is one-sided). Lighting is deterministic (delta lights,
-    direct only), so one sample per texel is exact.
+    ``spp`` rays per covered texel through its point (their mean radiance); seen = the first hit is within
+    1e-3·radius of the point, on the front side of its shading normal by more than ``grazing_cos`` (the UV-space
+    shader is one-sided). Directional lighting with direct light only is deterministic: one sample is exact.
     """
+    h, w = geo.mask.shape
     idx = np.nonzero(geo.mask.ravel())[0]
     p = geo.position.reshape(-1, 3)[idx].astype(np.float64)
     n = geo.normal.reshape(-1, 3)[idx].astype(np.float64)
     d = p - eye[None, :]
-    dist = np.linalg.norm(d, axis=1)
-    d /= dist[:, None]
-    ray = mi.Ray3f(mi.Point3f(np.tile(eye, (len(idx), 1)).T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    o = np.repeat(np.tile(eye, (len(idx), 1)), spp, 0)
+    ray = mi.Ray3f(mi.Point3f(o.T.astype(np.float32)), mi.Vector3f(np.repeat(d, spp, 0).T.astype(np.float32)))
     si = scene.ray_intersect(ray)
-    hit = np.array(si.p, dtype=np.float64).T
-    seen = (np.array(si.is_valid()) & (np.linalg.norm(hit - p, axis=1) < 1e-3 * radius)
-            & (np.sum(n * d, axis=1) < 0.0))
+    first = np.arange(len(idx)) * spp
+    hit = np.array(si.p, dtype=np.float64).T[first]
+    seen = (np.array(si.is_valid())[first] & (np.linalg.norm(hit - p, axis=1) < 1e-3 * radius)
+            & (np.sum(n * d, axis=1) < -grazing_cos))
     sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(seed, len(idx))
+    sampler.seed(seed, len(idx) * spp)
     value, _, _ = scene.integrator().sample(scene, sampler, ray)
-    value = np.array(value, dtype=np.float32).T
-    h, w = geo.mask.shape
+    value = np.array(value, dtype=np.float64).T.reshape(len(idx), spp, 3).mean(1).astype(np.float32)
     out = np.zeros((h * w, 3), np.float32)
     out[idx] = np.where(seen[:, None], value, 0.0)
     vis = np.zeros(h * w, np.float32)
     vis[idx] = seen
     return out.reshape(h, w, 3), vis.reshape(h, w)
+
+
+def key_light(hdri: str, rotation_deg: float) -> tuple[np.ndarray, float]:
+    """An HDRI's radiance-weighted mean direction (world, after the rotation about +y) and the irradiance of a
+    surface facing it: the one directional light a fit that models only directional lights starts from."""
+    from foundation.assets import hdri_pixels
+
+    px = hdri_pixels(hdri).astype(np.float64)
+    h, w = px.shape[:2]
+    theta = (np.arange(h) + 0.5) / h * np.pi
+    phi = (np.arange(w) + 0.5) / w * 2 * np.pi
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    # Mitsuba's envmap: u = atan2(x, −z)/2π, v = acos(y)/π (local frame)
+    dirs = np.stack([np.sin(th) * np.sin(ph), np.cos(th), -np.sin(th) * np.cos(ph)], -1)
+    lum = np.clip(px @ np.array([0.2126, 0.7152, 0.0722]), 0.0, None)
+    dw = np.sin(th) * (np.pi / h) * (2 * np.pi / w)
+    mean = (dirs * (lum * dw)[..., None]).sum((0, 1))
+    key = mean / max(np.linalg.norm(mean), 1e-12)
+    irr = float((lum * np.clip(dirs @ key, 0.0, None) * dw).sum())
+    world = np.array(mi.ScalarTransform4f().rotate([0, 1, 0], rotation_deg) @ mi.ScalarVector3f(*key))
+    return world / np.linalg.norm(world), irr
 
 
 def light_visibility(scene: mi.Scene, geo: GeometryMaps, to_light: np.ndarray) -> np.ndarray:
@@ -341,10 +391,10 @@ def camera_sensor(eye: np.ndarray, target: np.ndarray, res: int, fov: float = 30
 
 
 def render_heldout(mesh_path: Path, maps: dict, s: FaceBenchmarkSettings, hdri: str, eye: np.ndarray,
-                   target: np.ndarray, fov: float) -> tuple[np.ndarray, np.ndarray]:
+                   target: np.ndarray, fov: float, bsdf: str = "ggx_uv") -> tuple[np.ndarray, np.ndarray]:
     """Camera render under a real HDRI (full path tracing) and the fully covered face pixels."""
     scene = scan_scene(mesh_path, maps, s, {"env": envmap(hdri)},
-                       camera_sensor(eye, target, s.render_res, fov), {"type": "intrinsic", "max_depth": 4})
+                       camera_sensor(eye, target, s.render_res, fov), {"type": "intrinsic", "max_depth": 4}, bsdf)
     img = np.array(mi.render(scene, spp=s.render_spp, seed=s.seed + 7))
     rgb = img[..., :3]
     depth = img[..., 3 + 3 * 3 + 3]  # albedo, diffuse, specular, normal (3 each), then depth
@@ -353,6 +403,19 @@ def render_heldout(mesh_path: Path, maps: dict, s: FaceBenchmarkSettings, hdri: 
 
 
 # -- the whole benchmark ------------------------------------------------------------------------------
+
+
+def rendered_maps(gt: dict[str, np.ndarray], s: FaceBenchmarkSettings) -> dict[str, np.ndarray]:
+    """The maps the observations are rendered with: the truth, its albedo spread by ``albedo_blur`` (light
+    scattered under the skin leaves the surface beside where it entered), and for ``principled`` the specular map's
+    mean (a scalar there). The truth records the latter, not the blur (the fit should find the skin's colour)."""
+    out = dict(gt)
+    if s.albedo_blur > 0:
+        from scipy.ndimage import gaussian_filter
+
+        sigma = s.albedo_blur * s.uv_res / 256
+        out["albedo"] = np.stack([gaussian_filter(gt["albedo"][..., c], sigma, mode="nearest") for c in range(3)], -1)
+    return out
 
 
 def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings | None = None,
@@ -380,21 +443,38 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
                 shutil.copyfile(hdri_path(h), tmp / rel)
         geo = bake_geometry(mesh, s.uv_res)
         gt = ground_truth_maps(mesh, geo, s)
+        if s.observation_bsdf == "principled":
+            gt["specular"] = np.full_like(gt["specular"], float(np.mean(gt["specular"])))
         centre, radius, front = scan_frame(mesh)
         fov = float(np.degrees(2 * np.arctan(1.15 / s.camera_distance)))
-        lights = training_lights(front, s.n_lights, s.light_irradiance, s.seed, s.light_spread_deg)
+        if s.lighting == "hdri":
+            rng = np.random.default_rng(s.seed + 23)
+            lights = []
+            for k in range(s.n_lights):
+                h, rot = s.lighting_hdris[k % len(s.lighting_hdris)], float(rng.uniform(0.0, 360.0))
+                key, irr = key_light(h, rot)
+                lights.append(Light("hdri", tuple(map(float, key)), (irr,) * 3, hdri_label(h), rot))
+        else:
+            lights = training_lights(front, s.n_lights, s.light_irradiance, s.seed, s.light_spread_deg)
         views = [centre + orbit_direction(front, yaw, pitch) * s.camera_distance * radius for yaw, pitch in s.views]
+        rendered = rendered_maps(gt, s)
 
         obs, vis_view, vis_light, camera = {}, {}, {}, {}
         steps = len(lights) * (len(views) + 1) + len(s.heldout_hdris)
         with progress_bar(total=steps, desc=f"face benchmark {scan.stem}", unit="render",
                           disable=not show_progress) as bar:
             for k, light in enumerate(lights):
-                scene = scan_scene(scan, gt, s, directional_emitters([light]))
+                if light.kind == "hdri":
+                    emit = {"env": envmap(light.hdri, to_world=mi.ScalarTransform4f().rotate([0, 1, 0], light.rotation_deg))}
+                else:
+                    emit = directional_emitters([light])
+                scene = scan_scene(scan, rendered, s, emit, integrator={"type": "path", "max_depth": s.max_depth},
+                                   bsdf=s.observation_bsdf)
                 vis_light[f"light{k}"] = light_visibility(scene, geo, np.asarray(light.to_light))
                 bar.update(1)
                 for v, eye in enumerate(views):
-                    img, seen = texel_observation(scene, geo, eye, radius, seed=s.seed + 31 * k + v)
+                    spp = s.observation_spp if (light.kind == "hdri" or s.max_depth > 2) else 1
+                    img, seen = texel_observation(scene, geo, eye, radius, seed=s.seed + 31 * k + v, spp=spp)
                     obs[f"v{v}_l{k}"] = img
                     vis_view[f"v{v}"] = seen
                     # The same view as an ordinary camera image (for fitting through full renders).
@@ -405,7 +485,7 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
                 del scene
             heldout = {}
             for hdri in s.heldout_hdris:
-                rgb, mask = render_heldout(scan, gt, s, hdri, views[0], centre, fov)
+                rgb, mask = render_heldout(scan, rendered, s, hdri, views[0], centre, fov, s.observation_bsdf)
                 heldout[hdri_label(hdri)] = rgb
                 heldout[f"{hdri_label(hdri)}_mask"] = mask.astype(np.float32)
                 bar.update(1)

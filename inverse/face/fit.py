@@ -190,6 +190,9 @@ class FaceFitStage(DrJitStage):
         self.full = bench.geometry["mask"].shape[0]
         self.views = [np.asarray(v) for v in bench.meta.views]
         self.lights_meta = bench.meta.lights
+        if not s.fit_lights and any(l.kind == "hdri" for l in self.lights_meta):
+            raise UsageError(f"{bench.path}: its observations are lit by HDRIs; their key directions are only a start "
+                             "for a fit of the lighting (--fit-lights / FaceFitSettings(fit_lights=True))")
         self.n_views, self.n_lights = len(self.views), len(self.lights_meta)
         # Light parameters (directions normalised in the loss; intensities positive).
         self.dirs0 = [_rotate_towards_random(np.asarray(l.to_light), s.light_init_error_deg, rng)

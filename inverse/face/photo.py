@@ -55,6 +55,7 @@ TEMPLATE = FACE / "canonical_face_model.obj"
 N_LANDMARKS = 468
 MARKER = "photo_face.json"  #: written last: a folder holding it is a complete from-photo output
 MIN_SIDE = 64  #: smallest photo side (px) a face can be unwrapped from
+PHOTO_VIEW = UVView(direction=(0.0, 0.0, 1.0))  #: the photo's orthographic camera in image space
 
 
 @dataclass
@@ -248,8 +249,9 @@ class LightingStage(DrJitStage):
 
     name = "fit lighting"
 
-    def __init__(self, tex: np.ndarray, weight: np.ndarray, geo, s: PhotoFitSettings):
+    def __init__(self, tex: np.ndarray, weight: np.ndarray, geo, s: PhotoFitSettings, view: UVView = PHOTO_VIEW):
         rng = np.random.default_rng(s.seed)
+        self.view = view
         t = lambda a: mi.TensorXf(np.ascontiguousarray(a, np.float32))  # noqa: E731
         self.s, self.shape = s, tex.shape
         self.pos, self.nrm, self.tan = t(geo.position), t(geo.normal), t(geo.tangent)
@@ -270,7 +272,7 @@ class LightingStage(DrJitStage):
         albedo = mi.TensorXf(dr.ravel(dr.zeros(mi.Color3f, self.shape[0] * self.shape[1]) + opt["colour"]),
                              shape=self.shape)
         maps = UVMaps(albedo=albedo, roughness=s.roughness, specular=s.specular)
-        pred = shade_uv(self.pos, self.nrm, self.tan, maps, lights, UVView(direction=(0.0, 0.0, 1.0)))
+        pred = shade_uv(self.pos, self.nrm, self.tan, maps, lights, self.view)
         pred = pred + albedo * mi.TensorXf(opt["ambient"])
         diff = (pred - self.target) * self.w
         loss = dr.sum(diff * diff, axis=None) / self.norm
@@ -299,28 +301,65 @@ class LightingStage(DrJitStage):
 
 
 def fit_lighting(tex: np.ndarray, weight: np.ndarray, geo, s: PhotoFitSettings,
-                 show_progress: bool = False) -> FittedLighting:
+                 show_progress: bool = False, view: UVView = PHOTO_VIEW) -> FittedLighting:
     """Fit :class:`LightingStage` (the shared loop, in memory: it takes seconds)."""
-    return run_loop(LightingStage(tex, weight, geo, s), LoopSettings(steps=s.light_iterations),
+    return run_loop(LightingStage(tex, weight, geo, s, view), LoopSettings(steps=s.light_iterations),
                     show_progress=show_progress)
 
 
-def white_shading(geo, lighting: FittedLighting, s: PhotoFitSettings) -> np.ndarray:
+def white_shading(geo, lighting: FittedLighting, s: PhotoFitSettings, view: UVView = PHOTO_VIEW) -> np.ndarray:
     """Diffuse shading of a white, non-specular surface under the fitted lights + ambient."""
     t = lambda a: mi.TensorXf(np.ascontiguousarray(a, np.float32))  # noqa: E731
     lights = [UVLight("directional", tuple(l.to_light), tuple(l.irradiance)) for l in lighting.lights]
     out = shade_uv(t(geo.position), t(geo.normal), t(geo.tangent), UVMaps(albedo=1.0, specular=0.0), lights,
-                   UVView(direction=(0.0, 0.0, 1.0)), ambient=lighting.ambient)
+                   view, ambient=lighting.ambient)
     return np.array(out)
+
+
+@dataclass
+class DelitTexture:
+    """Steps 4–5 of the baseline: the filled lit texture, the albedo, and how it was obtained."""
+
+    albedo: np.ndarray  #: (H, W, 3) linear, complete over the valid texels
+    filled: np.ndarray  #: the lit texture after the mirror + harmonic fill
+    seen: np.ndarray  #: texels seen or mirror-filled
+    shading: np.ndarray  #: fitted white shading
+    lighting: FittedLighting
+
+
+def fill_and_delight(tex: np.ndarray, weight: np.ndarray, geo, s: PhotoFitSettings, view: UVView = PHOTO_VIEW,
+                     show_progress: bool = False) -> DelitTexture:
+    """The optimisation baseline of completion + light homogenisation: mirror fill (u → 1 − u) and a harmonic fill
+    of the lit texture, then albedo = texture ÷ the fitted white shading (directional lights + ambient through the
+    UV shader, one constant skin colour). ``weight``: visibility in [0, 1] (> 0.3 counts as seen)."""
+    valid = geo.mask
+    filled, seen = symmetric_fill(tex, weight, valid)
+    filled = fill_unobserved({"t": filled}, seen, valid)["t"]
+    lighting = fit_lighting(tex, weight * valid, geo, s, show_progress, view)
+    shading = white_shading(geo, lighting, s, view)
+    # Floor the shading (a quarter of its median) so that texels the coarse template shades too
+    # darkly (nostrils, creases) do not blow up into bright albedo.
+    ok = valid & seen
+    floor = 0.25 * float(np.median(shading[ok])) if ok.any() else 1e-3
+    albedo = np.clip(filled / np.maximum(shading, max(floor, 1e-6)), 0.0, 1.0)
+    albedo = fill_unobserved({"a": albedo}, valid & (shading.mean(-1) > 0.05), valid)["a"]
+    albedo = np.where(valid[..., None], albedo, albedo[valid].mean(0))
+    return DelitTexture(albedo.astype(np.float32), filled, seen, shading, lighting)
 
 
 # -- 6–7. relight ----------------------------------------------------------------------------------------------
 
 
-def _face_scene(mesh_path: Path, albedo: np.ndarray, s: PhotoFitSettings, emitters: dict, sensor: dict) -> mi.Scene:
-    bsdf = {"type": "twosided", "bsdf": {
-        "type": "ggx_uv", "albedo": {"type": "bitmap", "raw": True, "data": mi.TensorXf(albedo.astype(np.float32))},
-        "roughness": s.roughness, "specular": s.specular}}
+def _face_scene(mesh_path: Path, maps: dict[str, np.ndarray], s: PhotoFitSettings, emitters: dict, sensor: dict) -> mi.Scene:
+    def bitmap(a):
+        return {"type": "bitmap", "raw": True, "data": mi.TensorXf(np.ascontiguousarray(a, np.float32))}
+
+    inner = {"type": "ggx_uv", "albedo": bitmap(maps["albedo"]),
+             "roughness": bitmap(maps["roughness"]) if "roughness" in maps else s.roughness,
+             "specular": bitmap(maps["specular"]) if "specular" in maps else s.specular}
+    if "normal" in maps:
+        inner["normal"] = bitmap(maps["normal"] * 0.5 + 0.5)
+    bsdf = {"type": "twosided", "bsdf": inner}
     return mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 4},
                          "face": {"type": "obj", "filename": str(mesh_path), "bsdf": bsdf, "face_normals": False},
                          "sensor": sensor, **emitters})
@@ -354,15 +393,20 @@ class PhotoFaceResult:
     visible_uv_fraction: float
     lighting: FittedLighting  #: its loss history is cut to the last value
     settings: PhotoFitSettings
+    stages: str  #: "baseline" (fill, delight, template defaults) or "learned" (maps_fn)
     image_size: tuple[int, int]
     seconds: float
     outputs: list[str]
 
 
 def photo_to_face(image: np.ndarray, out: str | Path, s: PhotoFitSettings | None = None,
-                  landmarks: np.ndarray | None = None, show_progress: bool = True) -> PhotoFaceResult:
+                  landmarks: np.ndarray | None = None, show_progress: bool = True, maps_fn=None) -> PhotoFaceResult:
     """Run steps 1–7; writes maps, mesh, renders and ``photo_face.json`` into the folder ``out``.
 
+    ``maps_fn`` replaces steps 4–6 by learned stages: called as ``maps_fn(texture, weight, geometry, albedo)``
+    with the unwrapped texture, its visibility, the template's geometry maps and the baseline's albedo, it
+    returns the maps (albedo, normal, roughness, specular) at the texture's resolution (the application passes
+    ``generative.diffusion.photo_maps_fn`` of a trained run; this layer does not import it).
     The folder appears complete or not at all (written beside it and renamed at the end).
     """
     from scipy.ndimage import binary_erosion
@@ -396,26 +440,25 @@ def photo_to_face(image: np.ndarray, out: str | Path, s: PhotoFitSettings | None
         if not (weight[valid] > 0.3).any():
             raise UsageError("no texel of the face template is visible in the photo (do the landmarks belong to it?)")
         bar.update(1)
-        filled, seen = symmetric_fill(tex, weight, valid)
-        filled = fill_unobserved({"t": filled}, seen, valid)["t"]
-        bar.update(1)
-        lighting = fit_lighting(tex, weight * valid, geo, s)
-        bar.update(1)
-        shading = white_shading(geo, lighting, s)
-        # Floor the shading (a quarter of its median) so that texels the coarse template shades too
-        # darkly (nostrils, creases) do not blow up into bright albedo.
-        floor = 0.25 * float(np.median(shading[valid & seen]))
-        albedo = np.clip(filled / np.maximum(shading, floor), 0.0, 1.0)
-        albedo = fill_unobserved({"a": albedo}, valid & (shading.mean(-1) > 0.05), valid)["a"]
-        albedo = np.where(valid[..., None], albedo, albedo[valid].mean(0))
-        bar.update(1)
+        delit = fill_and_delight(tex, weight, geo, s)
+        albedo, shading, lighting = delit.albedo, delit.shading, delit.lighting
+        maps = {"albedo": albedo}
+        if maps_fn is not None:
+            maps = maps_fn(tex, weight, geo, albedo)
+            missing = {"albedo", "normal", "roughness", "specular"} - set(maps)
+            if missing or any(maps[k].shape[:2] != albedo.shape[:2] for k in maps):
+                raise FailureError(f"the learned stages returned maps {sorted(maps)} of shapes "
+                                   f"{[maps[k].shape for k in maps]}; expected albedo, normal, roughness, specular at "
+                                   f"{albedo.shape[:2]}")
+            albedo = maps["albedo"]
+        bar.update(3)
 
         # Re-render under the fitted lighting from the photo's camera; compare on the visible face.
         emit = {f"l{k}": {"type": "directional", "direction": (-np.asarray(l.to_light)).tolist(),
                           "irradiance": {"type": "rgb", "value": list(l.irradiance)}}
                 for k, l in enumerate(lighting.lights)}
         emit["amb"] = {"type": "constant", "radiance": {"type": "rgb", "value": [lighting.ambient] * 3}}
-        scene = _face_scene(mesh_path, albedo, s, emit, photo_camera(w, h))
+        scene = _face_scene(mesh_path, maps, s, emit, photo_camera(w, h))
         rerender = np.array(mi.render(scene, spp=s.relight_spp, seed=s.seed))[..., :3]
         cover = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "dd:depth"},
                               "face": {"type": "obj", "filename": str(mesh_path)},
@@ -435,13 +478,16 @@ def photo_to_face(image: np.ndarray, out: str | Path, s: PhotoFitSettings | None
         for hdri in s.hdris:
             # Framed on the face, seen from the photo's viewpoint.
             cam = photo_camera(side, side, s.relight_res, s.relight_res, centre=tuple((lo + hi) / 2))
-            scene = _face_scene(mesh_path, albedo, s, {"env": envmap(hdri)}, cam)
+            scene = _face_scene(mesh_path, maps, s, {"env": envmap(hdri)}, cam)
             imageio.write_png(tmp / f"relit_{hdri}.png", np.array(mi.render(scene, spp=s.relight_spp, seed=s.seed))[..., :3])
             del scene
             bar.update(1)
 
-        imageio.write_exr(tmp / "maps.exr", {"albedo": albedo, "photo_uv": tex, "visibility": weight,
-                                             "shading": shading})
+        imageio.write_exr(tmp / "maps.exr", {**maps, "photo_uv": tex, "visibility": weight, "shading": shading})
+        if "normal" in maps:
+            imageio.write_png(tmp / "normal.png", maps["normal"] * 0.5 + 0.5, linear=False)
+            imageio.write_png(tmp / "roughness.png", np.repeat(maps["roughness"], 3, -1), linear=False)
+            imageio.write_png(tmp / "specular.png", np.repeat(maps["specular"], 3, -1), linear=False)
         imageio.write_png(tmp / "albedo.png", albedo)
         imageio.write_png(tmp / "photo_uv.png", tex * (weight[..., None] > 0))
         imageio.write_png(tmp / "visibility.png", np.repeat(weight[..., None], 3, -1), linear=False)
@@ -451,7 +497,8 @@ def photo_to_face(image: np.ndarray, out: str | Path, s: PhotoFitSettings | None
             landmark_reprojection_px=fit.reprojection_px, landmark_reprojection_px_rigid=fit.reprojection_px_rigid,
             rerender_psnr_visible_face=rerender_psnr, visible_uv_fraction=float((weight[valid] > 0.3).mean()),
             lighting=FittedLighting(lighting.lights, lighting.ambient, lighting.skin_colour, lighting.loss[-1:]),
-            settings=s, image_size=(w, h), seconds=time.perf_counter() - t0,
+            settings=s, stages="baseline" if maps_fn is None else "learned", image_size=(w, h),
+            seconds=time.perf_counter() - t0,
             outputs=sorted([*(p.name for p in tmp.iterdir()), MARKER]))
         write_json(tmp / MARKER, to_json(result))
     return result
