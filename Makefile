@@ -27,10 +27,10 @@ demo: $(STAMP)
 
 # Two test processes, one Dr.Jit/torch thread each (tests/conftest.py): bit-reproducible runs, both cores busy.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2 --durations=12
+	$(BIN)/python -m pytest -q -n 2 --dist loadgroup --durations=12
 
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2 -m "not slow"
+	$(BIN)/python -m pytest -q -n 2 --dist loadgroup -m "not slow"
 
 bench: $(STAMP)
 	mkdir -p out/bench
@@ -42,6 +42,7 @@ bench: $(STAMP)
 	$(BIN)/photoreal bench scale --json out/bench/scale.json
 	$(BIN)/photoreal bench diffrender --json out/bench/diffrender.json
 	$(BIN)/photoreal bench matdiff --json out/bench/matdiff.json
+	$(BIN)/photoreal bench face-learned --json out/bench/face_learned.json
 
 clean:
 	rm -rf out .pytest_cache

@@ -1,4 +1,4 @@
-"""Diffusion models (seed 000 now; seeds 002 and 003 next), one family on one core.
+"""Diffusion models of seeds 000, 002 and 003, one family on one core.
 
 =================  ==========================================================================
 module             what
@@ -9,6 +9,10 @@ module             what
 ``material_data``  seed 002's generative dataset: many fitted neural materials, path-traced swatches, keywords
 ``materials``      diffusion over [T_off ‖ T_rgb] (circular, shifted cosine, Min-SNR, cube root, multiscale, CFG)
 ``material_eval``  family classifier, feature spaces, baselines, aligned ꟻLIP, seam ratio
+``face_data``      seed 003's instances: one scan multiplied (identity, skin, relief, warps, poses, HDRIs)
+``face_models``    completion diffusion (the backbone), LoRA decomposition with cross-intrinsic attention, 2× SR
+``face_eval``      the optimisation baseline, the learned pipeline stage by stage, map and relighting scores
+``face_run``       `photoreal face train-models`: one resumable run folder; the learned stages for from-photo
 =================  ==========================================================================
 
 Other features and the application use only the names below.
@@ -29,10 +33,20 @@ from .material_data import (VOCABULARY, MaterialDataSettings, MaterialSet, build
 from .material_eval import (ClassifierSettings, aligned_flip, classify, copy_baseline, crop_baseline, decode_all,
                             gaussian_baseline, mean_pairwise, mnv2_features, nearest_distances, seam_ratio,
                             train_classifier)
+from .face_data import FaceDataSettings, FaceSet, build_face_dataset, load_face_dataset, scan_path
+from .face_eval import LearnedModels, baseline_maps, default_maps, learned_maps, map_scores, relit_scores
+from .face_models import (VARIANTS, CompletionSettings, DecompSettings, SuperResSettings, at_resolution, complete,
+                          decompose_maps, load_completion, load_decomposer, load_superres, normalise_albedo, upscale)
+from .face_run import FaceModelsSettings, load_face_models, photo_maps_fn, train_face_models
 from .materials import (MaterialPrompt, MatDiffSettings, generate_material, load_matdiff, sample_materials,
                         split_features, train_matdiff)
 
 __all__ = [
+    "FaceDataSettings", "FaceSet", "build_face_dataset", "load_face_dataset", "scan_path", "LearnedModels",
+    "baseline_maps", "default_maps", "learned_maps", "map_scores", "relit_scores", "VARIANTS", "CompletionSettings",
+    "DecompSettings", "SuperResSettings", "at_resolution", "complete", "decompose_maps", "load_completion",
+    "load_decomposer", "load_superres", "normalise_albedo", "upscale", "FaceModelsSettings", "load_face_models",
+    "photo_maps_fn", "train_face_models",
     "VOCABULARY", "MaterialDataSettings", "MaterialSet", "build_material_dataset", "decode_swatches",
     "load_material_dataset", "parse_keywords", "ClassifierSettings", "aligned_flip", "classify", "copy_baseline",
     "crop_baseline", "decode_all", "gaussian_baseline", "mean_pairwise", "mnv2_features", "nearest_distances",
