@@ -290,6 +290,18 @@ def _cmd_bench_matdiff(a) -> int:
     return 0
 
 
+def _cmd_bench_face_learned(a) -> int:
+    from foundation.files import write_json
+
+    from .benchmarks.face_learned import FaceLearnedBenchSettings, bench_face_learned
+
+    out = _bench_out(a)
+    result = bench_face_learned(_settings(FaceLearnedBenchSettings, a), out_dir=out.parent)
+    write_json(out, result)
+    _print({k: result.get(k) for k in ("completion", "decomposition", "superres", "end_to_end", "verdict")})
+    return 0
+
+
 # -- face -----------------------------------------------------------------------------------------------------------
 
 
@@ -351,12 +363,38 @@ def _cmd_face_from_photo(a) -> int:
 
     s = _settings(PhotoFitSettings, a)
     check_output_dir(a.out, "photo_face.json", "--out", replace=True)
+    maps_fn = None
+    if a.learned:
+        from generative.diffusion import load_face_models, photo_maps_fn
+
+        maps_fn = photo_maps_fn(load_face_models(a.learned, a.variant))  # a bad run is named before any work
     image = read_photo(a.image)
     lm = load_landmarks(a.landmarks) if a.landmarks else None
-    r = photo_to_face(image, a.out, s, landmarks=lm)
-    _print({"landmark_reprojection_px": r.landmark_reprojection_px,
+    r = photo_to_face(image, a.out, s, landmarks=lm, maps_fn=maps_fn)
+    _print({"stages": r.stages, "landmark_reprojection_px": r.landmark_reprojection_px,
             "rerender_psnr_visible_face": r.rerender_psnr_visible_face,
             "visible_uv_fraction": r.visible_uv_fraction, "seconds": r.seconds})
+    return 0
+
+
+def _cmd_face_train_models(a) -> int:
+    from foundation.pool import ray_shutdown
+    from generative.diffusion import (CompletionSettings, DecompSettings, FaceDataSettings, FaceModelsSettings,
+                                      SuperResSettings, train_face_models)
+
+    s = FaceModelsSettings(
+        data=_settings(FaceDataSettings, a),
+        completion=CompletionSettings(max_seconds=a.completion_seconds, seed=a.seed),
+        decomposition=DecompSettings(max_seconds=a.decomp_seconds, seed=a.seed),
+        superres=SuperResSettings(max_seconds=a.superres_seconds, seed=a.seed),
+        variants=tuple(a.variants))
+    try:
+        summary = train_face_models(a.out, s, _pool(a))
+    finally:
+        ray_shutdown()
+    _print({k: {"parameters": v["parameters"], "steps": v["training"]["steps"],
+                "train_seconds": v["training"]["train_seconds"], "loss_last": v["training"]["loss_last"]}
+            for k, v in summary.items()})
     return 0
 
 
@@ -762,13 +800,23 @@ def build_parser() -> argparse.ArgumentParser:
         _opt(bmd, MatDiffBenchSettings, name)
     _opt(bmd, MatDiffBenchSettings, "ablations", "--no-ablations", help="skip the ablation runs")
     bmd.set_defaults(func=_cmd_bench_matdiff)
+    from .benchmarks.face_learned import FaceLearnedBenchSettings
+
+    bfl = bsub.add_parser("face-learned", help="learned face stages vs the optimisation baseline on a held-out scan: "
+                          "completion, decomposition variants, super-resolution, cross-model fit, end to end")
+    for name in ("train_instances", "eval_instances", "completion_seconds", "decomp_seconds", "superres_seconds",
+                 "relit_instances", "cross_uv_res", "workers", "seed"):
+        _opt(bfl, FaceLearnedBenchSettings, name)
+    _opt(bfl, FaceLearnedBenchSettings, "cross_model", "--no-cross-model", help="skip the cross-model fit")
+    _opt(bfl, FaceLearnedBenchSettings, "astronaut", "--no-astronaut", help="skip the astronaut photograph")
+    bfl.set_defaults(func=_cmd_bench_face_learned)
     bs = bsub.add_parser("scale", help="a batch of renders serially, on a process pool and on Ray (identical?)")
     for name in ("items", "resolution", "spp"):
         _opt(bs, ScaleBenchSettings, name)
     _opt(bs, ScaleBenchSettings, "ray", "--no-ray", help="leave out the Ray configuration")
     _opt(bs, ScaleBenchSettings, "material_item", "--no-material", help="leave out timing one BTF material")
     bs.set_defaults(func=_cmd_bench_scale)
-    for q in (bp, bm, bb, bf, bg, bd, bmd, bs):
+    for q in (bp, bm, bb, bf, bg, bd, bmd, bfl, bs):
         q.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
 
     f = sub.add_parser("face", help="face material fitting in UV space (seed 003)")
@@ -781,7 +829,15 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(fm, FaceBenchmarkSettings, "seed")
     _opt(fm, FaceBenchmarkSettings, "heldout_hdris", "--hdri", metavar="HDRI",
          help="held-out relighting environments: bundled names or your own .exr files (copied into the benchmark); "
-              "the training photos stay under directional lights, which the fit models")
+              "the training photos stay under directional lights unless --lighting hdri")
+    _opt(fm, FaceBenchmarkSettings, "observation_bsdf", choices=["ggx_uv", "principled"],
+         help="BSDF the observations are rendered with (principled: a model the fit does not know)")
+    _opt(fm, FaceBenchmarkSettings, "lighting", choices=["directional", "hdri"],
+         help="each observation under one directional light, or under a real HDRI at a seeded rotation")
+    _opt(fm, FaceBenchmarkSettings, "lighting_hdris", metavar="HDRI", help="environments of --lighting hdri")
+    _opt(fm, FaceBenchmarkSettings, "max_depth", help="path length of the observations (> 2: interreflection)")
+    _opt(fm, FaceBenchmarkSettings, "albedo_blur", type=float,
+         help="rendered albedo blurred by this many texels at 256² (subsurface-like spread; the truth is not blurred)")
     fm.set_defaults(func=_cmd_face_make_benchmark)
     ff = fsub.add_parser("fit", help="fit UV maps to benchmarks and score them (resumes from a checkpoint)")
     ff.add_argument("benchmark", nargs="+", help="folder(s) made by make-benchmark, or a folder of them")
@@ -802,7 +858,29 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--landmarks", default=None, help="468x3 landmarks (.npy/.json) instead of running mediapipe")
     _opt(fp, PhotoFitSettings, "uv_res")
     _opt(fp, PhotoFitSettings, "seed")
+    fp.add_argument("--learned", default=None, metavar="RUN",
+                    help="replace fill, delighting and template defaults by the learned stages of a "
+                         "`face train-models` run (default: the optimisation baseline)")
+    fp.add_argument("--variant", default=None, help="decomposition variant of the run (default: the run's first)")
     fp.set_defaults(func=_cmd_face_from_photo)
+    from generative.diffusion import CompletionSettings, DecompSettings, FaceDataSettings, SuperResSettings
+
+    ft = fsub.add_parser("train-models", help="learned UV-space stages (seed 003 §2–§4): data from the training "
+                         "scan, completion diffusion (the backbone), LoRA decomposition, 2× super-resolution (resumes)")
+    ft.add_argument("--out", required=True, help="run folder (absent, empty, or this command's earlier run)")
+    for name in ("train_instances", "eval_instances", "uv_res", "spp", "seed"):
+        _opt(ft, FaceDataSettings, name)
+    ft.add_argument("--completion-seconds", type=float, default=_default(CompletionSettings, "max_seconds"),
+                    help="training budget of the completion model (default: %(default)s)")
+    ft.add_argument("--decomp-seconds", type=float, default=_default(DecompSettings, "max_seconds"),
+                    help="training budget of each decomposition variant (default: %(default)s)")
+    ft.add_argument("--superres-seconds", type=float, default=_default(SuperResSettings, "max_seconds"),
+                    help="training budget of the upscaler (default: %(default)s)")
+    ft.add_argument("--variants", nargs="+", default=["cross_attention"],
+                    choices=["cross_attention", "shared", "independent"],
+                    help="decomposition variants to train; the first is the one from-photo uses (default: cross_attention)")
+    _pool_opts(ft)
+    ft.set_defaults(func=_cmd_face_train_models)
 
     m = sub.add_parser("morph", help="geometry morphing of coarse meshes against photos (REAL-DIBS §4)")
     msub = m.add_subparsers(dest="morph_cmd", required=True)
