@@ -188,8 +188,9 @@ def sample(model: ConditionalDiffusion, local: torch.Tensor | None, global_cond:
 
 
 class OptimizerStage:
-    """Mixin for a :class:`foundation.loop.Stage` with one torch ``model`` and one optimiser ``opt``: ``backward``
-    a loss into a :class:`StepResult`; the loop applies the step only when the loss and every gradient are finite."""
+    """Mixin for a :class:`foundation.loop.Stage` with one torch ``model``, one optimiser ``opt``, a numpy ``rng`` and
+    optionally a torch generator ``gen``: ``backward`` a loss into a :class:`StepResult` (the loop applies the step only
+    when the loss and every gradient are finite), and the checkpoint state of all four."""
 
     model: nn.Module
     opt: torch.optim.Optimizer
@@ -207,6 +208,30 @@ class OptimizerStage:
 
     def discard(self, it: int) -> None:
         self.opt.zero_grad(set_to_none=True)
+
+    def state(self) -> dict:
+        """The model, the optimiser, the numpy ``rng`` and, when the stage has one, the torch generator ``gen``."""
+        import numpy as np
+
+        from foundation.loop import rng_state
+        from foundation.optim_state import optimizer_state
+
+        tree = {"model": self.model.state_dict(), "opt": optimizer_state(self.opt), "rng": rng_state(self.rng)}
+        if getattr(self, "gen", None) is not None:
+            tree["gen"] = np.asarray(self.gen.get_state().numpy())
+        return tree
+
+    def load_state(self, tree: dict) -> None:
+        import numpy as np
+
+        from foundation.loop import set_rng_state
+        from foundation.optim_state import load_optimizer_state
+
+        self.model.load_state_dict(tree["model"])
+        load_optimizer_state(self.opt, tree["opt"], f"{getattr(self, 'name', 'training')} optimizer")
+        set_rng_state(self.rng, tree["rng"])
+        if getattr(self, "gen", None) is not None:
+            self.gen.set_state(torch.as_tensor(np.asarray(tree["gen"]), dtype=torch.uint8))
 
 
 def train_stage(make_stage, out, s, budget_steps: int | None, show_progress: bool, metrics: bool = True):

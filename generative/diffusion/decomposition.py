@@ -36,9 +36,8 @@ from foundation import validate
 from foundation.assets import bundled_hdris, envmap, pymeshlab_sample
 from foundation.errors import UsageError
 from foundation.files import cached_arrays
-from foundation.loop import RunState, Stage, StepResult, TrainingSummary, rng_state, set_rng_state
+from foundation.loop import RunState, Stage, StepResult, TrainingSummary
 from foundation.metrics import psnr
-from foundation.optim_state import load_optimizer_state, optimizer_state
 from foundation.progress import progress_bar
 from foundation.scene import recompose
 from foundation.threads import torch_threads
@@ -279,14 +278,6 @@ class DecompStage(OptimizerStage, Stage):
 
     def fingerprint(self) -> dict:
         return {"settings": self.s, "data_settings": self.ds, "data": self.data_digest}
-
-    def state(self) -> dict:
-        return {"model": self.model.state_dict(), "opt": optimizer_state(self.opt), "rng": rng_state(self.rng)}
-
-    def load_state(self, tree: dict) -> None:
-        self.model.load_state_dict(tree["model"])
-        load_optimizer_state(self.opt, tree["opt"], "decomposition optimizer")
-        set_rng_state(self.rng, tree["rng"])
 
     def step(self, it: int) -> StepResult:
         n, h, w = self.x.shape[:3]

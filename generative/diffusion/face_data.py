@@ -7,8 +7,8 @@ multiplied, honestly and with every knob seeded, into instances:
 
 * **identity** — a single scan would be memorised (measured: a completion model trained on it returned the training
   face for the held-out one), so every training instance is another person (:func:`synthetic_identity`): the
-  texture warped symmetrically, chromophores varied in space (tan, blotches, flush, freckles), and half the time
-  new hair from a photograph's texture in a random hair colour;
+  texture warped symmetrically, chromophores varied in space (tan, blotches, flush, freckles), and a third of the
+  time new hair from a photograph's texture in a random hair colour;
 * **skin tone** — the albedo is moved in a physically motivated colour space: optical density
   −ln(albedo) split per texel into melanin, haemoglobin and a grey baseline (Beer–Lambert with the two
   chromophores' RGB absorption directions, after Tsumura et al. 2003), and the melanin and haemoglobin
@@ -48,7 +48,7 @@ from foundation.assets import FACE, hdri_path
 from foundation.errors import UsageError
 from foundation.files import atomic_path, read_json, write_json
 
-FORMAT = "photoreal face instances v3"
+FORMAT = "photoreal face instances v4"
 SCANS = FACE / "cyberheads"
 #: RGB absorption directions in optical density (−ln reflectance): melanin absorbs more towards blue,
 #: oxy-haemoglobin most in green (its 540–580 nm Q bands) and blue, least in red (Tsumura et al. 2003, Fig. 3)
@@ -62,6 +62,9 @@ TARGETS = {"albedo": 3, "normal": 3, "roughness": 1, "specular": 1}
 class FaceDataSettings:
     """How instances are made. Two scans exist: ``train_scans`` are multiplied, ``heldout_scan`` is only evaluated."""
 
+    #: UV layout of every map: ``template`` — MediaPipe's face template registered to each scan
+    #: (:func:`inverse.face.register_scan`), the layout `from-photo` unwraps photos into; ``scan`` — the scan's own
+    layout: str = "template"
     train_scans: tuple[str, ...] = ("paul",)
     heldout_scan: str = "josie"
     train_instances: int = 192
@@ -82,6 +85,7 @@ class FaceDataSettings:
     seed: int = 0
 
     def __post_init__(self):
+        validate.one_of("layout", self.layout, ("template", "scan"))
         validate.integer("train_instances", self.train_instances, 1, 1 << 20)
         validate.integer("eval_instances", self.eval_instances, 1, 1 << 20)
         validate.integer("uv_res", self.uv_res, 16, 2048)
@@ -190,7 +194,7 @@ def synthetic_identity(albedo: np.ndarray, position_face: np.ndarray, mask: np.n
       midline, v symmetrically), by up to ``warp`` of the map — features move, mirroring still holds;
     * chromophore variation in space: smooth fields scaling melanin (tan, blotches) and haemoglobin (flush), and
       freckles (small melanin dots);
-    * half the time a new head of hair: outside the face (|side| or height above the brow beyond a random border)
+    * a third of the time a new head of hair: outside the face (|side| or height above the brow beyond a random border)
       the albedo becomes a random hair colour modulated by a scikit-image photograph's texture (fur, grass,
       gravel, …), blended by a smooth mask.
     """
@@ -209,9 +213,9 @@ def synthetic_identity(albedo: np.ndarray, position_face: np.ndarray, mask: np.n
     c[..., 0] += gaussian_filter(dots, 0.7 * res / 128) * np.abs(c[..., 0]).mean()
     basis = np.stack([MELANIN, HAEMOGLOBIN, np.ones(3) / np.sqrt(3)])
     out = np.clip(np.exp(-(c @ basis)), 0.0, 1.0)
-    if rng.random() < 0.5:
+    if rng.random() < 0.3:
         side, up = np.abs(position_face[..., 0]), position_face[..., 1]
-        border_side, border_up = rng.uniform(0.3, 0.5), rng.uniform(0.2, 0.45)
+        border_side, border_up = rng.uniform(0.35, 0.55), rng.uniform(0.3, 0.5)
         m = np.clip(np.maximum((side - border_side) / 0.08, (up - border_up) / 0.08), 0.0, 1.0)
         m = gaussian_filter(m * mask, 1.0 * res / 128)[..., None]
         colour = HAIR_COLOURS[rng.integers(len(HAIR_COLOURS))] * np.exp(rng.normal(0.0, 0.2, 3))
@@ -306,41 +310,97 @@ def instance_specs(s: FaceDataSettings) -> list[InstanceSpec]:
     return out
 
 
+def mesh_of(d: "FaceSet", i: int) -> Path:
+    """The geometry instance ``i`` was rendered with, unwarped: the registered template or the scan itself."""
+    rec = d.records[i]
+    if rec.get("mesh"):
+        if d.directory is None:
+            raise UsageError(f"{rec['name']}: its mesh {rec['mesh']} lies in its dataset folder, which is not known")
+        return Path(d.directory) / rec["mesh"]
+    return scan_path(rec["spec"]["scan"])
+
+
 def instance_name(spec: InstanceSpec) -> str:
     return f"{spec.role}_{spec.index:05d}"
 
 
+def registration_files(directory: Path, scan: str) -> tuple[Path, Path]:
+    """The dataset's registration of ``scan`` to the template: arrays (.npz) and the fitted template mesh (.obj)."""
+    stem = Path(scan).stem
+    return directory / f"registration_{stem}.npz", directory / f"registration_{stem}.obj"
+
+
+def save_registration(directory: Path, scan: str, uv_res: int) -> dict:
+    """Register ``scan`` to the template once (MediaPipe on a frontal render; see :mod:`inverse.face.register`) and
+    keep it beside the instances; returns its summary."""
+    from foundation.mesh import load_obj, write_obj
+    from inverse.face import TEMPLATE, register_scan
+
+    arrays, mesh_file = registration_files(directory, scan)
+    if not (arrays.is_file() and mesh_file.is_file()):
+        reg = register_scan(scan_path(scan), uv_res)
+        write_obj(mesh_file, reg.vertices, load_obj(TEMPLATE))
+        with atomic_path(arrays, suffix=".npz") as tmp:
+            np.savez(tmp, vertices=reg.vertices, scan_uv=reg.scan_uv, valid=reg.valid,
+                     landmark_px=np.array(reg.landmark_px))
+    with np.load(arrays) as z:
+        return {"scan": scan, "landmark_px": float(z["landmark_px"]), "valid_fraction": float(z["valid"].mean())}
+
+
+def load_registration(directory: Path, scan: str):
+    from inverse.face import ScanRegistration
+
+    arrays, _ = registration_files(directory, scan)
+    with np.load(arrays) as z:
+        return ScanRegistration(z["vertices"], z["scan_uv"], z["valid"], float(z["landmark_px"]))
+
+
 def make_instance(spec: InstanceSpec, s: FaceDataSettings, out: str) -> dict:
-    """Render one instance into ``out`` (.npz, written atomically); returns its record."""
+    """Render one instance into ``out`` (.npz, written atomically); returns its record. With the template layout the
+    scan's registration must be in ``out``'s folder (:func:`save_registration`)."""
     import mi_plugins  # noqa: F401
     import mitsuba as mi
 
     from foundation import imageio
     from foundation.assets import envmap
-    from foundation.mesh import load_obj, write_obj
-    from inverse.face import (FaceBenchmarkSettings, PhotoFitSettings, bake_geometry, fill_and_delight,
+    from foundation.mesh import UVMesh, load_obj, write_obj
+    from inverse.face import (TEMPLATE, FaceBenchmarkSettings, PhotoFitSettings, bake_geometry, fill_and_delight,
                               normals_from_height, orbit_direction, scan_frame, scan_scene, scan_texture, skin_relief,
                               texel_observation)
     from mi_plugins.uv_shader import UVView
 
     rng = np.random.default_rng(spec.seed)
-    mesh = load_obj(scan_path(spec.scan))
+    scan = load_obj(scan_path(spec.scan))
+    tex = imageio.srgb_to_linear(scan_texture(scan).astype(np.float32) / 255.0)
+    if s.layout == "template":
+        reg = load_registration(Path(out).parent, spec.scan)
+        if reg.scan_uv.shape[0] != s.uv_res:
+            raise UsageError(f"{registration_files(Path(out).parent, spec.scan)[0]}: registered at "
+                             f"{reg.scan_uv.shape[0]}², the dataset is {s.uv_res}²")
+        template = load_obj(TEMPLATE)
+        mesh = UVMesh(reg.vertices, template.faces, template.uvs, template.face_uvs)
+        albedo = reg.to_template(tex)
+        found = reg.valid
+        mesh_name = registration_files(Path(out).parent, spec.scan)[1].name
+    else:
+        from PIL import Image
+
+        mesh = scan
+        small = np.asarray(Image.fromarray((np.clip(imageio.linear_to_srgb(tex), 0, 1) * 255 + 0.5).astype(np.uint8))
+                           .resize((s.uv_res, s.uv_res), Image.BICUBIC), np.float32) / 255.0
+        albedo = imageio.srgb_to_linear(small)
+        found, mesh_name = None, None
     centre, radius, front = scan_frame(mesh)
     frame = face_frame(centre, front)
-    tex = scan_texture(mesh)
     with tempfile.TemporaryDirectory(prefix="photoreal_face_") as tmp:
         mesh_file = Path(tmp) / "mesh.obj"
         verts = warp_vertices(mesh.vertices, centre, frame, radius, mesh.vertex_normals(), spec.warp, rng)
         write_obj(mesh_file, verts, mesh)
         warped = load_obj(mesh_file)
         geo = bake_geometry(warped, s.uv_res)
-        mask = geo.mask
+        mask = geo.mask if found is None else geo.mask & found
         pos_f = np.where(mask[..., None], (geo.position - centre) @ frame.T / radius, 0.0).astype(np.float32)
         nrm_f = np.where(mask[..., None], geo.normal @ frame.T, 0.0).astype(np.float32)
-        from PIL import Image
-
-        albedo = imageio.srgb_to_linear(np.asarray(Image.fromarray(tex).resize((s.uv_res, s.uv_res), Image.BICUBIC),
-                                                   np.float32) / 255.0)
         if spec.role == "train":
             albedo = synthetic_identity(albedo, pos_f, mask, rng, s.identity_warp)
         albedo = skin_variation(albedo, spec.melanin, spec.haemoglobin)
@@ -354,7 +414,8 @@ def make_instance(spec: InstanceSpec, s: FaceDataSettings, out: str) -> dict:
         scene = scan_scene(mesh_file, gt, bs, {"env": env}, integrator={"type": "path", "max_depth": s.max_depth})
         eye = centre + orbit_direction(front, spec.yaw_deg, spec.pitch_deg) * 4.0 * radius
         lit, seen = texel_observation(scene, geo, eye, radius, spec.seed % (2**31), s.spp, s.grazing_cos)
-        seen = seen > 0
+        seen = (seen > 0) & mask  # texels the registration did not find on the scan are not part of the face
+        lit = lit * seen[..., None]
         del scene
         # the optimisation baseline of the same photo: what the learned completion refines (and is judged against)
         base = fill_and_delight(lit, seen.astype(np.float32), geo, PhotoFitSettings(uv_res=s.uv_res),
@@ -365,7 +426,8 @@ def make_instance(spec: InstanceSpec, s: FaceDataSettings, out: str) -> dict:
     if not all(np.isfinite(a).all() for a in arrays.values()):
         raise UsageError(f"instance {instance_name(spec)}: rendering gave NaN/Inf")
     record = {"name": instance_name(spec), "spec": asdict(spec), "eye": eye.tolist(), "centre": centre.tolist(),
-              "radius": radius, "frame": frame.tolist(), "seen_fraction": float(seen[mask].mean())}
+              "radius": radius, "frame": frame.tolist(), "seen_fraction": float(seen[mask].mean()),
+              "mesh": mesh_name}  #: the geometry rendered (a file beside the instance), None: the scan itself
     with atomic_path(out, suffix=".npz") as tmp:
         np.savez_compressed(tmp, **{k: (v.astype(np.float16) if v.dtype == np.float32 and k in ("lit",) else v)
                                     for k, v in arrays.items()}, record=np.array(json.dumps(record)))
@@ -397,12 +459,14 @@ def build_face_dataset(out: str | Path, s: FaceDataSettings | None = None, pool=
         raise UsageError(f"{out}: exists and is not a face dataset; give an empty or new folder")
     out.mkdir(parents=True, exist_ok=True)
     write_json(index, {**want, "instances": []})  # claims the folder before any work
+    registrations = ([save_registration(out, scan, s.uv_res) for scan in s.train_scans + (s.heldout_scan,)]
+                     if s.layout == "template" else [])
     items = [Item(instance_name(sp), "generative.diffusion.face_data:make_instance", (sp, s, str(out / f"{instance_name(sp)}.npz")),
                   output=str(out / f"{instance_name(sp)}.npz"), loader="generative.diffusion.face_data:load_record")
              for sp in instance_specs(s)]
     report = run_items(items, pool or PoolSettings(workers=0, threads=0), desc="face instances", show_progress=progress)
     write_json(index, {**want, "instances": [r.value for r in report.results if r.ok],
-                       "seconds_last_batch": report.seconds})
+                       "registrations": registrations, "seconds_last_batch": report.seconds})
     report.raise_if_failed()
     return out
 
@@ -421,6 +485,7 @@ class FaceSet:
     baseline: np.ndarray  #: (N, H, W, 3) the optimisation baseline's albedo (mirror + harmonic fill, delit)
     targets: dict[str, np.ndarray]  #: albedo, normal, roughness, specular, displacement
     geometry: dict[str, np.ndarray]  #: world position, normal_geo, tangent, bitangent_sign
+    directory: Path | None = None  #: the dataset folder (the rendered meshes of the template layout are there)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -429,7 +494,8 @@ class FaceSet:
         idx = np.asarray(idx)
         return FaceSet([self.names[i] for i in idx], [self.records[i] for i in idx], self.lit[idx], self.seen[idx],
                        self.mask[idx], self.position_face[idx], self.normal_face[idx], self.baseline[idx],
-                       {k: v[idx] for k, v in self.targets.items()}, {k: v[idx] for k, v in self.geometry.items()})
+                       {k: v[idx] for k, v in self.targets.items()}, {k: v[idx] for k, v in self.geometry.items()},
+                       self.directory)
 
     @property
     def res(self) -> int:
@@ -462,9 +528,10 @@ def load_face_dataset(directory: str | Path, role: str | None = None) -> FaceSet
     return FaceSet([r["name"] for r in recs], recs, st["lit"].astype(np.float32), st["seen"].astype(bool),
                    st["mask"].astype(bool), st["position_face"], st["normal_face"], st["baseline"].astype(np.float32),
                    {k: st[k] for k in ("albedo", "normal", "roughness", "specular", "displacement")},
-                   {k: st[k] for k in ("position", "normal_geo", "tangent", "bitangent_sign")})
+                   {k: st[k] for k in ("position", "normal_geo", "tangent", "bitangent_sign")}, d)
 
 
 __all__ = ["FORMAT", "FaceDataSettings", "FaceSet", "InstanceSpec", "TARGETS", "build_face_dataset", "chromophores",
-           "face_frame", "instance_specs", "load_face_dataset", "make_instance", "material_fields",
+           "face_frame", "instance_specs", "load_face_dataset", "load_registration", "make_instance", "material_fields", "mesh_of",
+           "registration_files", "save_registration",
            "scan_path", "skin_variation", "symmetric_warp", "synthetic_identity", "tzone", "warp_vertices"]

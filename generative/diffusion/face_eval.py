@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .face_data import FaceSet, scan_path
+from .face_data import FaceSet, mesh_of
 
 DEFAULTS = {"roughness": 0.5, "specular": 0.35}  #: the template's skin defaults (inverse.face.PhotoFitSettings)
 
@@ -123,7 +123,7 @@ def relit_scores(d: FaceSet, maps: dict[str, np.ndarray], hdris: tuple[str, ...]
         rec = d.records[i]
         if rec["spec"]["warp"]:
             raise ValueError(f"{rec['name']}: relighting needs an unwarped instance (a held-out one)")
-        mesh_file = scan_path(rec["spec"]["scan"])
+        mesh_file = mesh_of(d, i)
         centre, radius, front = scan_frame(load_obj(mesh_file))
         eye = centre + orbit_direction(front, 0.0, 5.0) * 4.0 * radius
         fov = float(np.degrees(2 * np.arctan(1.15 / 4.0)))

@@ -44,8 +44,7 @@ from torch import nn
 
 from foundation import validate
 from foundation.errors import CheckpointError, UsageError
-from foundation.loop import RunState, Stage, TrainingSummary, rng_state, set_rng_state
-from foundation.optim_state import load_optimizer_state, optimizer_state
+from foundation.loop import RunState, Stage, TrainingSummary
 
 from .core import ConditionalDiffusion, DiffusionConfig, OptimizerStage, load_trained, make_scheduler, train_stage
 from .face_data import FaceSet, TARGETS
@@ -257,16 +256,6 @@ class CompletionStage(OptimizerStage, Stage):
 
     def fingerprint(self) -> dict:
         return {"settings": self.s, "data": self.digest}
-
-    def state(self) -> dict:
-        return {"model": self.model.state_dict(), "opt": optimizer_state(self.opt), "rng": rng_state(self.rng),
-                "gen": self.gen.get_state().numpy()}
-
-    def load_state(self, tree: dict) -> None:
-        self.model.load_state_dict(tree["model"])
-        load_optimizer_state(self.opt, tree["opt"], "face completion optimizer")
-        set_rng_state(self.rng, tree["rng"])
-        self.gen.set_state(torch.from_numpy(np.asarray(tree["gen"], np.uint8)))
 
     def step(self, it: int):
         idx = self.rng.integers(0, len(self.cond), self.s.batch)
@@ -590,16 +579,6 @@ class DecompStage(OptimizerStage, Stage):
     def fingerprint(self) -> dict:
         return {"settings": self.s, "data": self.digest, "backbone": self.backbone_id}
 
-    def state(self) -> dict:
-        return {"model": {k: v for k, v in self.model.state_dict().items()}, "opt": optimizer_state(self.opt),
-                "rng": rng_state(self.rng), "torch": torch.get_rng_state().numpy()}
-
-    def load_state(self, tree: dict) -> None:
-        self.model.load_state_dict(tree["model"])
-        load_optimizer_state(self.opt, tree["opt"], "face decomposition optimizer")
-        set_rng_state(self.rng, tree["rng"])
-        torch.set_rng_state(torch.from_numpy(np.asarray(tree["torch"], np.uint8)))
-
     def step(self, it: int):
         idx = self.rng.integers(0, len(self.cond), self.s.batch)
         flip = self.rng.random(self.s.batch) < 0.5
@@ -776,14 +755,6 @@ class SuperResStage(OptimizerStage, Stage):
 
     def fingerprint(self) -> dict:
         return {"settings": self.s, "data": self.digest}
-
-    def state(self) -> dict:
-        return {"model": self.model.state_dict(), "opt": optimizer_state(self.opt), "rng": rng_state(self.rng)}
-
-    def load_state(self, tree: dict) -> None:
-        self.model.load_state_dict(tree["model"])
-        load_optimizer_state(self.opt, tree["opt"], "face super-resolution optimizer")
-        set_rng_state(self.rng, tree["rng"])
 
     def step(self, it: int):
         idx = self.rng.integers(0, len(self.high), self.s.batch)

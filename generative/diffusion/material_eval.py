@@ -27,8 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from foundation import validate
-from foundation.loop import RunState, Stage, StepResult, TrainingSummary, rng_state, set_rng_state
-from foundation.optim_state import load_optimizer_state, optimizer_state
+from foundation.loop import RunState, Stage, StepResult, TrainingSummary
 
 from .core import OptimizerStage, train_stage
 from .material_data import FAMILIES, decode_swatches
@@ -107,14 +106,6 @@ class ClassifierStage(OptimizerStage, Stage):
 
     def fingerprint(self) -> dict:
         return {"settings": self.s, "n": int(len(self.y)), "sum": float(self.x.double().sum())}
-
-    def state(self) -> dict:
-        return {"model": self.model.state_dict(), "opt": optimizer_state(self.opt), "rng": rng_state(self.rng)}
-
-    def load_state(self, tree: dict) -> None:
-        self.model.load_state_dict(tree["model"])
-        load_optimizer_state(self.opt, tree["opt"], "classifier optimizer")
-        set_rng_state(self.rng, tree["rng"])
 
     def step(self, it: int) -> StepResult:
         idx = self.rng.integers(0, len(self.y), self.s.batch)

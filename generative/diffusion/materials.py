@@ -44,8 +44,7 @@ import torch.nn.functional as F
 
 from foundation import validate
 from foundation.errors import UsageError
-from foundation.loop import RunState, Stage, StepResult, TrainingSummary, rng_state, set_rng_state
-from foundation.optim_state import load_optimizer_state, optimizer_state
+from foundation.loop import RunState, Stage, StepResult, TrainingSummary
 
 from .core import ConditionalDiffusion, DiffusionConfig, OptimizerStage, load_trained, train_stage
 from .material_data import SLOTS, VOCABULARY, MaterialSet, keyword_onehots
@@ -281,16 +280,6 @@ class MatDiffStage(OptimizerStage, Stage):
 
     def fingerprint(self) -> dict:
         return {"settings": self.s, "data": self.digest}
-
-    def state(self) -> dict:
-        return {"model": self.model.state_dict(), "opt": optimizer_state(self.opt), "rng": rng_state(self.rng),
-                "gen": self.gen.get_state().numpy()}
-
-    def load_state(self, tree: dict) -> None:
-        self.model.load_state_dict(tree["model"])
-        load_optimizer_state(self.opt, tree["opt"], "material diffusion optimizer")
-        set_rng_state(self.rng, tree["rng"])
-        self.gen.set_state(torch.from_numpy(np.asarray(tree["gen"], np.uint8)))
 
     def step(self, it: int) -> StepResult:
         s, rng = self.s, self.rng

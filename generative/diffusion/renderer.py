@@ -38,8 +38,7 @@ from foundation import validate
 from foundation.errors import UsageError
 from foundation.features import FEATURE_DIM, feature_maps, load_mobilenet, normalise
 from foundation.files import cached_arrays, file_digest
-from foundation.loop import RunState, Stage, StepResult, TrainingSummary, rng_state, set_rng_state
-from foundation.optim_state import load_optimizer_state, optimizer_state
+from foundation.loop import RunState, Stage, StepResult, TrainingSummary
 from foundation.progress import progress_bar
 from foundation.scene import recompose, split_intrinsics
 from inverse.morph import MorphBenchmark, morph_scene, sensor_dict
@@ -373,16 +372,6 @@ class DiffRenderStage(OptimizerStage, Stage):
 
     def fingerprint(self) -> dict:
         return {"settings": self.s, "data": [v.digest() for v in self.cases]}
-
-    def state(self) -> dict:
-        return {"model": self.model.state_dict(), "opt": optimizer_state(self.opt), "rng": rng_state(self.rng),
-                "gen": self.gen.get_state()}
-
-    def load_state(self, tree: dict) -> None:
-        self.model.load_state_dict(tree["model"])
-        load_optimizer_state(self.opt, tree["opt"], "diffusion optimizer")
-        set_rng_state(self.rng, tree["rng"])
-        self.gen.set_state(tree["gen"])
 
     def step(self, it: int) -> StepResult:
         x, c, g = self.pairs.batch(self.rng, self.s.batch, self.s.crop)

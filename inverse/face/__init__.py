@@ -19,13 +19,15 @@ from .benchmark import (FaceBenchmark, FaceBenchmarkMeta, FaceBenchmarkSettings,
 from .fit import (FaceFitMetrics, FaceFitReport, FaceFitResult, FaceFitSettings, RelitMetrics, RenderRefineSettings,
                   evaluate_fit, fill_unobserved, fit_benchmark_dir, fit_benchmark_item, fit_face, integrate_normals, refine_through_renders,
                   save_maps)
-from .photo import (DelitTexture, PhotoFaceResult, PhotoFitSettings, fill_and_delight, check_landmarks, detect_landmarks, fit_template, load_landmarks,
+from .photo import (TEMPLATE, DelitTexture, PhotoFaceResult, PhotoFitSettings, fill_and_delight, check_landmarks, detect_landmarks, fit_template, load_landmarks,
                     photo_to_face)
+from .register import ScanRegistration, frontal_render, register_scan
 from .uv_bake import GeometryMaps, bake_geometry, texel_uvs
 
 __all__ = [
     "DelitTexture", "fill_and_delight", "normals_from_height", "orbit_direction", "scan_frame", "scan_scene",
-    "scan_texture", "skin_relief", "smooth_noise", "key_light", "texel_observation",
+    "scan_texture", "skin_relief", "smooth_noise", "key_light", "texel_observation", "ScanRegistration",
+    "frontal_render", "register_scan", "TEMPLATE",
     "FaceBenchmark", "FaceBenchmarkMeta", "FaceBenchmarkSettings", "FaceFitMetrics", "FaceFitReport", "FaceFitResult",
     "FaceFitSettings", "GeometryMaps", "HeldoutCamera", "Light", "PhotoFaceResult", "PhotoFitSettings", "RelitMetrics",
     "RenderRefineSettings", "bake_geometry", "check_landmarks", "detect_landmarks", "evaluate_fit", "fill_unobserved",
