@@ -807,6 +807,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name in ("train_instances", "eval_instances", "completion_seconds", "decomp_seconds", "superres_seconds",
                  "relit_instances", "cross_uv_res", "workers", "seed"):
         _opt(bfl, FaceLearnedBenchSettings, name)
+    _opt(bfl, FaceLearnedBenchSettings, "layout", choices=["template", "scan"], help="UV layout of the learned stages")
     _opt(bfl, FaceLearnedBenchSettings, "cross_model", "--no-cross-model", help="skip the cross-model fit")
     _opt(bfl, FaceLearnedBenchSettings, "astronaut", "--no-astronaut", help="skip the astronaut photograph")
     bfl.set_defaults(func=_cmd_bench_face_learned)
@@ -870,6 +871,8 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--out", required=True, help="run folder (absent, empty, or this command's earlier run)")
     for name in ("train_instances", "eval_instances", "uv_res", "spp", "seed"):
         _opt(ft, FaceDataSettings, name)
+    _opt(ft, FaceDataSettings, "layout", choices=["template", "scan"],
+         help="UV layout of the maps: the face template's (what from-photo unwraps into) or the scans' own")
     ft.add_argument("--completion-seconds", type=float, default=_default(CompletionSettings, "max_seconds"),
                     help="training budget of the completion model (default: %(default)s)")
     ft.add_argument("--decomp-seconds", type=float, default=_default(DecompSettings, "max_seconds"),

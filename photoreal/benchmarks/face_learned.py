@@ -42,6 +42,7 @@ class FaceLearnedBenchSettings:
     cross_model: bool = True
     cross_uv_res: int = 128
     astronaut: bool = True
+    layout: str = "template"  #: UV layout of the learned stages: the face template's or the scans' own
     workers: int = 2  #: data building
     seed: int = 0
 
@@ -61,7 +62,8 @@ def models_settings(s: FaceLearnedBenchSettings):
                                       SuperResSettings)
 
     return FaceModelsSettings(
-        data=FaceDataSettings(train_instances=s.train_instances, eval_instances=s.eval_instances, seed=s.seed),
+        data=FaceDataSettings(train_instances=s.train_instances, eval_instances=s.eval_instances, seed=s.seed,
+                              layout=s.layout),
         completion=CompletionSettings(max_seconds=s.completion_seconds, seed=s.seed),
         decomposition=DecompSettings(max_seconds=s.decomp_seconds, seed=s.seed),
         superres=SuperResSettings(max_seconds=s.superres_seconds, seed=s.seed),
@@ -146,7 +148,7 @@ def bench_face_learned(s: FaceLearnedBenchSettings, out_dir: Path, show_progress
     ev = load_face_dataset(work / "data", "eval")
     model, cs = load_completion(work / "completion")
     low = at_resolution(ev, cs.res)
-    result: dict = {"heldout_scan": ms.data.heldout_scan, "train_scans": list(ms.data.train_scans),
+    result: dict = {"layout": ms.data.layout, "heldout_scan": ms.data.heldout_scan, "train_scans": list(ms.data.train_scans),
                     "eval_hdris": list(ms.data.eval_hdris), "instances": {"train": s.train_instances, "eval": len(ev)},
                     "model_res": cs.res, "data_res": ms.data.uv_res}
 
