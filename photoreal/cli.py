@@ -379,13 +379,13 @@ def _cmd_face_from_photo(a) -> int:
 
 def _cmd_face_train_models(a) -> int:
     from foundation.pool import ray_shutdown
-    from generative.diffusion import (CompletionSettings, DecompSettings, FaceDataSettings, FaceModelsSettings,
+    from generative.diffusion import (CompletionSettings, FaceDataSettings, FaceDecompSettings, FaceModelsSettings,
                                       SuperResSettings, train_face_models)
 
     s = FaceModelsSettings(
         data=_settings(FaceDataSettings, a),
         completion=CompletionSettings(max_seconds=a.completion_seconds, seed=a.seed),
-        decomposition=DecompSettings(max_seconds=a.decomp_seconds, seed=a.seed),
+        decomposition=FaceDecompSettings(max_seconds=a.decomp_seconds, seed=a.seed),
         superres=SuperResSettings(max_seconds=a.superres_seconds, seed=a.seed),
         variants=tuple(a.variants))
     try:
@@ -808,6 +808,8 @@ def build_parser() -> argparse.ArgumentParser:
                  "relit_instances", "cross_uv_res", "workers", "seed"):
         _opt(bfl, FaceLearnedBenchSettings, name)
     _opt(bfl, FaceLearnedBenchSettings, "layout", choices=["template", "scan"], help="UV layout of the learned stages")
+    _opt(bfl, FaceLearnedBenchSettings, "ablation_seeds", type=int,
+         help="retrain every decomposition variant with these seeds too: the ablation's spread over training seeds")
     _opt(bfl, FaceLearnedBenchSettings, "cross_model", "--no-cross-model", help="skip the cross-model fit")
     _opt(bfl, FaceLearnedBenchSettings, "astronaut", "--no-astronaut", help="skip the astronaut photograph")
     bfl.set_defaults(func=_cmd_bench_face_learned)
@@ -864,7 +866,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "`face train-models` run (default: the optimisation baseline)")
     fp.add_argument("--variant", default=None, help="decomposition variant of the run (default: the run's first)")
     fp.set_defaults(func=_cmd_face_from_photo)
-    from generative.diffusion import CompletionSettings, DecompSettings, FaceDataSettings, SuperResSettings
+    from generative.diffusion import CompletionSettings, FaceDataSettings, FaceDecompSettings, SuperResSettings
 
     ft = fsub.add_parser("train-models", help="learned UV-space stages (seed 003 §2–§4): data from the training "
                          "scan, completion diffusion (the backbone), LoRA decomposition, 2× super-resolution (resumes)")
@@ -875,7 +877,7 @@ def build_parser() -> argparse.ArgumentParser:
          help="UV layout of the maps: the face template's (what from-photo unwraps into) or the scans' own")
     ft.add_argument("--completion-seconds", type=float, default=_default(CompletionSettings, "max_seconds"),
                     help="training budget of the completion model (default: %(default)s)")
-    ft.add_argument("--decomp-seconds", type=float, default=_default(DecompSettings, "max_seconds"),
+    ft.add_argument("--decomp-seconds", type=float, default=_default(FaceDecompSettings, "max_seconds"),
                     help="training budget of each decomposition variant (default: %(default)s)")
     ft.add_argument("--superres-seconds", type=float, default=_default(SuperResSettings, "max_seconds"),
                     help="training budget of the upscaler (default: %(default)s)")

@@ -198,5 +198,39 @@ def test_layers_have_no_back_edges_cross_feature_imports_or_cycles():
     assert v == {"back_edges": [], "cross_feature": [], "internals": [], "cycles": []}, report()
 
 
+def rebound_exports(root: Path = ROOT) -> list[str]:
+    """Package ``__init__`` files that bind one name twice (the second import silently replaces the first: two
+    submodules with a ``DecompSettings`` each) or list a name twice in ``__all__``."""
+    out = []
+    for init in sorted(root.glob("*/**/__init__.py")):
+        if ".venv" in init.parts or init.parts[len(root.parts)] not in LAYERS:
+            continue
+        bound: dict[str, str] = {}
+        for node in ast.parse(init.read_text()).body:
+            if isinstance(node, ast.ImportFrom):
+                src = "." * node.level + (node.module or "")
+                for a in node.names:
+                    name = a.asname or a.name
+                    if name in bound and bound[name] != f"{src}.{a.name}":
+                        out.append(f"{init.relative_to(root)}: {name} from {bound[name]} and from {src}.{a.name}")
+                    bound[name] = f"{src}.{a.name}"
+            elif isinstance(node, ast.Assign) and any(getattr(x, "id", "") == "__all__" for x in node.targets):
+                names = [e.value for e in getattr(node.value, "elts", []) if isinstance(e, ast.Constant)]
+                out += [f"{init.relative_to(root)}: {n} twice in __all__" for n in sorted(set(names))
+                        if names.count(n) > 1]
+    return out
+
+
+def test_no_package_exports_one_name_twice(tmp_path):
+    """A name bound twice in a package is the later submodule's: ``bench diffrender`` once received the face
+    decomposition's settings. Oracle for the check itself: a hand-made package with both faults."""
+    (tmp_path / "generative" / "x").mkdir(parents=True)
+    (tmp_path / "generative" / "x" / "__init__.py").write_text(
+        "from .a import S, f\nfrom .b import S\nfrom .b import f as g\n__all__ = ['S', 'f', 'S', 'g']\n")
+    found = rebound_exports(tmp_path)
+    assert len(found) == 2 and "S from .a.S and from .b.S" in found[0] and "twice in __all__" in found[1]
+    assert rebound_exports() == []
+
+
 if __name__ == "__main__":
     print(report(Path(sys.argv[1]) if len(sys.argv) > 1 else ROOT))

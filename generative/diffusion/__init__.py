@@ -35,17 +35,21 @@ from .material_eval import (ClassifierSettings, aligned_flip, classify, copy_bas
                             train_classifier)
 from .face_data import FaceDataSettings, FaceSet, build_face_dataset, load_face_dataset, scan_path
 from .face_eval import LearnedModels, baseline_maps, default_maps, learned_maps, map_scores, relit_scores
-from .face_models import (VARIANTS, CompletionSettings, DecompSettings, SuperResSettings, at_resolution, complete,
-                          decompose_maps, load_completion, load_decomposer, load_superres, normalise_albedo, upscale)
-from .face_run import FaceModelsSettings, load_face_models, photo_maps_fn, train_face_models
+from .face_models import DecompSettings as FaceDecompSettings
+from .face_models import load_decomposer as load_face_decomposer
+from .face_models import train_decomposer as train_face_decomposer
+from .face_models import (VARIANTS, CompletionSettings, SuperResSettings, at_resolution, complete, decompose_maps,
+                          load_completion, load_superres, normalise_albedo, upscale)
+from .face_run import FaceModelsSettings, completion_albedo, load_face_models, photo_maps_fn, train_face_models
 from .materials import (MaterialPrompt, MatDiffSettings, generate_material, load_matdiff, sample_materials,
                         split_features, train_matdiff)
 
 __all__ = [
     "FaceDataSettings", "FaceSet", "build_face_dataset", "load_face_dataset", "scan_path", "LearnedModels",
     "baseline_maps", "default_maps", "learned_maps", "map_scores", "relit_scores", "VARIANTS", "CompletionSettings",
-    "DecompSettings", "SuperResSettings", "at_resolution", "complete", "decompose_maps", "load_completion",
-    "load_decomposer", "load_superres", "normalise_albedo", "upscale", "FaceModelsSettings", "load_face_models",
+    "FaceDecompSettings", "SuperResSettings", "at_resolution", "complete", "decompose_maps", "load_completion",
+    "load_face_decomposer", "train_face_decomposer", "load_superres", "normalise_albedo", "upscale",
+    "FaceModelsSettings", "completion_albedo", "load_face_models",
     "photo_maps_fn", "train_face_models",
     "VOCABULARY", "MaterialDataSettings", "MaterialSet", "build_material_dataset", "decode_swatches",
     "load_material_dataset", "parse_keywords", "ClassifierSettings", "aligned_flip", "classify", "copy_baseline",

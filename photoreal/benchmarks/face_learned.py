@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from foundation import validate
+from foundation.errors import UsageError
 from foundation.progress import progress_bar
 
 
@@ -45,6 +46,9 @@ class FaceLearnedBenchSettings:
     layout: str = "template"  #: UV layout of the learned stages: the face template's or the scans' own
     workers: int = 2  #: data building
     seed: int = 0
+    #: further training seeds of every decomposition variant (same data, same backbone, same budget): the spread
+    #: that an ablation difference must exceed. Each seed costs len(variants) × decomp_seconds.
+    ablation_seeds: tuple[int, ...] = ()
 
     def __post_init__(self):
         validate.integer("train_instances", self.train_instances, 2)
@@ -55,17 +59,23 @@ class FaceLearnedBenchSettings:
         validate.integer("cross_uv_res", self.cross_uv_res, 16, 1024)
         validate.integer("workers", self.workers, 0)
         validate.seed("seed", self.seed)
+        self.ablation_seeds = tuple(self.ablation_seeds)
+        for k in self.ablation_seeds:
+            validate.seed("ablation_seeds", k)
+        if self.seed in self.ablation_seeds or len(set(self.ablation_seeds)) != len(self.ablation_seeds):
+            raise UsageError(f"ablation_seeds: seeds other than --seed ({self.seed}), each once; got "
+                             f"{list(self.ablation_seeds)}")
 
 
 def models_settings(s: FaceLearnedBenchSettings):
-    from generative.diffusion import (CompletionSettings, DecompSettings, FaceDataSettings, FaceModelsSettings,
+    from generative.diffusion import (CompletionSettings, FaceDataSettings, FaceDecompSettings, FaceModelsSettings,
                                       SuperResSettings)
 
     return FaceModelsSettings(
         data=FaceDataSettings(train_instances=s.train_instances, eval_instances=s.eval_instances, seed=s.seed,
                               layout=s.layout),
         completion=CompletionSettings(max_seconds=s.completion_seconds, seed=s.seed),
-        decomposition=DecompSettings(max_seconds=s.decomp_seconds, seed=s.seed),
+        decomposition=FaceDecompSettings(max_seconds=s.decomp_seconds, seed=s.seed),
         superres=SuperResSettings(max_seconds=s.superres_seconds, seed=s.seed),
         variants=("cross_attention", "shared", "independent"))
 
@@ -132,11 +142,37 @@ def astronaut(models, work: Path, seed: int) -> dict:
     return out
 
 
+def decomposition_seeds(s: FaceLearnedBenchSettings, ms, work: Path, ev, albedo, low, dec: dict,
+                        show_progress: bool) -> dict:
+    """Every variant retrained with each of ``s.ablation_seeds`` (``work/ablation_seed<k>/``, resumable); per variant
+    and metric the values over all seeds (the main run's first), their mean and sample standard deviation."""
+    from generative.diffusion import (FaceDecompSettings, completion_albedo, decompose_maps, load_face_decomposer,
+                                      load_face_dataset, map_scores, train_face_decomposer)
+
+    train = load_face_dataset(work / "data", "train")
+    albedo_train = completion_albedo(work, show_progress)
+    keys = ("normal_err_deg", "roughness_mae", "specular_mae", "albedo_psnr_unseen")
+    out: dict = {"seeds": [s.seed, *s.ablation_seeds]}
+    for v in ms.variants:
+        values = {k: [dec[v][k]] for k in keys}
+        for seed in s.ablation_seeds:
+            run = work / f"ablation_seed{seed}" / f"decomposition_{v}"
+            ds = FaceDecompSettings(**{**asdict(ms.decomposition), "variant": v, "seed": seed})
+            train_face_decomposer(train, albedo_train, work / "completion", run, ds, show_progress=show_progress)
+            sc = map_scores(decompose_maps(load_face_decomposer(run, work / "completion"), ev, albedo, low.res),
+                            low.targets, low.seen, low.mask)
+            for k in keys:
+                values[k].append(sc[k])
+        out[v] = {k: {"values": vals, "mean": float(np.mean(vals)), "std": float(np.std(vals, ddof=1))}
+                  for k, vals in values.items()}
+    return out
+
+
 def bench_face_learned(s: FaceLearnedBenchSettings, out_dir: Path, show_progress: bool = True) -> dict:
     from foundation.pool import PoolSettings
     from foundation.records import to_json
     from generative.diffusion import (LearnedModels, at_resolution, baseline_maps, complete, decompose_maps,
-                                      default_maps, learned_maps, load_completion, load_decomposer, load_face_dataset,
+                                      default_maps, learned_maps, load_completion, load_face_decomposer, load_face_dataset,
                                       load_superres, map_scores, relit_scores, train_face_models, upscale)
 
     work = Path(out_dir) / "face_learned_work"
@@ -171,12 +207,14 @@ def bench_face_learned(s: FaceLearnedBenchSettings, out_dir: Path, show_progress
     dec = {"template_defaults": {k: v for k, v in map_scores(default_maps(albedo), low.targets, low.seen, low.mask).items()
                                  if k in dec_keys}}
     for v in ms.variants:
-        dm = load_decomposer(work / f"decomposition_{v}", work / "completion")
+        dm = load_face_decomposer(work / f"decomposition_{v}", work / "completion")
         sc = map_scores(decompose_maps(dm, ev, albedo, cs.res), low.targets, low.seen, low.mask)
         tr = summary[f"decomposition_{v}"]
         dec[v] = {**{k: sc[k] for k in dec_keys}, "trained_parameters": tr["parameters"],
                   "steps": tr["training"]["steps"], "train_seconds": tr["training"]["train_seconds"]}
     result["decomposition"] = dec
+    if s.ablation_seeds:
+        result["decomposition_seeds"] = decomposition_seeds(s, ms, work, ev, albedo, low, dec, show_progress)
 
     # 4. super-resolution of the true maps
     sr = load_superres(work / "superres")
@@ -185,7 +223,7 @@ def bench_face_learned(s: FaceLearnedBenchSettings, out_dir: Path, show_progress
                           "from": cs.res, "to": ev.res}
 
     # 6. end to end at the data resolution
-    models = LearnedModels(model, cs, load_decomposer(work / f"decomposition_{ms.variants[0]}", work / "completion"), sr)
+    models = LearnedModels(model, cs, load_face_decomposer(work / f"decomposition_{ms.variants[0]}", work / "completion"), sr)
     stages = {"baseline": baseline_maps(ev)}
     for st in ("completion", "decomposition", "full"):
         stages[f"learned_{st}"] = learned_maps(ev, models, st, seed=s.seed)
