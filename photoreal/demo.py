@@ -466,6 +466,17 @@ def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None
     return {k: v.get("flip") for k, v in b["heldout"].items()}
 
 
+def _seed_spread(spread: dict | None) -> str:
+    """The decomposition ablation over training seeds (bench face-learned --ablation-seeds): mean ± sd per metric."""
+    if not spread:
+        return ""
+    keys = ("normal_err_deg", "roughness_mae", "specular_mae", "albedo_psnr_unseen")
+    rows = [{"variant": v, **{k: f"{m[k]['mean']:.4g} ± {m[k]['std']:.2g}" for k in keys}}
+            for v, m in spread.items() if v != "seeds"]
+    return (f"<p>Over training seeds {', '.join(map(str, spread['seeds']))} (mean ± sample sd):</p>"
+            + _table(rows, ["variant", *keys]))
+
+
 def demo_face_learned(out_dir: Path, bench_dir: Path | None = None) -> dict | None:
     """The `photoreal bench face-learned` tables and map figure, when that JSON exists (no training here)."""
     b = _bench_json(bench_dir, "face_learned.json")
@@ -484,6 +495,7 @@ def demo_face_learned(out_dir: Path, bench_dir: Path | None = None) -> dict | No
             + "<h4>Decomposition (equal training time)</h4>"
             + _table([{"variant": k, **v} for k, v in b["decomposition"].items()],
                      ["variant", "normal_err_deg", "roughness_mae", "specular_mae", "trained_parameters", "steps"])
+            + _seed_spread(b.get("decomposition_seeds"))
             + f"<h4>2× super-resolution ({b['superres']['from']}² → {b['superres']['to']}², true maps)</h4>"
             + _table([{"method": k, **b["superres"][k]} for k in ("bicubic", "learned")],
                      ["method", "albedo_psnr", "normal_err_deg", "roughness_psnr", "specular_psnr"]))

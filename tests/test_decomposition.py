@@ -130,3 +130,20 @@ def test_trivial_decomposition_recomposes_exactly(tiny_data):
     ds, d = tiny_data
     p = heldout_psnr(None, d, ds)
     assert p["R"] > 60 and p["A"] < 60, p
+
+
+def test_bench_diffrender_trains_the_intrinsic_decomposition_network(tmp_path):
+    """Regression: ``generative.diffusion`` once exported the face stages' ``DecompSettings``/``load_decomposer``
+    under the intrinsic network's names, and the diffrender bench's decomposition stage failed. Oracle: the stage
+    trains the intrinsic network on procedural scenes and makes one (decomposed layers → photo) set per case plus
+    the scikit-image photographs."""
+    from generative.diffusion import IntrinsicViews
+    from photoreal.benchmarks.diffrender import DiffRenderBenchSettings, _decomposition
+
+    s = DiffRenderBenchSettings(decomp_scenes=4, decomp_seconds=0.5)
+    photos = np.random.default_rng(0).random((3, 32, 32, 3), dtype=np.float32)
+    info, extra = _decomposition(s, tmp_path, {"x": IntrinsicViews(photos, {}, [0, 1], [2], "x")}, False)
+    assert info["steps"] >= 1 and info["scenes"] == 4 and info["heldout_scenes"] == 1
+    assert set(info["psnr"]) == {"A", "I", "S", "N", "R"} and all(np.isfinite(v) for v in info["psnr"].values())
+    assert [e.case for e in extra] == ["decomposed:x", "decomposed:skimage"]
+    assert extra[0].photos.shape == (2, 32, 32, 3) and info["extra_pairs"] == 2 + len(extra[1].train)
