@@ -512,7 +512,7 @@ def demo_face_learned(out_dir: Path, bench_dir: Path | None = None) -> dict | No
                  + _table([{"benchmark": k, **v} for k, v in b["cross_model_fit"].items()],
                           ["benchmark", "albedo_psnr", "normal_err_deg", "roughness_mae", "specular_mae", "relit_psnr",
                            "relit_flip"]))
-    if b.get("astronaut"):
+    if b.get("astronaut") and "skipped" not in b["astronaut"]:
         import shutil
 
         body += "<p>Astronaut photograph (no ground truth), re-render PSNR on the visible face: " + ", ".join(

@@ -240,6 +240,17 @@ def test_runs_and_checkpoints_are_checked(tiny_run, tmp_path):
         fm.load_decomposer(out / "decomposition_shared", tmp_path / "other")
 
 
+def test_from_photo_refuses_models_of_another_uv_layout(tiny_run):
+    from dataclasses import replace
+
+    out, _, _ = tiny_run
+    models = fr.load_face_models(out)
+    assert models.layout == "template"
+    fr.photo_maps_fn(models)
+    with pytest.raises(UsageError, match="'scan' UV layout.*--layout template"):
+        fr.photo_maps_fn(replace(models, layout="scan"))
+
+
 def test_from_photo_refuses_a_missing_run(tmp_path, capsys):
     rc = main(["face", "from-photo", "astronaut", "--out", str(tmp_path / "o"), "--learned", str(tmp_path / "none")])
     assert rc == 2 and "not a face models run" in capsys.readouterr().err

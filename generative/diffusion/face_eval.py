@@ -56,6 +56,7 @@ class LearnedModels:
     completion_settings: object = None
     decomposer: object = None
     superres: object = None
+    layout: str = "template"  #: the UV layout they were trained in (FaceDataSettings.layout)
 
 
 def learned_maps(d: FaceSet, m: LearnedModels, stages: str = "full", seed: int = 0,

@@ -126,7 +126,8 @@ def load_face_models(run: str | Path, variant: str | None = None) -> LearnedMode
     model, cs = load_completion(run / "completion")
     dec = load_decomposer(run / f"decomposition_{variant}", run / "completion")
     sr = load_superres(run / "superres") if (run / "superres" / "checkpoint.npz").is_file() else None
-    return LearnedModels(model, cs, dec, sr)
+    # runs made before the template layout existed were in the scans' own layout
+    return LearnedModels(model, cs, dec, sr, layout=settings.get("data", {}).get("layout", "scan"))
 
 
 def photo_maps_fn(models: LearnedModels):
@@ -136,6 +137,11 @@ def photo_maps_fn(models: LearnedModels):
     fitted lights explain the photo with)."""
     from .face_data import FaceSet
     from .face_eval import learned_maps
+
+    if models.layout != "template":
+        # from-photo unwraps into the template's layout: maps learned in another read the wrong texels
+        raise UsageError(f"these face models were trained in the {models.layout!r} UV layout; photos are unwrapped "
+                         "into the face template's: train with `photoreal face train-models --layout template`")
 
     def fn(tex: np.ndarray, weight: np.ndarray, geo, baseline: np.ndarray) -> dict[str, np.ndarray]:
         mask = geo.mask.astype(bool)
