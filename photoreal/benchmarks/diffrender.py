@@ -59,7 +59,7 @@ class DiffRenderBenchSettings:
     train_seconds: float = 720.0
     ablation_seconds: float = 180.0  #: budget of each ablation run (equal time)
     small_widths: tuple[int, ...] = (16, 32, 48, 64)  #: the smaller model of the size sweep
-    sweep_steps: tuple[int, ...] = (5, 10, 20, 40)
+    sweep_steps: tuple[int, ...] = (1, 2, 5, 10, 20, 40)  #: 1 step from pure noise = the model's posterior mean
     sweep_views: int = 4  #: held-out views per case in the sweep
     tolerance_flip: float = 0.003  #: chosen = cheapest within this ꟻLIP of the sweep's best
     guidance: float = 1.5
