@@ -46,7 +46,8 @@ from foundation import validate
 from foundation.errors import CheckpointError, UsageError
 from foundation.loop import RunState, Stage, TrainingSummary
 
-from .core import ConditionalDiffusion, DiffusionConfig, OptimizerStage, load_trained, make_scheduler, train_stage
+from .core import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, count_parameters, load_trained, make_scheduler,
+                   train_stage)
 from .face_data import FaceSet, TARGETS
 
 #: lit (3), seen (1), covered (1), the baseline's albedo (3), position (3) and normal (3) in the face frame
@@ -275,7 +276,7 @@ class CompletionStage(OptimizerStage, Stage):
         return self.backward(loss)
 
     def finish(self, run: RunState) -> FaceModelResult:
-        return FaceModelResult("completion", self.s, len(self.cond), sum(p.numel() for p in self.model.parameters()),
+        return FaceModelResult("completion", self.s, len(self.cond), count_parameters(self.model),
                                run.summary())
 
 
@@ -773,7 +774,7 @@ class SuperResStage(OptimizerStage, Stage):
         return self.backward(loss)
 
     def finish(self, run: RunState) -> FaceModelResult:
-        return FaceModelResult("superres", self.s, len(self.high), sum(p.numel() for p in self.model.parameters()),
+        return FaceModelResult("superres", self.s, len(self.high), count_parameters(self.model),
                                run.summary())
 
 
