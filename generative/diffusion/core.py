@@ -44,6 +44,7 @@ class DiffusionConfig:
     global_dim: int = 1280  #: width of the global tokens (MobileNetV2 features); 0 = no global condition
     global_tokens: int = 16  #: tokens per image (a 4×4 feature map)
     cross_dim: int = 64  #: width the global tokens are projected to
+    class_dim: int = 0  #: width of a global vector added to the time embedding (ADM-style class conditioning); 0 = none
     prediction: str = "v_prediction"
     schedule: str = "squaredcos_cap_v2"  #: cosine schedule (Nichol & Dhariwal 2021)
     train_timesteps: int = 1000
@@ -62,6 +63,7 @@ class DiffusionConfig:
         validate.integer("global_dim", self.global_dim, 0)
         validate.integer("global_tokens", self.global_tokens, 1)
         validate.integer("cross_dim", self.cross_dim, 1)
+        validate.integer("class_dim", self.class_dim, 0)
         validate.one_of("prediction", self.prediction, PREDICTIONS)
         validate.one_of("schedule", self.schedule, SCHEDULES)
         validate.integer("train_timesteps", self.train_timesteps, 10)
@@ -104,7 +106,9 @@ class ConditionalDiffusion(nn.Module):
             mid_block_type="UNetMidBlock2DCrossAttn" if cfg.attention_levels else None,
             layers_per_block=cfg.layers_per_block, norm_num_groups=cfg.norm_groups,
             # diffusers reads ``attention_head_dim`` as the number of heads (its documented naming quirk)
-            cross_attention_dim=cfg.cross_dim, attention_head_dim=tuple(cfg.heads(w) for w in cfg.widths))
+            cross_attention_dim=cfg.cross_dim, attention_head_dim=tuple(cfg.heads(w) for w in cfg.widths),
+            class_embed_type="projection" if cfg.class_dim else None,
+            projection_class_embeddings_input_dim=cfg.class_dim or None)
         self.project = nn.Linear(cfg.global_dim, cfg.cross_dim) if cfg.global_dim else None
         # The unconditional branch of CFG attends to these learned tokens (also the "global off" input).
         self.null_tokens = nn.Parameter(torch.randn(1, cfg.global_tokens, cfg.cross_dim) * 0.02)
@@ -123,12 +127,18 @@ class ConditionalDiffusion(nn.Module):
             tok = torch.where(drop.view(-1, 1, 1), null, tok)
         return tok
 
-    def forward(self, noisy: torch.Tensor, t: torch.Tensor, local: torch.Tensor | None, tokens: torch.Tensor):
+    def forward(self, noisy: torch.Tensor, t: torch.Tensor, local: torch.Tensor | None, tokens: torch.Tensor,
+                class_vec: torch.Tensor | None = None):
+        """``class_vec`` (B, class_dim) is added to the time embedding of a model with ``class_dim`` (None = zeros:
+        the unconditional input)."""
         x = noisy if local is None or self.cfg.cond_channels == 0 else torch.cat([noisy, local], 1)
         if x.shape[1] != self.cfg.image_channels + self.cfg.cond_channels:
             raise UsageError(f"model input has {x.shape[1]} channels, the model takes "
                              f"{self.cfg.image_channels} + {self.cfg.cond_channels}")
-        return self.unet(x, t, encoder_hidden_states=tokens, return_dict=False)[0]
+        labels = None
+        if self.cfg.class_dim:
+            labels = class_vec if class_vec is not None else x.new_zeros(x.shape[0], self.cfg.class_dim)
+        return self.unet(x, t, encoder_hidden_states=tokens, class_labels=labels, return_dict=False)[0]
 
 
 def check_size(cfg: DiffusionConfig, h: int, w: int) -> None:
@@ -252,10 +262,12 @@ def train_stage(make_stage, out, s, budget_steps: int | None, show_progress: boo
                                show_progress=show_progress, metrics_path=out / "metrics.json" if metrics else None)
 
 
-def load_trained(run, stage_kind: str, what: str, hint: str, settings_cls, build, defaults: dict | None = None):
+def load_trained(run, stage_kind: str, what: str, hint: str, settings_cls, build, defaults: dict | None = None,
+                 weights: str = "model"):
     """The trained model of a run folder in eval mode, and its settings: the checkpoint's stage kind must be
     ``stage_kind`` and its weights must fit ``build(settings)``; errors name the file. ``defaults`` fill
-    settings fields that older checkpoints lack."""
+    settings fields that older checkpoints lack. ``weights`` names the checkpoint entry to load (e.g. an EMA);
+    a checkpoint without it gives its raw ``model`` weights."""
     from pathlib import Path
 
     from foundation.errors import CheckpointError
@@ -271,7 +283,7 @@ def load_trained(run, stage_kind: str, what: str, hint: str, settings_cls, build
     s = from_json(settings_cls, {**(defaults or {}), **saved.fingerprint["settings"]}, str(ckpt))
     model = build(s)
     try:
-        model.load_state_dict(saved.stage["model"])
+        model.load_state_dict(saved.stage.get(weights, saved.stage["model"]))
     except RuntimeError as exc:
         raise CheckpointError(f"{ckpt}: weights do not fit the architecture its settings describe "
                               f"({str(exc).splitlines()[0]})") from None

@@ -3,10 +3,10 @@
 Every material — generated, a baseline's, or a fitted real one — is decoded through the universal basis at
 the swatch pairs (:func:`material_data.decode_swatches`) and judged in that image space:
 
-* :class:`FamilyClassifier` — a small CNN over the 4 swatches (12 channels, circular padding, random rolls)
-  trained on the *path-traced* swatches of training materials; its held-out accuracy is reported on real
-  held-out swatches and on the decoded fits of the same materials (the basis' own error). Its penultimate
-  64-d activations are one KID feature space;
+* :class:`FamilyClassifier` — a head over frozen MobileNetV2 features of the swatch mosaic, trained on the
+  *path-traced* swatches of training materials (under random rolls); its held-out accuracy is reported on real
+  held-out swatches and on the decoded fits of the same materials (the basis' own error). Its 64-d hidden
+  activations are one KID feature space;
 * MobileNetV2 (ImageNet weights, :mod:`foundation.features`) pooled features of the 2×2 swatch mosaic:
   the second space, also the memorisation and diversity distances;
 * baselines that need no training: copies of training materials, a Gaussian fitted to the training
@@ -39,41 +39,41 @@ def decode_all(basis, features: np.ndarray, channels: int = 8) -> np.ndarray:
                      for f in features])
 
 
-def classifier_input(swatches: np.ndarray) -> torch.Tensor:
-    """(N, K, H, W, 3) radiance → (N, 3K, H, W) in [−1, 1] (x/(1+x): highlights compressed, not clipped)."""
-    x = np.asarray(swatches, np.float32)
-    n, k, h, w, _ = x.shape
-    x = 2.0 * x / (1.0 + x) - 1.0
-    return torch.from_numpy(np.ascontiguousarray(x.transpose(0, 1, 4, 2, 3).reshape(n, 3 * k, h, w)))
-
-
 class FamilyClassifier(torch.nn.Module):
-    def __init__(self, in_channels: int = 12, width: int = 32, seed: int = 0):
+    """Frozen ImageNet MobileNetV2 (pooled features of the 2×2 swatch mosaic, :func:`mnv2_features`) → standardised
+    → a learned ``width``-d hidden layer (SiLU) → the 8 families. The hidden layer is the classifier's own feature
+    space (family-discriminative; the pooled MobileNetV2 features are the generic one).
+
+    Measured on the 256-material dataset (224 train / 32 held out): the CNN trained from scratch on the swatches
+    that this replaces reached 0.56 held-out accuracy (0.47 on decoded fits); a linear probe on these features 1.00
+    (0.94) — 28 materials per family are too few to learn image features from scratch."""
+
+    def __init__(self, width: int = 64, seed: int = 0, dim: int = 1280):
         super().__init__()
         torch.manual_seed(seed)
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("std", torch.ones(dim))
+        self.hidden = torch.nn.Linear(dim, width)
+        self.head = torch.nn.Linear(width, len(FAMILIES))
+        self.drop = torch.nn.Dropout(0.2)
 
-        def block(a, b, stride):
-            return [torch.nn.Conv2d(a, b, 3, stride, 1, padding_mode="circular"), torch.nn.GroupNorm(8, b),
-                    torch.nn.SiLU()]
+    def features(self, f: torch.Tensor) -> torch.Tensor:
+        """MobileNetV2 features (N, 1280) → the hidden layer (N, width)."""
+        return F.silu(self.hidden(self.drop((f - self.mean) / self.std)))
 
-        self.body = torch.nn.Sequential(*block(in_channels, width, 1), *block(width, width, 2),
-                                        *block(width, 2 * width, 2), *block(2 * width, 2 * width, 2))
-        self.head = torch.nn.Linear(2 * width, len(FAMILIES))
-
-    def features(self, x: torch.Tensor) -> torch.Tensor:
-        return self.body(x).mean((2, 3))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.head(self.features(x))
+    def forward(self, f: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(f))
 
 
 @dataclass
 class ClassifierSettings:
     steps: int = 1500
     max_seconds: float | None = 120.0
-    batch: int = 32
-    lr: float = 2e-3
-    width: int = 32
+    batch: int = 64
+    lr: float = 1e-3
+    weight_decay: float = 1e-2
+    width: int = 64
+    rolls: int = 4  #: random circular shifts of every training material (a tileable swatch has no origin)
     checkpoint_every: int = 500
     threads: int = 0
     seed: int = 0
@@ -83,7 +83,9 @@ class ClassifierSettings:
         validate.optional(validate.positive, "max_seconds", self.max_seconds)
         validate.integer("batch", self.batch, 1)
         validate.positive("lr", self.lr)
+        validate.non_negative("weight_decay", self.weight_decay)
         validate.integer("width", self.width, 8)
+        validate.integer("rolls", self.rolls, 1)
         validate.seed("seed", self.seed)
 
 
@@ -93,26 +95,39 @@ class ClassifierResult:
     training: TrainingSummary
 
 
+def rolled(swatches: np.ndarray, rolls: int, rng: np.random.Generator) -> np.ndarray:
+    """(N, K, H, W, 3) → (N·rolls, K, H, W, 3): each material under ``rolls`` random circular shifts (one per copy,
+    the same for its K swatches; the first copy unshifted)."""
+    n, _, h, w, _ = swatches.shape
+    out = []
+    for i in range(n):
+        for r in range(rolls):
+            dy, dx = (0, 0) if r == 0 else (int(rng.integers(h)), int(rng.integers(w)))
+            out.append(np.roll(swatches[i], (dy, dx), (1, 2)))
+    return np.stack(out)
+
+
 class ClassifierStage(OptimizerStage, Stage):
     unit = "step"
 
     def __init__(self, swatches: np.ndarray, families: np.ndarray, s: ClassifierSettings):
         self.s, self.name = s, "train family classifier"
-        self.x = classifier_input(swatches)
-        self.y = torch.from_numpy(np.asarray(families, np.int64))
         self.rng = np.random.default_rng(s.seed)
-        self.model = FamilyClassifier(self.x.shape[1], s.width, s.seed)
-        self.opt = torch.optim.AdamW(self.model.parameters(), lr=s.lr, weight_decay=1e-4)
+        self.f = torch.from_numpy(mnv2_features(rolled(swatches, s.rolls, self.rng)).astype(np.float32))
+        self.y = torch.from_numpy(np.repeat(np.asarray(families, np.int64), s.rolls))
+        self.model = FamilyClassifier(s.width, s.seed, self.f.shape[1])
+        self.model.mean.copy_(self.f.mean(0))
+        sd = self.f.std(0)
+        self.model.std.copy_(sd + 0.1 * sd.mean() + 1e-6)  # a floor: features constant over a few swatches stay small
+        self.opt = torch.optim.AdamW(self.model.parameters(), lr=s.lr, weight_decay=s.weight_decay)
 
     def fingerprint(self) -> dict:
-        return {"settings": self.s, "n": int(len(self.y)), "sum": float(self.x.double().sum())}
+        return {"settings": self.s, "n": int(len(self.y)), "sum": float(self.f.double().sum())}
 
     def step(self, it: int) -> StepResult:
-        idx = self.rng.integers(0, len(self.y), self.s.batch)
-        h, w = self.x.shape[-2:]
-        x = torch.stack([torch.roll(self.x[i], (int(self.rng.integers(h)), int(self.rng.integers(w))), (1, 2))
-                         for i in idx])
-        return self.backward(F.cross_entropy(self.model(x), self.y[idx]))
+        self.model.train()
+        idx = torch.from_numpy(self.rng.integers(0, len(self.y), self.s.batch))
+        return self.backward(F.cross_entropy(self.model(self.f[idx]), self.y[idx]))
 
     def finish(self, run: RunState) -> ClassifierResult:
         return ClassifierResult(self.s, run.summary())
@@ -120,6 +135,7 @@ class ClassifierStage(OptimizerStage, Stage):
 
 def train_classifier(swatches: np.ndarray, families: np.ndarray, out, s: ClassifierSettings | None = None,
                      show_progress: bool = True) -> FamilyClassifier:
+    """Train the family classifier on (path-traced) swatches in folder ``out`` (resumable; ``metrics.json``)."""
     s = s or ClassifierSettings()
     stage, _ = train_stage(lambda: ClassifierStage(swatches, families, s), out, s, None, show_progress)
     stage.model.eval()
@@ -127,11 +143,53 @@ def train_classifier(swatches: np.ndarray, families: np.ndarray, out, s: Classif
 
 
 @torch.no_grad()
-def classify(model: FamilyClassifier, swatches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(predicted family index (N,), penultimate features (N, 64))."""
-    x = classifier_input(swatches)
-    f = model.features(x)
-    return model.head(f).argmax(1).numpy(), f.double().numpy()
+def classify(model: FamilyClassifier, swatches: np.ndarray, mnv2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(predicted family index (N,), the classifier's hidden features (N, width)); ``mnv2`` passes the swatches'
+    :func:`mnv2_features` when they are already computed."""
+    model.eval()
+    f = torch.from_numpy(np.asarray(mnv2 if mnv2 is not None else mnv2_features(swatches), np.float32))
+    h = model.features(f)
+    return model.head(h).argmax(1).numpy(), h.double().numpy()
+
+
+@torch.no_grad()
+def denoising_check(model, s, features: np.ndarray, keywords: list, timesteps=(39, 79, 159, 319, 699),
+                    taus=(0.5, 1.0, 1.5), seed: int = 0) -> list[dict]:
+    """How well a trained material model denoises held-out feature textures, against fixed denoisers.
+
+    At each training timestep t: noise the textures (model space), predict x̂₀ with the keywords as condition, and
+    report the mean squared x̂₀ error beside (a) the naive x_t/α (no denoising) and (b) the best periodic Gaussian
+    blur of x_t/α over ``taus`` texels — a denoiser with no learned parameters. A model that loses to (b) at low t
+    leaves texel-scale noise in its samples (what `bench matdiff` found at CPU training budgets)."""
+    from inverse.btf import gaussian_periodic
+
+    from .material_data import keyword_onehots
+    from .materials import cross_tokens, global_tokens, keyword_vector, make_material_scheduler, to_model_space
+
+    model.eval()
+    x0 = torch.from_numpy(to_model_space(np.asarray(features, np.float32), s).astype(np.float32))
+    b, _, h, _ = x0.shape
+    sched = make_material_scheduler(s, s.train_res or h)
+    g, present = global_tokens(keyword_onehots(keywords), None, b)
+    cond = cross_tokens(model, torch.from_numpy(g), torch.from_numpy(present))
+    kv = keyword_vector(torch.from_numpy(g))
+    local = torch.zeros(b, 3, h, h) if s.exemplar_local else None
+    gen = torch.Generator().manual_seed(seed)
+    rows = []
+    for t in timesteps:
+        tt = torch.full((b,), int(t), dtype=torch.long)
+        xt = sched.add_noise(x0, torch.randn(x0.shape, generator=gen), tt)
+        ac = sched.alphas_cumprod[int(t)].double()
+        a, sg = float(ac.sqrt()), float((1 - ac).sqrt())
+        out = model(xt, tt, local, cond, kv)
+        xhat = a * xt - sg * out if s.prediction == "v_prediction" else (xt - sg * out) / a
+        naive = (xt / a).numpy()
+        blur = {tau: float(np.mean((gaussian_periodic(naive.transpose(0, 2, 3, 1), tau).transpose(0, 3, 1, 2)
+                                    - x0.numpy()) ** 2)) for tau in taus}
+        best = min(blur, key=blur.get)
+        rows.append({"t": int(t), "noise_to_signal": sg / a, "model": float((xhat - x0).square().mean()),
+                     "naive": float(np.mean((naive - x0.numpy()) ** 2)), "blur": blur[best], "blur_tau": best})
+    return rows
 
 
 def mosaic(swatches: np.ndarray) -> np.ndarray:

@@ -78,10 +78,12 @@ class MatDiffSettings:
     cfg: bool = True  #: drop conditions in training (p_keep below) and guide at sampling
     p_keep: float = 0.6  #: probability that the keywords (independently: the exemplar) are kept in a training sample
     exemplar_local: bool = True  #: also concatenate the exemplar image with the noisy input
+    keyword_embedding: bool = True  #: also add the keywords to the time embedding (ADM-style class conditioning)
     steps: int = 20000  #: upper bound; ``max_seconds`` usually ends the run first
     max_seconds: float | None = 900.0
     batch: int = 16
     lr: float = 5e-4
+    ema: float = 0.0  #: decay of the weights' exponential moving average that sampling uses; 0 = the raw weights
     checkpoint_every: int = 200
     threads: int = 0
     seed: int = 0
@@ -105,6 +107,7 @@ class MatDiffSettings:
         validate.optional(validate.positive, "max_seconds", self.max_seconds)
         validate.integer("batch", self.batch, 1, 4096)
         validate.positive("lr", self.lr)
+        validate.in_range("ema", self.ema, 0.0, 0.99999)
         validate.integer("checkpoint_every", self.checkpoint_every, 1)
         validate.integer("threads", self.threads, 0)
         validate.seed("seed", self.seed)
@@ -122,7 +125,8 @@ class MatDiffSettings:
 def diffusion_config(s: MatDiffSettings) -> DiffusionConfig:
     return DiffusionConfig(image_channels=2 * s.channels, cond_channels=3 if s.exemplar_local else 0,
                            widths=s.widths, layers_per_block=s.layers_per_block, attention_levels=s.attention_levels,
-                           head_dim=s.head_dim, global_dim=GLOBAL_DIM, global_tokens=TOKENS, prediction=s.prediction)
+                           head_dim=s.head_dim, global_dim=GLOBAL_DIM, global_tokens=TOKENS, prediction=s.prediction,
+                           class_dim=KEYWORD_TOKENS * len(VOCABULARY) if s.keyword_embedding else 0)
 
 
 def build_model(s: MatDiffSettings) -> ConditionalDiffusion:
@@ -211,6 +215,12 @@ def global_tokens(keywords: np.ndarray | None, exemplar: np.ndarray | None, batc
     return g, present
 
 
+def keyword_vector(g: torch.Tensor) -> torch.Tensor:
+    """The keyword one-hots of a condition (B, TOKENS, GLOBAL_DIM) as one (B, 3·|vocabulary|) vector (zeros where
+    no keyword is given: the unconditional input of the time-embedding path)."""
+    return g[:, :KEYWORD_TOKENS, FEATURE_DIM:].reshape(g.shape[0], -1)
+
+
 def cross_tokens(model: ConditionalDiffusion, g: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
     """Project the condition; every absent token is the learned null token of its position."""
     b = g.shape[0]
@@ -233,7 +243,7 @@ def material_loss(model: ConditionalDiffusion, sched, s: MatDiffSettings, x0: to
     noise = torch.randn(x0.shape, generator=gen, dtype=x0.dtype)
     noisy = sched.add_noise(x0, noise, t)
     target = sched.get_velocity(x0, noise, t) if s.prediction == "v_prediction" else noise
-    err = model(noisy, t, local, cross_tokens(model, g, present)) - target
+    err = model(noisy, t, local, cross_tokens(model, g, present), keyword_vector(g)) - target
     ac = sched.alphas_cumprod[t].to(x0.dtype)
     w = loss_weight(ac / (1.0 - ac), s)
     per = err.square().mean(dim=(1, 2, 3))
@@ -277,9 +287,29 @@ class MatDiffStage(OptimizerStage, Stage):
         self.model = build_model(s)
         self.sched = make_material_scheduler(s, self.res)
         self.opt = torch.optim.AdamW(self.model.parameters(), lr=s.lr, weight_decay=0.0)
+        self.ema = {k: v.detach().clone() for k, v in self.model.state_dict().items()} if s.ema else None
 
     def fingerprint(self) -> dict:
         return {"settings": self.s, "data": self.digest}
+
+    def apply(self, it: int) -> None:
+        self.opt.step()
+        if self.ema is not None:  # warm-up (1 + it)/(10 + it) so the average forgets the initialisation early
+            d = min(self.s.ema, (1.0 + it) / (10.0 + it))
+            with torch.no_grad():
+                for k, v in self.model.state_dict().items():
+                    self.ema[k].lerp_(v, 1.0 - d) if v.is_floating_point() else self.ema[k].copy_(v)
+
+    def state(self) -> dict:
+        tree = super().state()
+        if self.ema is not None:
+            tree["ema"] = self.ema
+        return tree
+
+    def load_state(self, tree: dict) -> None:
+        super().load_state(tree)
+        if self.ema is not None:
+            self.ema = {k: torch.as_tensor(v).clone() for k, v in tree["ema"].items()}
 
     def step(self, it: int) -> StepResult:
         s, rng = self.s, self.rng
@@ -344,7 +374,7 @@ def train_matdiff(data: MaterialSet, out: str | Path, s: MatDiffSettings | None 
 
 def load_matdiff(run: str | Path) -> tuple[ConditionalDiffusion, MatDiffSettings]:
     return load_trained(run, "MatDiffStage", "material diffusion model", " (train one with `photoreal btf train-diffusion`)",
-                        MatDiffSettings, build_model)
+                        MatDiffSettings, build_model, weights="ema")
 
 
 # -- sampling -------------------------------------------------------------------------------------------------------
@@ -399,6 +429,7 @@ def sample_materials(model: ConditionalDiffusion, s: MatDiffSettings, prompts: l
             present[:, KEYWORD_TOKENS:] = np.array([has_ex[i] for i in sl])[:, None]
             cond = cross_tokens(model, torch.from_numpy(g), torch.from_numpy(present))
             uncond = cross_tokens(model, torch.from_numpy(g), torch.zeros(b, TOKENS, dtype=torch.bool))
+            kv = keyword_vector(torch.from_numpy(g))
             use_cfg = s.cfg and guidance != 1.0 and bool(present.any())
             x = torch.stack([torch.randn(2 * s.channels, size, size, generator=torch.Generator().manual_seed(seed * 1_000_003 + i))
                              for i in sl])
@@ -406,11 +437,12 @@ def sample_materials(model: ConditionalDiffusion, s: MatDiffSettings, prompts: l
                 tt = torch.full((b,), int(t), dtype=torch.long)
                 if use_cfg:
                     both = model(torch.cat([x, x]), torch.cat([tt, tt]),
-                                 None if loc is None else torch.cat([loc, torch.zeros_like(loc)]), torch.cat([cond, uncond]))
+                                 None if loc is None else torch.cat([loc, torch.zeros_like(loc)]), torch.cat([cond, uncond]),
+                                 torch.cat([kv, torch.zeros_like(kv)]))
                     c, u = both.chunk(2)
                     pred = u + guidance * (c - u)
                 else:
-                    pred = model(x, tt, loc, cond)
+                    pred = model(x, tt, loc, cond, kv)
                 x = sched.step(pred, t, x, eta=0.0).prev_sample
                 bar.update(b)
             out.append(from_model_space(x, s).numpy())
@@ -469,6 +501,6 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
 
 
 __all__ = ["MaterialPrompt", "MatDiffResult", "MatDiffSettings", "alphas_cumprod", "build_model", "exemplar_features",
-           "exemplar_local", "feature_scale", "from_model_space", "generate_material", "global_tokens", "load_matdiff", "loss_weight",
+           "exemplar_local", "feature_scale", "from_model_space", "generate_material", "global_tokens", "keyword_vector", "load_matdiff", "loss_weight",
            "make_material_scheduler", "material_loss", "sample_materials", "split_features", "to_model_space",
            "train_matdiff"]

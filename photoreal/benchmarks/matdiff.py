@@ -39,6 +39,7 @@ ABLATIONS = {  # name → the MatDiffSettings fields that switch one choice off
     "no cube-root scaling": {"cube_root": False},
     "no multiscale loss": {"multiscale": False},
     "no CFG (never dropped, guidance 1)": {"cfg": False},
+    "keywords by cross-attention only (no time-embedding path)": {"keyword_embedding": False},
 }
 
 
@@ -78,8 +79,8 @@ class _Judge:
 
         self.basis, self.classifier, self.channels = basis, classifier, channels
         self.res = held_dec.shape[2]  #: the training texture size
-        self.ref_cls = classify(classifier, held_dec)[1]
         self.ref_mn = mnv2_features(held_dec)
+        self.ref_cls = classify(classifier, held_dec, self.ref_mn)[1]
         self.train_mn = mnv2_features(train_dec)
 
     def decode(self, features: np.ndarray) -> np.ndarray:
@@ -90,8 +91,8 @@ class _Judge:
     def score(self, decoded: np.ndarray) -> dict:
         from generative.diffusion import classify, mnv2_features
 
-        pred, fc = classify(self.classifier, decoded)
         fm = mnv2_features(decoded)
+        pred, fc = classify(self.classifier, decoded, fm)
         return {"pred": pred, "cls": fc, "mn": fm, "kid_classifier": kid(fc, self.ref_cls),
                 "kid_mnv2": kid(fm, self.ref_mn), "fid_classifier": fid(fc, self.ref_cls)}
 
@@ -105,7 +106,7 @@ def _keyword_eval(model, ms, judge: _Judge, prompts: list, families: np.ndarray,
     secs = time.perf_counter() - t
     sc = judge.score(judge.decode(f))
     return {"accuracy": float(np.mean(sc["pred"] == families)), "kid_classifier": sc["kid_classifier"],
-            "kid_mnv2": sc["kid_mnv2"], "seconds_per_sample": secs / len(prompts), "features": f}
+            "kid_mnv2": sc["kid_mnv2"], "seconds_per_sample": secs / len(prompts), "features": f, "pred": sc["pred"]}
 
 
 def _seam(model, ms, judge: _Judge, size: int, n: int, seed: int, steps: int) -> float:
@@ -118,7 +119,7 @@ def _seam(model, ms, judge: _Judge, size: int, n: int, seed: int, steps: int) ->
 def _short_eval(model, ms, judge, held, s: MatDiffBenchSettings) -> dict:
     """What an ablation or sweep run is judged by: keyword-triple samples of the held-out materials, seams at 2× size."""
     r = _keyword_eval(model, ms, judge, held.keywords, held.families, s.steps, s.guidance if ms.cfg else 1.0, s.seed)
-    r.pop("features")
+    r.pop("features"), r.pop("pred")
     r["seam_ratio_2x"] = _seam(model, ms, judge, 2 * judge.res, 4, s.seed, s.steps)
     return r
 
@@ -131,6 +132,7 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
     from foundation.records import from_json
     from generative.diffusion import (ClassifierSettings, MaterialDataSettings, MaterialPrompt, MatDiffSettings,
                                       aligned_flip, build_material_dataset, classify, copy_baseline, crop_baseline,
+                                      denoising_check,
                                       gaussian_baseline, load_material_dataset, mean_pairwise, mnv2_features,
                                       nearest_distances, sample_materials, train_classifier, train_matdiff,
                                       load_matdiff)
@@ -181,6 +183,8 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
         fam_prompts = [[f, None, None] for f in (held.keywords[i][0] for i in range(len(held.names)))]
         kwf = _keyword_eval(model, ms, judge, fam_prompts, held.families, s.steps, s.guidance, s.seed + 1)
         result["keyword_accuracy"] = kw["accuracy"]
+        result["keyword_family_share"] = np.bincount(kw.pop("pred"), minlength=8).tolist()  # what the samples look like
+        result["denoising"] = denoising_check(model, ms, held.features, held.keywords, seed=s.seed)
         result["keyword_accuracy_family_word_only"] = kwf["accuracy"]
 
         rng = np.random.default_rng(s.seed)
