@@ -265,3 +265,24 @@ def test_family_classifier_learns_a_family_from_few_swatches_and_resumes(tmp_pat
     assert np.array_equal(me.classify(clf, test, me.mnv2_features(test))[0], pred)
     again = me.train_classifier(sw, fam, tmp_path / "c", s, show_progress=False)
     assert all(torch.equal(a, b) for a, b in zip(clf.state_dict().values(), again.state_dict().values()))
+
+
+def test_ema_weights_are_the_running_average_that_sampling_loads(tmp_path):
+    # Oracle: replay the raw weights of every step (one run per step count, one thread: bit-identical prefixes)
+    # through e ← d e + (1 − d) w with d = min(ema, (1 + it)/(10 + it)); load_matdiff must return that average.
+    data = _toy_set()
+    s = mm.MatDiffSettings(**TINY, steps=3, ema=0.5)
+    raws = [mm.build_model(s).state_dict()]
+    for n in (1, 2, 3):
+        mm.train_matdiff(data, tmp_path / f"r{n}", mm.MatDiffSettings(**TINY, steps=n, ema=0.5), show_progress=False)
+        from foundation.loop import read_checkpoint
+
+        raws.append({k: torch.as_tensor(v) for k, v in read_checkpoint(tmp_path / f"r{n}" / "checkpoint.npz").stage["model"].items()})
+    key = next(k for k, v in raws[0].items() if v.is_floating_point() and v.numel() > 10)
+    e = raws[0][key].clone()
+    for it in range(3):
+        d = min(0.5, (1.0 + it) / (10.0 + it))
+        e = d * e + (1 - d) * raws[it + 1][key]
+    loaded, _ = mm.load_matdiff(tmp_path / "r3")
+    torch.testing.assert_close(loaded.state_dict()[key], e, rtol=1e-5, atol=1e-7)
+    assert not torch.equal(loaded.state_dict()[key], raws[3][key])  # not the raw weights

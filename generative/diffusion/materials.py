@@ -374,7 +374,8 @@ def train_matdiff(data: MaterialSet, out: str | Path, s: MatDiffSettings | None 
 
 def load_matdiff(run: str | Path) -> tuple[ConditionalDiffusion, MatDiffSettings]:
     return load_trained(run, "MatDiffStage", "material diffusion model", " (train one with `photoreal btf train-diffusion`)",
-                        MatDiffSettings, build_model, weights="ema")
+                        MatDiffSettings, build_model, defaults={"keyword_embedding": False, "ema": 0.0},  # older runs
+                        weights="ema")
 
 
 # -- sampling -------------------------------------------------------------------------------------------------------
