@@ -95,6 +95,12 @@ def test_ddim_with_an_oracle_denoiser_returns_the_data_point():
     for clip in (None, 1.0):
         out = mm.sample_materials(model, s, [mm.MaterialPrompt()], 16, steps=10, guidance=1.0, clip=clip)
         np.testing.assert_allclose(out[0], x_star[0].numpy(), atol=1e-5)
+    # the bench's denoising check: the oracle's x̂₀ is exact; no denoising errs by σ²/α² on average (4096 values:
+    # relative sd √(2/4096) = 2.2 %, so 10 % is 4.5 sd)
+    rows = me.denoising_check(model, s, x_star.numpy(), [[None, None, None]], timesteps=(39, 319))
+    for r in rows:
+        assert r["model"] < 1e-8 and r["naive"] == pytest.approx(r["noise_to_signal"] ** 2, rel=0.1)
+        assert r["blur"] > r["model"]
     # a 2× texture is sampled on the training size's schedule (a wrong schedule misses x* by O(1))
     x_star = torch.rand(1, 16, 32, 32) * 1.6 - 0.8
     out = mm.sample_materials(model, s, [mm.MaterialPrompt()], 32, steps=10, guidance=1.0)
