@@ -932,7 +932,10 @@ def build_parser() -> argparse.ArgumentParser:
          help="run all --iterations (default: stop when the validation loss stops improving; --iterations caps it)")
     _opt(mr, MorphSettings, "lambda_start", type=float,
          help="large-steps λ at the start, falling geometrically to --lambda over the first 30%% of the iterations "
-              "(e.g. 25: steadier first steps on thin parts; default: constant λ)")
+              "(e.g. 25: steadier first steps on thin parts; setting it turns --lambda-select off)")
+    _opt(mr, MorphSettings, "lambda_select", type=float,
+         help="λ start values tried side by side to the end of that warm-up; the one the validation photos prefer "
+              "continues (a value ≤ --lambda: constant λ; one value: no choice)")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

@@ -30,7 +30,7 @@ vertex colours the image loss alone does not pin the bumps of large flat areas
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -111,9 +111,15 @@ class MorphSettings:
     #: far off) and fall geometrically to ``lambda_`` over the first ``lambda_warmup`` of the iterations (the
     #: operator is refactored at each check); None = constant λ. The suite's airplane settled into a bumpy state
     #: within its first 25 iterations at constant λ = 2 (−5 % Chamfer); with 25 → 2 it kept improving (−27 %).
-    #: Opt-in: as the default over the whole suite it helped the table and airplane but broke the village (README).
+    #: As the one default for the whole suite it helped the table and airplane but broke the village (README), so
+    #: by default ``lambda_select`` tries both and keeps what the validation photos prefer.
     lambda_start: float | None = None
     lambda_warmup: float = 0.3
+    #: λ decided from the input: each start value (≤ ``lambda_``: constant λ) runs to the end of the warm-up
+    #: (``lambda_warmup`` × the cap, rounded up to a validation check), and the one whose validation L1 is lowest
+    #: there continues (:class:`LambdaSelection`). Used when ``lambda_start`` is None; () = constant λ. Neither choice suits every mesh:
+    #: 25 → 2 took the airplane from −5 % to −27 % Chamfer and the table from −24 % to −41 %, but broke the village.
+    lambda_select: tuple[float, ...] = (2.0, 25.0)
     seed: int = 0
 
     def __post_init__(self):
@@ -146,6 +152,14 @@ class MorphSettings:
         validate.in_range("anneal_fraction", self.anneal_fraction, 0.0, 1.0)
         validate.optional(validate.positive, "lambda_start", self.lambda_start)
         validate.in_range("lambda_warmup", self.lambda_warmup, 0.0, 1.0)
+        self.lambda_select = tuple(float(x) for x in self.lambda_select)
+        for x in self.lambda_select:
+            validate.positive("lambda_select", x)
+        if len(set(self.lambda_select)) != len(self.lambda_select):
+            raise UsageError(f"lambda_select: repeated candidate in {self.lambda_select}")
+        if len(self.lambda_select) == 1 and self.lambda_start is None:  # one candidate: nothing to choose
+            start = self.lambda_select[0]
+            self.lambda_start, self.lambda_select = (start if start > self.lambda_ else None), ()
         if self.early_stop and not self.validation_views:
             raise UsageError("early_stop needs validation_views ≥ 1 (the stopping rule watches their loss)")
 
@@ -171,6 +185,17 @@ class PlanarityDecision:
 
 
 @dataclass
+class LambdaSelection:
+    """How the large-steps λ schedule was chosen: every candidate ran to ``at_iteration`` from the same start."""
+
+    candidates: list[float]  #: λ at the start of each candidate (≤ the run's λ: constant λ)
+    at_iteration: int  #: where the validation L1 was compared (the end of the warm-up)
+    validation_l1: list[float | None]  #: of each candidate there (its last check, if it stopped sooner)
+    chosen: float  #: the candidate that continued to the end
+    trial_seconds: float  #: time of the candidates not chosen (included in the run's ``seconds``)
+
+
+@dataclass
 class MorphResult(MorphEvaluation):
     """``metrics.json`` of a morph run."""
 
@@ -189,6 +214,7 @@ class MorphResult(MorphEvaluation):
     validation_views: list[int] = field(default_factory=list)  #: training photos kept out of the fit
     validation_seconds: float = 0.0  #: time spent rendering the validation views (not in ``seconds``)
     trace_chamfer_input: float | None = None  #: the coarse input's Chamfer with the trace's estimator
+    lambda_selection: LambdaSelection | None = None  #: when ``settings.lambda_select`` chose the λ schedule
 
 
 def start_mesh(bench: MorphBenchmark, s: MorphSettings) -> tuple[tuple, tuple]:
@@ -469,6 +495,8 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
     s = s or MorphSettings()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    if selection_point(s) is not None:
+        return _run_selected(bench, out, s, show_progress, budget_iterations)
     stage = MorphStage(bench, out, s)
     try:
         return run_loop(stage, LoopSettings(steps=s.iterations, checkpoint_every=s.checkpoint_every),
@@ -476,4 +504,91 @@ def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = 
                         show_progress=show_progress, metrics_path=out / "metrics.json")
     finally:
         stage.close()
+
+
+# -- λ decided from the input ------------------------------------------------------------------------------------
+
+
+def selection_point(s: MorphSettings) -> int | None:
+    """The iteration where ``lambda_select``'s candidates are compared, or None when no choice is to be made
+    (``lambda_start`` set, fewer than two candidates, plain Adam, no validation photos, or a cap that ends before
+    the warm-up does)."""
+    if s.lambda_start is not None or len(s.lambda_select) < 2 or s.parameterisation != "large_steps" \
+            or not s.validation_views:
+        return None
+    at = int(np.ceil(s.lambda_warmup * s.iterations / s.check_every)) * s.check_every
+    return at if 0 < at < s.iterations else None
+
+
+def candidate_settings(s: MorphSettings, start: float) -> MorphSettings:
+    """One candidate's own run: its λ start (≤ λ: constant λ), no selection of its own."""
+    return replace(s, lambda_start=float(start) if start > s.lambda_ else None, lambda_select=())
+
+
+def _trial_dir(out: Path, start: float) -> Path:
+    return out / "lambda_select" / f"start_{start:g}"
+
+
+def _trial_status(ckpt: Path) -> tuple[int, bool, float | None, float]:
+    """(step, finished, last validation L1, seconds so far) of a candidate's checkpoint."""
+    from foundation.loop import read_checkpoint
+
+    if not ckpt.is_file():
+        return 0, False, None, 0.0
+    saved = read_checkpoint(ckpt)
+    trace = saved.stage.get("trace") or []
+    last = trace[-1] if trace else {}
+    return int(saved.run.step), bool(saved.run.done), last.get("validation_l1"), float(last.get("seconds") or 0.0)
+
+
+def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progress: bool,
+                  budget: int | None) -> MorphResult | None:
+    """Every λ candidate to the selection point, then the one with the lowest validation L1 to the end, in
+    ``OUT/lambda_select/start_λ`` (each resumable); the winner's files are copied into ``out`` with the choice
+    recorded. ``budget`` counts iterations of this call over all candidates."""
+    import shutil
+
+    from foundation.files import atomic_path, read_json, write_json
+
+    at = selection_point(s)
+    decision_path = out / "lambda_select" / "decision.json"
+    if decision_path.is_file():
+        sel = from_json(LambdaSelection, read_json(decision_path, "λ selection"), str(decision_path))
+        if sorted(sel.candidates) != sorted(s.lambda_select) or sel.at_iteration != at:
+            raise UsageError(f"{decision_path}: made for candidates {sel.candidates} at iteration {sel.at_iteration}, "
+                             f"not {list(s.lambda_select)} at {at}; delete {out / 'lambda_select'} to start over")
+    else:
+        for start in s.lambda_select:
+            step, done, _, _ = _trial_status(_trial_dir(out, start) / "checkpoint.npz")
+            todo = 0 if done else at - step
+            if todo <= 0:
+                continue
+            n = todo if budget is None else min(todo, budget)
+            if n <= 0:
+                return None
+            run_morph(bench, _trial_dir(out, start), candidate_settings(s, start), show_progress, budget_iterations=n)
+            if budget is not None:
+                budget -= n
+                if n < todo:
+                    return None
+        status = {x: _trial_status(_trial_dir(out, x) / "checkpoint.npz") for x in s.lambda_select}
+        scores = [status[x][2] for x in s.lambda_select]
+        # no validation photos after all (too few training views): the first candidate
+        chosen = min(s.lambda_select, key=lambda x: status[x][2]) if None not in scores else s.lambda_select[0]
+        sel = LambdaSelection(list(s.lambda_select), at, scores, chosen,
+                              float(sum(status[x][3] for x in s.lambda_select if x != chosen)))
+        write_json(decision_path, to_json(sel))
+    if budget is not None and budget <= 0:
+        return None
+    win = _trial_dir(out, sel.chosen)
+    r = run_morph(bench, win, candidate_settings(s, sel.chosen), show_progress, budget_iterations=budget)
+    if r is None:
+        return None
+    for f in sorted(win.iterdir()):
+        if f.is_file() and f.name not in ("checkpoint.npz", "metrics.json") and not f.name.startswith("."):
+            with atomic_path(out / f.name) as tmp:
+                shutil.copyfile(f, tmp)
+    r = replace(r, settings=s, lambda_selection=sel, seconds=r.seconds + sel.trial_seconds)
+    write_json(out / "metrics.json", to_json(r))
+    return r
 

@@ -68,7 +68,9 @@ def _prepare(case: str, work: Path, s: GanBenchSettings, show_progress: bool):
         make_morph_benchmark(source(case), bdir, MorphBenchmarkSettings(seed=s.seed), show_progress=show_progress)
     bench = load_morph_benchmark(bdir)
     if not (mdir / "metrics.json").is_file():
-        run_morph(bench, mdir, MorphSettings(iterations=s.morph_iterations, seed=s.seed), show_progress=show_progress)
+        # constant λ (no selection): the morphed meshes the GAN and diffusion-renderer figures were measured on
+        run_morph(bench, mdir, MorphSettings(iterations=s.morph_iterations, seed=s.seed, lambda_select=()),
+                  show_progress=show_progress)
     return bench, mdir, read_json(mdir / "metrics.json", "morph metrics")
 
 
