@@ -134,8 +134,11 @@ def test_sample_weight_equals_eval_over_pdf(normal_map, ctx):
     value, pdf = bsdf.eval_pdf(ctx, si, bs.wo)
     ok = _np(bs.pdf) > 0
     assert ok.mean() > 0.9
-    np.testing.assert_allclose(_np(bs.pdf)[ok], _np(pdf)[ok], rtol=1e-4)
-    np.testing.assert_allclose(_np(weight)[:, ok], _np(value)[:, ok] / _np(pdf)[ok], rtol=1e-4, atol=1e-6)
+    # float32 through two paths: sample() takes the pdf of the sampled microfacet normal, eval_pdf() that of the
+    # half vector rebuilt from wo; rounding grows where the GGX peak is steep (worst seen: 4.1e-4 relative, 1 of
+    # 18,509 samples at pdf 16.4, normal-mapped). A wrong formula errs by O(1), so 1e-3 still catches it.
+    np.testing.assert_allclose(_np(bs.pdf)[ok], _np(pdf)[ok], rtol=1e-3)
+    np.testing.assert_allclose(_np(weight)[:, ok], _np(value)[:, ok] / _np(pdf)[ok], rtol=1e-3, atol=1e-6)
 
 
 # -- (c) white furnace ----------------------------------------------------------------

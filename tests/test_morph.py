@@ -150,33 +150,33 @@ def test_early_stop_ends_the_run_and_a_resumed_run_stays_ended(small_armadillo, 
 
 
 def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small_armadillo, tmp_path):
-    # Two λ schedules from the same start to the end of the warm-up (ceil(0.3 × 16 / 2) × 2 = 6 iterations); the
+    # Two λ schedules from the same start to the end of the warm-up (ceil(0.3 × 8 / 2) × 2 = 4 iterations); the
     # one with the lower validation L1 there continues. One Dr.Jit thread: the winner's run equals a standalone run
     # of its settings bit for bit, and a selection interrupted mid-way resumes to the same result.
     from inverse.morph.run import candidate_settings, selection_point
 
-    s = MorphSettings(iterations=16, checkpoint_every=4, resolution=32, min_vertices=None, check_every=2,
+    s = MorphSettings(iterations=8, checkpoint_every=2, resolution=32, min_vertices=None, check_every=2,
                       validation_fraction=0.5, early_stop=False, lambda_select=(2.0, 25.0))
-    assert selection_point(s) == 6
+    assert selection_point(s) == 4
     r = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
     sel = r.lambda_selection
-    assert sel.at_iteration == 6 and sel.candidates == [2.0, 25.0] and all(v > 0 for v in sel.validation_l1)
+    assert sel.at_iteration == 4 and sel.candidates == [2.0, 25.0] and all(v > 0 for v in sel.validation_l1)
     assert sel.chosen == sel.candidates[int(np.argmin(sel.validation_l1))]
     loser = [c for c in sel.candidates if c != sel.chosen][0]
     alone = run_morph(small_armadillo, tmp_path / "alone", candidate_settings(s, sel.chosen), show_progress=False)
-    assert r.chamfer_morphed == alone.chamfer_morphed and r.iterations == 16 and r.settings == s
+    assert r.chamfer_morphed == alone.chamfer_morphed and r.iterations == 8 and r.settings == s
     assert r.seconds > alone.seconds and sel.trial_seconds > 0
     v_sel, _ = load_mesh_any(tmp_path / "a" / "morphed.ply")
     v_alone, _ = load_mesh_any(tmp_path / "alone" / "morphed.ply")
     np.testing.assert_array_equal(v_sel, v_alone)
     # the candidate not chosen stopped at the selection point
     from foundation.loop import read_checkpoint
-    assert read_checkpoint(tmp_path / "a" / "lambda_select" / f"start_{loser:g}" / "checkpoint.npz").run.step == 6
+    assert read_checkpoint(tmp_path / "a" / "lambda_select" / f"start_{loser:g}" / "checkpoint.npz").run.step == 4
     saved = json.loads((tmp_path / "a" / "metrics.json").read_text())
     assert saved["lambda_selection"]["chosen"] == sel.chosen
     # interrupted inside the trials, then inside the winner's run: the same result
-    assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=4) is None
-    assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=5) is None
+    assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=3) is None
+    assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=3) is None
     resumed = run_morph(small_armadillo, tmp_path / "b", s, show_progress=False)
     assert resumed.lambda_selection.chosen == sel.chosen and resumed.chamfer_morphed == r.chamfer_morphed
     # an explicit λ start, one candidate, or a cap inside the warm-up: no choice to make
