@@ -117,8 +117,9 @@ class MorphSettings:
     lambda_warmup: float = 0.3
     #: λ decided from the input: each start value (≤ ``lambda_``: constant λ) runs to the end of the warm-up
     #: (``lambda_warmup`` × the cap, rounded up to a validation check), and the one whose validation L1 is lowest
-    #: there continues (:class:`LambdaSelection`). Used when ``lambda_start`` is None; () = constant λ. Neither choice suits every mesh:
-    #: 25 → 2 took the airplane from −5 % to −27 % Chamfer and the table from −24 % to −41 %, but broke the village.
+    #: there continues (:class:`LambdaSelection`). Used when ``lambda_start`` is None; () = constant λ. Neither
+    #: choice suits every mesh: 25 → 2 took the airplane from −5 % to −27 % Chamfer and the table from −24 % to
+    #: −41 %, but broke the village.
     lambda_select: tuple[float, ...] = (2.0, 25.0)
     seed: int = 0
 
@@ -563,9 +564,9 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
             todo = 0 if done else at - step
             if todo <= 0:
                 continue
-            n = todo if budget is None else min(todo, budget)
-            if n <= 0:
+            if budget is not None and budget <= 0:
                 return None
+            n = todo if budget is None else min(todo, budget)
             run_morph(bench, _trial_dir(out, start), candidate_settings(s, start), show_progress, budget_iterations=n)
             if budget is not None:
                 budget -= n
