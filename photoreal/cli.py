@@ -757,12 +757,16 @@ def build_parser() -> argparse.ArgumentParser:
     bp.set_defaults(func=_cmd_bench_plugins)
     bm = bsub.add_parser("morph", help="geometry morphing: accuracy vs time, speed vs the tutorial recipe, stability, "
                                        "the generalisation suite, the benchmark's framing")
-    _opt(bm, MorphBenchSettings, "parts", choices=["cases", "suite", "framing"],
+    _opt(bm, MorphBenchSettings, "parts", choices=["cases", "suite", "framing", "floor"],
          help="cases: village/armadillo (speed, sweep, stability); suite: every suite mesh at the same defaults; "
-              "framing: views and photo resolution swept on the first suite mesh")
+              "framing: views and photo resolution swept on the first suite mesh; floor: each suite mesh morphed "
+              "from its own ground truth (how far the method drifts from the answer)")
+    _opt(bm, MorphBenchSettings, "floor_iterations", help="iterations of the truth-start runs (--parts floor)")
     _opt(bm, MorphBenchSettings, "cases")
     _opt(bm, MorphBenchSettings, "suite", help="suite meshes (village and armadillo may be added)")
     _opt(bm, MorphBenchSettings, "iterations", help="morph iterations of the main and suite runs")
+    _opt(bm, MorphBenchSettings, "keep_work", help="keep OUT/morph_work after the bench: a rerun re-reads the "
+                                                   "finished runs instead of recomputing them (default: removed)")
     _pool_opts(bm)
     bm.set_defaults(func=_cmd_bench_morph)
     bb = bsub.add_parser("btf", help="neural BTF: universal vs NeuMIP, width × texture sweep, render time")

@@ -89,6 +89,37 @@ def test_village_benchmark_has_chimney_artifacts(tmp_path):
     assert dominant_plane_fraction(v, f) > 1.5 * MorphSettings().planarity_auto_threshold
 
 
+
+def test_truth_start_benchmark_starts_at_the_answer(small_armadillo, tmp_path):
+    # The floor part of the bench: the same photos and split, the ground truth (with its own colours) as input.
+    from foundation.mesh import read_ply
+    from inverse.morph import truth_start_benchmark
+    from photoreal.benchmarks.morph import floor_row
+
+    b = load_morph_benchmark(truth_start_benchmark(small_armadillo.path, tmp_path / "t"))
+    gv, gf, _ = read_ply(b.ground_truth)
+    v, f, c = read_ply(b.coarse)
+    np.testing.assert_array_equal(v, gv)
+    np.testing.assert_array_equal(f, gf)
+    _, _, truth_colours = read_ply(small_armadillo.path / "gt_part0.ply")
+    np.testing.assert_array_equal(c, truth_colours)
+    assert b.meta.train == small_armadillo.meta.train and b.meta.test == small_armadillo.meta.test
+    for k, photo in small_armadillo.photos.items():
+        np.testing.assert_array_equal(b.photos[k], photo)
+    # a copy, not a move: the source benchmark is untouched; its coarse input is degraded, this one is not
+    assert load_mesh_any(small_armadillo.coarse)[0].shape != gv.shape
+    s = MorphSettings(iterations=3, resolution=48, min_vertices=None, check_every=3, validation_fraction=0.5,
+                      lambda_select=())
+    row = floor_row(run_morph(b, tmp_path / "run", s, show_progress=False))
+    # the truth against itself is the estimator's floor (~8e-4 here: the spacing of its samples), far below the
+    # degraded input's Chamfer measured by the same estimator
+    cv, cf = load_mesh_any(small_armadillo.coarse)
+    degraded = chamfer(cv, cf, gv, gf)["chamfer"]
+    assert row["chamfer_truth"] < 0.2 * degraded and row["trace_chamfer"]["start"] < 0.3 * degraded
+    assert row["iterations"] == 3 and row["photos_prefer_drift"] == (
+        row["validation_l1"]["end"] < row["validation_l1"]["start"]
+        and row["trace_chamfer"]["end"] > row["trace_chamfer"]["start"])
+
 def test_bad_inputs_leave_nothing(tmp_path):
     with pytest.raises(MeshError, match="nope.ply: no such mesh file"):
         make_morph_benchmark(tmp_path / "nope.ply", tmp_path / "b", show_progress=False)

@@ -564,6 +564,40 @@ def load_morph_benchmark(path: str | Path) -> MorphBenchmark:
     return MorphBenchmark(path, meta, photos)
 
 
+
+def truth_start_benchmark(bench: str | Path, out: str | Path) -> Path:
+    """A copy of a benchmark whose "coarse" input is the ground truth itself: the stability test of the morph.
+
+    A morph started at the answer should stay there; how far it drifts (Chamfer, area facing against the truth)
+    and whether its validation L1 *falls* while it drifts (the photo loss then prefers a mesh other than the
+    truth) is the floor of the method on that mesh. Colours are the truth's own per-vertex albedo where the
+    benchmark has it (meshes from files), else the coarse input's colour at the nearest vertex (the village is
+    textured: per-vertex colour cannot hold its truth). Photos, cameras and split are the benchmark's.
+    """
+    from scipy.spatial import cKDTree
+
+    from foundation.mesh import read_ply, read_ply_colours
+
+    src = load_morph_benchmark(bench).path
+    gv, gf, _ = read_ply(src / "ground_truth.ply")
+    colours, origin = None, "nearest coarse vertex"
+    parts = sorted(src.glob("gt_part*.ply"))
+    if len(parts) == 1:
+        pv, _, pc = read_ply(parts[0])
+        if pc is not None and pv.shape == gv.shape and np.allclose(pv, gv, atol=1e-6):
+            colours, origin = pc, "ground truth"
+    if colours is None:
+        cv, _, cc = read_ply_colours(src / "coarse.ply")
+        colours = cc[cKDTree(cv).query(gv)[1]]
+    with atomic_dir(out, MARKER) as tmp:
+        for item in src.iterdir():
+            if item.name not in (MARKER, "coarse.ply") and item.is_file():
+                shutil.copy2(item, tmp / item.name)
+        write_ply(tmp / "coarse.ply", gv, gf, colours)
+        write_json(tmp / "truth_start.json", {"from": str(src.name), "colours": origin})
+        shutil.copy2(src / MARKER, tmp / MARKER)  # last: marks the copy complete
+    return Path(out)
+
 def silhouette_margins(bench: MorphBenchmark, ids: list[int] | None = None, spp: int = 4) -> list[float]:
     """Per view, the free border around the ground truth's silhouette: the smallest distance from a covered
     pixel to the image edge, as a fraction of the image half-width (0: the object touches or leaves the frame)."""

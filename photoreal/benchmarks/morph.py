@@ -14,14 +14,16 @@ from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
 from inverse.morph import (KINDS, SUITE, MorphBenchmarkSettings, MorphResult, MorphSettings, load_morph_benchmark,
-                           make_morph_benchmark, run_morph, silhouette_margins, suite_mesh)
+                           make_morph_benchmark, run_morph, silhouette_margins, suite_mesh,
+                           truth_start_benchmark)
 
 
 @dataclass
 class MorphBenchSettings:
     #: what to run: "cases" (village and armadillo: main run, speed vs the tutorial, vertex sweep, stability),
     #: "suite" (the generalisation suite: one run per mesh at the same defaults), "framing" (views and photo
-    #: resolution of the benchmark, swept on the first suite mesh)
+    #: resolution of the benchmark, swept on the first suite mesh), "floor" (each suite mesh's morph started at
+    #: its ground truth: how far the method drifts from the answer; not in the default parts)
     parts: tuple[str, ...] = ("cases", "suite", "framing")
     cases: tuple[str, ...] = ("village", "armadillo")
     suite: tuple[str, ...] = SUITE  #: suite meshes (inverse.morph.suite); "village"/"armadillo" may be added
@@ -36,10 +38,15 @@ class MorphBenchSettings:
     speed_resolution: int = 128
     baseline_spp: int = 16  #: the tutorial recipe's samples per pixel
     stability_iterations: int = 80
+    floor_iterations: int = 100  #: iterations of the truth-start runs ("floor"), constant λ
+    #: keep ``OUT/morph_work`` (benchmarks, meshes, checkpoints) after the bench: a rerun then re-reads the
+    #: finished runs instead of recomputing them (the default removes it: ~1 GB for the whole bench)
+    keep_work: bool = False
     seed: int = 0
 
     def __post_init__(self):
-        for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations"):
+        for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
+                     "floor_iterations"):
             validate.integer(name, getattr(self, name), 1)
         for n in (*self.sweep_vertices, self.speed_vertices):
             validate.integer("sweep_vertices", n, 100)
@@ -48,7 +55,7 @@ class MorphBenchSettings:
         validate.integer("baseline_spp", self.baseline_spp, 1)
         validate.seed("seed", self.seed)
         for part in self.parts:
-            validate.one_of("parts", part, ("cases", "suite", "framing"))
+            validate.one_of("parts", part, ("cases", "suite", "framing", "floor"))
         for name in self.suite:
             validate.one_of("suite", name, (*SUITE, "village", "armadillo"))
         for n in self.framing_views:
@@ -199,6 +206,39 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
             "pool": {"workers": pool.workers, "threads_per_run": pool.threads}}
 
 
+
+def floor_row(m: MorphResult) -> dict:
+    """A truth-start run: how far the morph left the answer, and whether the photos preferred where it went."""
+    t0, t1 = m.trace[0], m.trace[-1]
+    return {"iterations": m.iterations,
+            "chamfer_truth": m.chamfer_input,  # the truth against itself: the estimator's floor
+            "chamfer_morphed": m.chamfer_morphed,
+            "trace_chamfer": {"start": t0.chamfer, "end": t1.chamfer},  # start = after the remesh
+            "validation_l1": {"start": t0.validation_l1, "end": t1.validation_l1},
+            # the photo loss rates the drifted mesh better than the truth: the photos do not pin the shape there
+            "photos_prefer_drift": bool(t1.validation_l1 < t0.validation_l1 and t1.chamfer > t0.chamfer),
+            "facing_against_truth_area": m.facing_against_truth_area,
+            "normal_consistency": m.normal_consistency_morphed,
+            "psnr_heldout": {"truth": m.psnr_heldout_input, "morphed": m.psnr_heldout_morphed},
+            "spike_vertices": m.spike_vertices, "inverted_triangles": m.inverted_triangles, "seconds": m.seconds}
+
+
+def bench_floor(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
+    """Every suite mesh's morph started at its ground truth (:func:`truth_start_benchmark`), constant λ."""
+    items = []
+    for n in s.suite:
+        bench = _suite_bench(n, work, MorphBenchmarkSettings(seed=s.seed))
+        start = work / f"truth_start_{n}"
+        if not (start / "morph_benchmark.json").is_file():
+            truth_start_benchmark(bench, start)
+        items.append(_item(n, start, work / f"floor_{n}", MorphSettings(iterations=s.floor_iterations,
+                                                                         lambda_select=(), seed=s.seed)))
+    report = run_items(items, pool, desc="bench morph floor (truth start)", show_progress=show_progress)
+    report.raise_if_failed()
+    rows = {r.key: floor_row(r.value) for r in report.results}
+    return {"meshes": {n: rows[n] for n in s.suite},
+            "pool": {"workers": pool.workers, "threads_per_run": pool.threads}}
+
 def bench_framing(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
     """Why the benchmark's defaults (views, photo resolution): the first suite mesh made with each, morphed at
     the same defaults. Held-out PSNR of different resolutions compares photos of different sizes: read Chamfer."""
@@ -231,7 +271,8 @@ def bench_framing(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_pr
 
 def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True,
                 pool: PoolSettings | None = None) -> dict:
-    """Run the bench in ``out_dir/morph_work`` (kept while it runs: a killed bench resumes; removed at the end)."""
+    """Run the bench in ``out_dir/morph_work`` (kept while it runs: a killed bench resumes; removed at the end
+    unless ``s.keep_work``)."""
     from foundation.pool import default_workers
 
     cores = default_workers()
@@ -252,8 +293,11 @@ def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True
         result["suite_chart"] = str(suite_chart(result["suite"], Path(out_dir) / "morph_suite.png"))
     if "framing" in s.parts:
         result["framing"] = bench_framing(work, s, pool, show_progress)
+    if "floor" in s.parts:
+        result["floor"] = bench_floor(work, s, pool, show_progress)
     result["seconds"] = time.perf_counter() - t0
-    shutil.rmtree(work, ignore_errors=True)
+    if not s.keep_work:
+        shutil.rmtree(work, ignore_errors=True)
     return result
 
 
