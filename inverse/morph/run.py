@@ -67,7 +67,7 @@ class MorphSettings:
     mode: Literal["unlit", "lit"] = "lit"
     parameterisation: Literal["large_steps", "plain"] = "large_steps"
     lambda_: float = 2.0  #: large-steps λ
-    lr: float = 0.05  #: × scene size / 10, for positions (uniform Adam on u)
+    lr: float = 0.05  #: × scene size / 10, for positions (uniform Adam on u); 0 = positions frozen (colour-only fit)
     lr_colour: float = 0.02  #: village 300 it: −51.6 % / +3.3 dB (0.01: −50.3 % / +3.0 dB); armadillo unchanged (−57 %)
     lr_final: float = 0.1  #: learning rates decay linearly to this fraction (fewer late flips)
     spp: int = 4
@@ -129,7 +129,7 @@ class MorphSettings:
         validate.one_of("mode", self.mode, MODES)
         validate.one_of("parameterisation", self.parameterisation, ("large_steps", "plain"))
         validate.positive("lambda_", self.lambda_)  # λ ≤ 0 makes I + λL indefinite (Cholesky fails)
-        validate.positive("lr", self.lr)
+        validate.non_negative("lr", self.lr)
         validate.non_negative("lr_colour", self.lr_colour)
         validate.in_range("lr_final", self.lr_final, 0.0, 1.0)
         validate.integer("spp", self.spp, 1)
