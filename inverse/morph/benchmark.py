@@ -564,13 +564,12 @@ def load_morph_benchmark(path: str | Path) -> MorphBenchmark:
     return MorphBenchmark(path, meta, photos)
 
 
-
 def truth_start_benchmark(bench: str | Path, out: str | Path) -> Path:
     """A copy of a benchmark whose "coarse" input is the ground truth itself: the stability test of the morph.
 
-    A morph started at the answer should stay there; how far it drifts (Chamfer, area facing against the truth)
-    and whether its validation L1 *falls* while it drifts (the photo loss then prefers a mesh other than the
-    truth) is the floor of the method on that mesh. Colours are the truth's own per-vertex albedo where the
+    A morph started at the answer should stay there; how far it drifts (Chamfer, area facing against the truth),
+    and whether its validation L1 ends below that of the truth with fitted colours (the photo loss then prefers
+    a mesh other than the truth), is the floor of the method on that mesh. Colours are the truth's own per-vertex albedo where the
     benchmark has it (meshes from files), else the coarse input's colour at the nearest vertex (the village is
     textured: per-vertex colour cannot hold its truth). Photos, cameras and split are the benchmark's.
     """
@@ -597,6 +596,7 @@ def truth_start_benchmark(bench: str | Path, out: str | Path) -> Path:
         write_json(tmp / "truth_start.json", {"from": str(src.name), "colours": origin})
         shutil.copy2(src / MARKER, tmp / MARKER)  # last: marks the copy complete
     return Path(out)
+
 
 def silhouette_margins(bench: MorphBenchmark, ids: list[int] | None = None, spp: int = 4) -> list[float]:
     """Per view, the free border around the ground truth's silhouette: the smallest distance from a covered

@@ -206,7 +206,6 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
             "pool": {"workers": pool.workers, "threads_per_run": pool.threads}}
 
 
-
 def floor_row(m: MorphResult, colour_only: MorphResult | None = None) -> dict:
     """A truth-start run: how far the morph left the answer, and whether the photos preferred where it went.
 
@@ -249,6 +248,7 @@ def bench_floor(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
     runs = {r.key: r.value for r in report.results}
     return {"meshes": {n: floor_row(runs[n], runs[f"{n}:colour_only"]) for n in s.suite},
             "pool": {"workers": pool.workers, "threads_per_run": pool.threads}}
+
 
 def bench_framing(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
     """Why the benchmark's defaults (views, photo resolution): the first suite mesh made with each, morphed at
