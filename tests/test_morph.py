@@ -89,11 +89,10 @@ def test_village_benchmark_has_chimney_artifacts(tmp_path):
     assert dominant_plane_fraction(v, f) > 1.5 * MorphSettings().planarity_auto_threshold
 
 
-
 def test_truth_start_benchmark_starts_at_the_answer(small_armadillo, tmp_path):
     # The floor part of the bench: the same photos and split, the ground truth (with its own colours) as input.
     from foundation.mesh import read_ply
-    from inverse.morph import truth_start_benchmark
+    from inverse.morph import start_mesh, truth_start_benchmark
     from photoreal.benchmarks.morph import floor_row
 
     b = load_morph_benchmark(truth_start_benchmark(small_armadillo.path, tmp_path / "t"))
@@ -111,8 +110,6 @@ def test_truth_start_benchmark_starts_at_the_answer(small_armadillo, tmp_path):
     s = MorphSettings(iterations=3, resolution=48, min_vertices=None, check_every=3, validation_fraction=0.5,
                       lambda_select=())
     frozen = run_morph(b, tmp_path / "frozen", replace(s, lr=0.0), show_progress=False)
-    from inverse.morph import start_mesh
-
     start_v = start_mesh(b, s)[1][0]  # lr 0: the (remeshed) start does not move, only colours are fitted
     np.testing.assert_allclose(load_mesh_any(tmp_path / "frozen" / "morphed.ply")[0], start_v, atol=1e-6)
     row = floor_row(run_morph(b, tmp_path / "run", s, show_progress=False), frozen)
@@ -124,6 +121,7 @@ def test_truth_start_benchmark_starts_at_the_answer(small_armadillo, tmp_path):
     assert row["iterations"] == 3 and row["photos_prefer_drift"] == (
         row["validation_l1"]["end"] < row["validation_l1"]["truth_colours_fitted"]
         and row["trace_chamfer"]["end"] > row["trace_chamfer"]["start"])
+
 
 def test_bad_inputs_leave_nothing(tmp_path):
     with pytest.raises(MeshError, match="nope.ply: no such mesh file"):

@@ -206,7 +206,7 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
             "pool": {"workers": pool.workers, "threads_per_run": pool.threads}}
 
 
-def floor_row(m: MorphResult, colour_only: MorphResult | None = None) -> dict:
+def floor_row(m: MorphResult, colour_only: MorphResult) -> dict:
     """A truth-start run: how far the morph left the answer, and whether the photos preferred where it went.
 
     ``colour_only`` is the same start with positions frozen: its validation L1 is what the *truth's* geometry
@@ -214,21 +214,18 @@ def floor_row(m: MorphResult, colour_only: MorphResult | None = None) -> dict:
     reference). The photos prefer the drift when the free run ends below that while moving away from the truth.
     """
     t0, t1 = m.trace[0], m.trace[-1]
-    row = {"iterations": m.iterations,
-           "chamfer_truth": m.chamfer_input,  # the truth against itself: the estimator's floor
-           "chamfer_morphed": m.chamfer_morphed,
-           "trace_chamfer": {"start": t0.chamfer, "end": t1.chamfer},  # start = after the remesh
-           "validation_l1": {"start": t0.validation_l1, "end": t1.validation_l1},
-           "facing_against_truth_area": m.facing_against_truth_area,
-           "normal_consistency": m.normal_consistency_morphed,
-           "psnr_heldout": {"truth": m.psnr_heldout_input, "morphed": m.psnr_heldout_morphed},
-           "spike_vertices": m.spike_vertices, "inverted_triangles": m.inverted_triangles, "seconds": m.seconds}
-    if colour_only is not None:
-        ref = colour_only.trace[-1].validation_l1
-        row["validation_l1"]["truth_colours_fitted"] = ref
-        row["psnr_heldout"]["truth_colours_fitted"] = colour_only.psnr_heldout_morphed
-        row["photos_prefer_drift"] = bool(t1.validation_l1 < ref and t1.chamfer > t0.chamfer)
-    return row
+    ref = colour_only.trace[-1].validation_l1
+    return {"iterations": m.iterations,
+            "chamfer_truth": m.chamfer_input,  # the truth against itself: the estimator's floor
+            "chamfer_morphed": m.chamfer_morphed,
+            "trace_chamfer": {"start": t0.chamfer, "end": t1.chamfer},  # start = after the remesh
+            "validation_l1": {"start": t0.validation_l1, "end": t1.validation_l1, "truth_colours_fitted": ref},
+            "photos_prefer_drift": bool(t1.validation_l1 < ref and t1.chamfer > t0.chamfer),
+            "facing_against_truth_area": m.facing_against_truth_area,
+            "normal_consistency": m.normal_consistency_morphed,
+            "psnr_heldout": {"truth": m.psnr_heldout_input, "morphed": m.psnr_heldout_morphed,
+                             "truth_colours_fitted": colour_only.psnr_heldout_morphed},
+            "spike_vertices": m.spike_vertices, "inverted_triangles": m.inverted_triangles, "seconds": m.seconds}
 
 
 def bench_floor(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
