@@ -243,6 +243,32 @@ def test_evaluation_helpers_against_closed_forms():
     assert np.allclose(me.nearest_distances(a, a), 0) and me.mean_pairwise(np.eye(3)) == pytest.approx(np.sqrt(2))
 
 
+
+def test_keyword_reference_generators_keep_what_they_promise():
+    rng = np.random.default_rng(2)
+    # two families of 4-channel 8² textures: family 1 brighter and with more variance than family 0
+    x = np.concatenate([rng.normal(0, 1, (5, 4, 8, 8)), rng.normal(3, 2, (5, 4, 8, 8))]).astype(np.float32)
+    fams = np.array([0] * 5 + [1] * 5)
+    # phase randomisation: every channel keeps the member's mean and its power spectrum exactly, and one phase
+    # field for all channels keeps the cross-spectra; the texture itself changes
+    p, pf = me.phase_randomised_baseline(x, fams, 3, rng)
+    assert p.shape == (6, 4, 8, 8) and list(pf) == [0, 0, 0, 1, 1, 1]
+    for sample, f in zip(p, pf):
+        members = x[fams == f]
+        power = np.abs(np.fft.fft2(sample)) ** 2
+        match = [i for i, m in enumerate(members) if np.allclose(power, np.abs(np.fft.fft2(m)) ** 2, rtol=1e-3, atol=1e-2)]
+        assert len(match) == 1, "the spectrum of exactly one member of its family"
+        m = members[match[0]]
+        np.testing.assert_allclose(sample.mean((1, 2)), m.mean((1, 2)), atol=1e-4)
+        cross = np.fft.fft2(sample[0]) * np.conj(np.fft.fft2(sample[1]))
+        np.testing.assert_allclose(np.abs(cross), np.abs(np.fft.fft2(m[0]) * np.conj(np.fft.fft2(m[1]))), rtol=1e-3, atol=1e-2)
+        assert not np.allclose(sample, m, atol=0.1)
+    # the per-family Gaussian: many samples reproduce each family's per-channel mean and spread (rolls leave both)
+    g, gf = me.family_gaussian_baseline(x, fams, 4000, rng)
+    for f in (0, 1):
+        np.testing.assert_allclose(g[gf == f].mean((0, 2, 3)), x[fams == f].mean((0, 2, 3)), atol=0.1 * (1 + f))
+        np.testing.assert_allclose(g[gf == f].std((0, 2, 3)), x[fams == f].std((0, 2, 3)), rtol=0.1)
+
 def _striped(n: int, vertical: bool, rng: np.random.Generator) -> np.ndarray:
     """(n, 4, 32, 32, 3) swatches of stripes (period 8) of random colour and phase, horizontal or vertical."""
     out = []

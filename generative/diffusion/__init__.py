@@ -31,8 +31,8 @@ from .renderer import (DECOMPOSED, GLOBAL_SOURCES, condition_to_layers, from_tar
 from .material_data import (VOCABULARY, MaterialDataSettings, MaterialSet, build_material_dataset, decode_swatches,
                             load_material_dataset, parse_keywords)
 from .material_eval import (ClassifierSettings, aligned_flip, classify, copy_baseline, crop_baseline, decode_all,
-                            denoising_check, gaussian_baseline, mean_pairwise, mnv2_features, nearest_distances, seam_ratio,
-                            train_classifier)
+                            denoising_check, family_gaussian_baseline, gaussian_baseline, mean_pairwise, mnv2_features,
+                            nearest_distances, phase_randomised_baseline, seam_ratio, train_classifier)
 from .face_data import FaceDataSettings, FaceSet, build_face_dataset, load_face_dataset, scan_path
 from .face_eval import LearnedModels, baseline_maps, default_maps, learned_maps, map_scores, relit_scores
 from .face_models import DecompSettings as FaceDecompSettings
@@ -52,8 +52,9 @@ __all__ = [
     "FaceModelsSettings", "completion_albedo", "load_face_models",
     "photo_maps_fn", "train_face_models",
     "VOCABULARY", "MaterialDataSettings", "MaterialSet", "build_material_dataset", "decode_swatches",
-    "load_material_dataset", "parse_keywords", "ClassifierSettings", "aligned_flip", "classify", "copy_baseline", "denoising_check",
-    "crop_baseline", "decode_all", "gaussian_baseline", "mean_pairwise", "mnv2_features", "nearest_distances",
+    "load_material_dataset", "parse_keywords", "ClassifierSettings", "aligned_flip", "classify", "copy_baseline",
+    "denoising_check", "family_gaussian_baseline", "phase_randomised_baseline", "crop_baseline", "decode_all",
+    "gaussian_baseline", "mean_pairwise", "mnv2_features", "nearest_distances",
     "seam_ratio", "train_classifier", "MaterialPrompt", "MatDiffSettings", "generate_material", "load_matdiff",
     "sample_materials", "split_features", "train_matdiff",
     "DECOMPOSED", "DecompDataSettings", "DecompResult", "DecompSettings", "Decomposer", "condition_to_layers", "decompose",

@@ -274,6 +274,43 @@ def crop_baseline(train: np.ndarray, n: int, rng: np.random.Generator) -> np.nda
     return np.stack(out).astype(np.float32)
 
 
+
+def family_gaussian_baseline(x: np.ndarray, families: np.ndarray, per_family: int, rng: np.random.Generator,
+                             rolls: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """``per_family`` samples of each family's maximum-likelihood Gaussian over its members' textures, each member
+    under ``rolls`` random circular shifts (a tileable texture has no origin). A reference for keyword accuracy: a
+    generator that knows each family's first and second moments and nothing else. Returns (samples, families)."""
+    out, fam = [], []
+    for f in np.unique(families):
+        members = x[families == f]
+        shifted = np.stack([np.roll(m, tuple(int(d) for d in rng.integers(0, m.shape[-1], 2)), (1, 2))
+                            for m in members for _ in range(rolls)])
+        flat = shifted.reshape(len(shifted), -1).astype(np.float64)
+        mean = flat.mean(0)
+        _, sv, vt = np.linalg.svd(flat - mean, full_matrices=False)
+        z = rng.standard_normal((per_family, len(sv)))
+        out.append((mean + (z * (sv / np.sqrt(max(len(flat) - 1, 1)))) @ vt).reshape((per_family,) + x.shape[1:]))
+        fam += [int(f)] * per_family
+    return np.concatenate(out).astype(np.float32), np.array(fam)
+
+
+def phase_randomised_baseline(x: np.ndarray, families: np.ndarray, per_family: int,
+                              rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A random member of each family with its Fourier phases replaced by those of white noise (one phase field for
+    all channels, so the channels' cross-spectra are kept): every channel's mean and power spectrum exactly as the
+    member's, its structure (edges, grains, fibres) gone. Returns (samples, families)."""
+    out, fam = [], []
+    for f in np.unique(families):
+        members = x[families == f]
+        for _ in range(per_family):
+            m = members[rng.integers(len(members))].astype(np.float64)
+            phase = np.fft.fft2(rng.standard_normal(m.shape[1:]))  # Hermitian: the result stays real
+            out.append(np.real(np.fft.ifft2(np.fft.fft2(m) * np.exp(1j * np.angle(phase)))))
+            out[-1] += m.mean((1, 2), keepdims=True) - out[-1].mean((1, 2), keepdims=True)  # the DC term's phase
+            fam.append(int(f))
+    return np.stack(out).astype(np.float32), np.array(fam)
+
 __all__ = ["ClassifierSettings", "FamilyClassifier", "aligned_flip", "best_shift", "classifier_input", "classify",
-           "copy_baseline", "crop_baseline", "decode_all", "gaussian_baseline", "mean_pairwise", "mnv2_features",
-           "mosaic", "nearest_distances", "seam_ratio", "train_classifier"]
+           "copy_baseline", "crop_baseline", "decode_all", "family_gaussian_baseline", "gaussian_baseline",
+           "mean_pairwise", "mnv2_features", "mosaic", "nearest_distances", "phase_randomised_baseline", "seam_ratio",
+           "train_classifier"]

@@ -5,7 +5,9 @@
 2. **Family classifier** trained on the path-traced swatches of the training materials; accuracy on the
    held-out materials' path-traced swatches and on their decoded fits.
 3. **Main model** (``train_seconds``), then with ``steps`` DDIM steps and guidance ``guidance``:
-   keyword accuracy (held-out materials' keyword triples, and family words alone) under the classifier;
+   keyword accuracy (held-out materials' keyword triples, and family words alone) under the classifier,
+   beside references that need no training (a rolled copy, a per-family Gaussian, a phase-randomised member,
+   held-out fits plus noise: what the target demands of a generator);
    KID/FID of unconditional samples against the held-out materials (decoded fits, the same image formation
    as every generated material) in the classifier's and MobileNetV2's feature spaces, beside the baselines
    (training copies, the training Gaussian, random crops); memorisation (nearest-training distance of samples
@@ -109,6 +111,33 @@ def _keyword_eval(model, ms, judge: _Judge, prompts: list, families: np.ndarray,
             "kid_mnv2": sc["kid_mnv2"], "seconds_per_sample": secs / len(prompts), "features": f, "pred": sc["pred"]}
 
 
+def _keyword_references(judge: _Judge, ms, train, held, seed: int, per_family: int = 8,
+                        sigmas: tuple[float, ...] = (0.05, 0.1, 0.2, 0.3)) -> dict:
+    """What the keyword target demands of a generator, under the same classifier, with no training: the family
+    accuracy of (a) a random rolled training member of the family (a copy: the ceiling), (b) each family's
+    Gaussian, (c) a member with randomised Fourier phases (its spectrum, not its structure), all in the model's
+    space (cube root), and (d) the held-out fits with Gaussian noise of σ added in the model's space (the residual
+    noise a sample may keep)."""
+    from generative.diffusion import classify, family_gaussian_baseline, phase_randomised_baseline
+    from generative.diffusion.materials import from_model_space, to_model_space
+
+    rng = np.random.default_rng(seed)
+
+    def accuracy(x: np.ndarray, fam: np.ndarray) -> float:
+        f = np.asarray(from_model_space(x, ms), np.float32)
+        return float(np.mean(classify(judge.classifier, judge.decode(f))[0] == fam))
+
+    x, fams = to_model_space(train.features, ms).astype(np.float32), train.families
+    pick = np.concatenate([rng.choice(np.flatnonzero(fams == f), per_family) for f in np.unique(fams)])
+    copies = np.stack([np.roll(x[i], tuple(int(d) for d in rng.integers(0, x.shape[-1], 2)), (1, 2)) for i in pick])
+    held_x = to_model_space(held.features, ms).astype(np.float32)
+    return {"rolled_training_copy": accuracy(copies, fams[pick]),
+            "family_gaussian": accuracy(*family_gaussian_baseline(x, fams, per_family, rng)),
+            "phase_randomised_member": accuracy(*phase_randomised_baseline(x, fams, per_family, rng)),
+            "heldout_fits_plus_noise": {str(sg): accuracy(held_x + sg * rng.standard_normal(held_x.shape).astype(np.float32),
+                                                          held.families) for sg in sigmas}}
+
+
 def _seam(model, ms, judge: _Judge, size: int, n: int, seed: int, steps: int) -> float:
     from generative.diffusion import MaterialPrompt, sample_materials, seam_ratio
 
@@ -186,6 +215,7 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
         result["keyword_family_share"] = np.bincount(kw.pop("pred"), minlength=8).tolist()  # what the samples look like
         result["denoising"] = denoising_check(model, ms, held.features, held.keywords, seed=s.seed)
         result["keyword_accuracy_family_word_only"] = kwf["accuracy"]
+        result["keyword_references"] = _keyword_references(judge, ms, train, held, s.seed)
 
         rng = np.random.default_rng(s.seed)
         n = s.samples
