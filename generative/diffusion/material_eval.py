@@ -274,7 +274,6 @@ def crop_baseline(train: np.ndarray, n: int, rng: np.random.Generator) -> np.nda
     return np.stack(out).astype(np.float32)
 
 
-
 def family_gaussian_baseline(x: np.ndarray, families: np.ndarray, per_family: int, rng: np.random.Generator,
                              rolls: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """``per_family`` samples of each family's maximum-likelihood Gaussian over its members' textures, each member
@@ -309,6 +308,7 @@ def phase_randomised_baseline(x: np.ndarray, families: np.ndarray, per_family: i
             out[-1] += m.mean((1, 2), keepdims=True) - out[-1].mean((1, 2), keepdims=True)  # the DC term's phase
             fam.append(int(f))
     return np.stack(out).astype(np.float32), np.array(fam)
+
 
 __all__ = ["ClassifierSettings", "FamilyClassifier", "aligned_flip", "best_shift", "classifier_input", "classify",
            "copy_baseline", "crop_baseline", "decode_all", "family_gaussian_baseline", "gaussian_baseline",
