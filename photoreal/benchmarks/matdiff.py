@@ -118,8 +118,8 @@ def _keyword_references(judge: _Judge, ms, train, held, seed: int, per_family: i
     Gaussian, (c) a member with randomised Fourier phases (its spectrum, not its structure), all in the model's
     space (cube root), and (d) the held-out fits with Gaussian noise of σ added in the model's space (the residual
     noise a sample may keep)."""
-    from generative.diffusion import classify, family_gaussian_baseline, phase_randomised_baseline
-    from generative.diffusion.materials import from_model_space, to_model_space
+    from generative.diffusion import (classify, family_gaussian_baseline, from_model_space, phase_randomised_baseline,
+                                      to_model_space)
 
     rng = np.random.default_rng(seed)
 
