@@ -32,7 +32,8 @@ from .material_data import (VOCABULARY, MaterialDataSettings, MaterialSet, build
                             load_material_dataset, parse_keywords)
 from .material_eval import (ClassifierSettings, aligned_flip, classify, copy_baseline, crop_baseline, decode_all,
                             denoising_check, family_gaussian_baseline, gaussian_baseline, mean_pairwise, mnv2_features,
-                            nearest_distances, phase_randomised_baseline, seam_ratio, train_classifier)
+                            nearest_distances, phase_randomised_baseline, random_roll, seam_ratio,
+                            train_classifier)
 from .face_data import FaceDataSettings, FaceSet, build_face_dataset, load_face_dataset, scan_path
 from .face_eval import LearnedModels, baseline_maps, default_maps, learned_maps, map_scores, relit_scores
 from .face_models import DecompSettings as FaceDecompSettings
@@ -53,8 +54,8 @@ __all__ = [
     "photo_maps_fn", "train_face_models",
     "VOCABULARY", "MaterialDataSettings", "MaterialSet", "build_material_dataset", "decode_swatches",
     "load_material_dataset", "parse_keywords", "ClassifierSettings", "aligned_flip", "classify", "copy_baseline",
-    "denoising_check", "family_gaussian_baseline", "phase_randomised_baseline", "crop_baseline", "decode_all",
-    "gaussian_baseline", "mean_pairwise", "mnv2_features", "nearest_distances",
+    "denoising_check", "family_gaussian_baseline", "phase_randomised_baseline", "random_roll", "crop_baseline",
+    "decode_all", "gaussian_baseline", "mean_pairwise", "mnv2_features", "nearest_distances",
     "seam_ratio", "train_classifier", "MaterialPrompt", "MatDiffSettings", "generate_material", "load_matdiff",
     "sample_materials", "split_features", "train_matdiff", "to_model_space", "from_model_space",
     "DECOMPOSED", "DecompDataSettings", "DecompResult", "DecompSettings", "Decomposer", "condition_to_layers", "decompose",

@@ -274,6 +274,11 @@ def crop_baseline(train: np.ndarray, n: int, rng: np.random.Generator) -> np.nda
     return np.stack(out).astype(np.float32)
 
 
+def random_roll(texture: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A (C, H, W) tileable texture under a random circular shift (it has no origin)."""
+    return np.roll(texture, tuple(int(d) for d in rng.integers(0, texture.shape[-1], 2)), (1, 2))
+
+
 def family_gaussian_baseline(x: np.ndarray, families: np.ndarray, per_family: int, rng: np.random.Generator,
                              rolls: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """``per_family`` samples of each family's maximum-likelihood Gaussian over its members' textures, each member
@@ -281,16 +286,10 @@ def family_gaussian_baseline(x: np.ndarray, families: np.ndarray, per_family: in
     generator that knows each family's first and second moments and nothing else. Returns (samples, families)."""
     out, fam = [], []
     for f in np.unique(families):
-        members = x[families == f]
-        shifted = np.stack([np.roll(m, tuple(int(d) for d in rng.integers(0, m.shape[-1], 2)), (1, 2))
-                            for m in members for _ in range(rolls)])
-        flat = shifted.reshape(len(shifted), -1).astype(np.float64)
-        mean = flat.mean(0)
-        _, sv, vt = np.linalg.svd(flat - mean, full_matrices=False)
-        z = rng.standard_normal((per_family, len(sv)))
-        out.append((mean + (z * (sv / np.sqrt(max(len(flat) - 1, 1)))) @ vt).reshape((per_family,) + x.shape[1:]))
+        shifted = np.stack([random_roll(m, rng) for m in x[families == f] for _ in range(rolls)])
+        out.append(gaussian_baseline(shifted, per_family, rng))
         fam += [int(f)] * per_family
-    return np.concatenate(out).astype(np.float32), np.array(fam)
+    return np.concatenate(out), np.array(fam)
 
 
 def phase_randomised_baseline(x: np.ndarray, families: np.ndarray, per_family: int,
@@ -312,5 +311,5 @@ def phase_randomised_baseline(x: np.ndarray, families: np.ndarray, per_family: i
 
 __all__ = ["ClassifierSettings", "FamilyClassifier", "aligned_flip", "best_shift", "classifier_input", "classify",
            "copy_baseline", "crop_baseline", "decode_all", "family_gaussian_baseline", "gaussian_baseline",
-           "mean_pairwise", "mnv2_features", "mosaic", "nearest_distances", "phase_randomised_baseline", "seam_ratio",
-           "train_classifier"]
+           "mean_pairwise", "mnv2_features", "mosaic", "nearest_distances", "phase_randomised_baseline",
+           "random_roll", "seam_ratio", "train_classifier"]

@@ -119,7 +119,7 @@ def _keyword_references(judge: _Judge, ms, train, held, seed: int, per_family: i
     space (cube root), and (d) the held-out fits with Gaussian noise of σ added in the model's space (the residual
     noise a sample may keep)."""
     from generative.diffusion import (classify, family_gaussian_baseline, from_model_space, phase_randomised_baseline,
-                                      to_model_space)
+                                      random_roll, to_model_space)
 
     rng = np.random.default_rng(seed)
 
@@ -129,13 +129,14 @@ def _keyword_references(judge: _Judge, ms, train, held, seed: int, per_family: i
 
     x, fams = to_model_space(train.features, ms).astype(np.float32), train.families
     pick = np.concatenate([rng.choice(np.flatnonzero(fams == f), per_family) for f in np.unique(fams)])
-    copies = np.stack([np.roll(x[i], tuple(int(d) for d in rng.integers(0, x.shape[-1], 2)), (1, 2)) for i in pick])
+    copies = np.stack([random_roll(x[i], rng) for i in pick])
     held_x = to_model_space(held.features, ms).astype(np.float32)
     return {"rolled_training_copy": accuracy(copies, fams[pick]),
             "family_gaussian": accuracy(*family_gaussian_baseline(x, fams, per_family, rng)),
             "phase_randomised_member": accuracy(*phase_randomised_baseline(x, fams, per_family, rng)),
-            "heldout_fits_plus_noise": {str(sg): accuracy(held_x + sg * rng.standard_normal(held_x.shape).astype(np.float32),
-                                                          held.families) for sg in sigmas}}
+            "heldout_fits_plus_noise": {
+                str(sg): accuracy(held_x + sg * rng.standard_normal(held_x.shape).astype(np.float32), held.families)
+                for sg in sigmas}}
 
 
 def _seam(model, ms, judge: _Judge, size: int, n: int, seed: int, steps: int) -> float:
