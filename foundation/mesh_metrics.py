@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
+
 import numpy as np
 
 from .mesh import edge_lengths, face_normals, sample_surface
@@ -12,6 +15,31 @@ def _samples(v, f, n, seed):
     return pts, face_normals(v, f)[fid]
 
 
+#: the reference side of the last few :func:`chamfer` calls (a morph compares many meshes with one ground truth:
+#: its samplings and k-d tree are built once); key → (query points, their normals, reference normals, tree)
+_REFERENCES: "OrderedDict[tuple, tuple]" = OrderedDict()
+_REFERENCES_KEPT = 2
+
+
+def _reference_side(vb, fb, n: int, n_ref: int, seed: int) -> tuple:
+    """Surface b's ``n`` query samples (seed + 1), its ``n_ref`` reference samples (seed + 3) and their k-d tree,
+    cached by the mesh's bytes: the same arrays as sampling anew, so results do not depend on the cache."""
+    from scipy.spatial import cKDTree
+
+    vb, fb = np.asarray(vb), np.asarray(fb)
+    digest = hashlib.sha1(np.ascontiguousarray(vb).tobytes() + np.ascontiguousarray(fb).tobytes()).hexdigest()
+    key = (digest, vb.shape, vb.dtype.str, fb.shape, fb.dtype.str, n, n_ref, seed)
+    if key in _REFERENCES:
+        _REFERENCES.move_to_end(key)
+        return _REFERENCES[key]
+    pb, nb = _samples(vb, fb, n, seed + 1)
+    rb, rnb = _samples(vb, fb, n_ref, seed + 3)
+    _REFERENCES[key] = entry = (pb, nb, rnb, cKDTree(rb))
+    while len(_REFERENCES) > _REFERENCES_KEPT:
+        _REFERENCES.popitem(last=False)
+    return entry
+
+
 def chamfer(va, fa, vb, fb, n: int = 100_000, n_ref: int = 1_000_000, seed: int = 0) -> dict:
     """Two-sided Chamfer distance (mean of both directions' mean nearest distances) and normal consistency.
 
@@ -20,16 +48,15 @@ def chamfer(va, fa, vb, fb, n: int = 100_000, n_ref: int = 1_000_000, seed: int 
     distance between two samplings of the *same* surface) an order of
     magnitude below the artifacts being measured (see test_mesh_metrics).
     Normal consistency is the mean |n_a · n_b| over nearest pairs (orientation-free).
+    Surface b (the ground truth, in every use here) has its samplings and k-d tree cached between calls.
     """
     from scipy.spatial import cKDTree
 
     pa, na = _samples(va, fa, n, seed)
-    pb, nb = _samples(vb, fb, n, seed + 1)
-    ra, rna = _samples(va, fa, n_ref, seed + 2)
-    rb, rnb = _samples(vb, fb, n_ref, seed + 3)
-    da, ia = cKDTree(rb).query(pa)
+    pb, nb, nb_ref, tree_b = _reference_side(vb, fb, n, n_ref, seed)
+    ra, na_ref = _samples(va, fa, n_ref, seed + 2)
+    da, ia = tree_b.query(pa)
     db, ib = cKDTree(ra).query(pb)
-    na_ref, nb_ref = rna, rnb
     nc = 0.5 * (np.abs(np.sum(na * nb_ref[ia], axis=1)).mean() + np.abs(np.sum(nb * na_ref[ib], axis=1)).mean())
     return {"chamfer": float(0.5 * (da.mean() + db.mean())), "normal_consistency": float(nc)}
 

@@ -580,3 +580,22 @@ def test_morphing_many_benchmarks_is_a_batch_that_resumes(small_armadillo, tmp_p
     mb = json.loads((tmp_path / "sites" / "b" / "morph" / "metrics.json").read_text())
     assert ma["chamfer_morphed"] == mb["chamfer_morphed"]  # same input, one thread: the same result
     assert main(argv) == 0 and json.loads(capsys.readouterr().out)["skipped"] == 2  # done before: a rerun skips them
+
+
+def test_chamfer_reuses_the_truths_samplings_without_changing_results():
+    import foundation.mesh_metrics as mm
+
+    v, f = _sphere(1.0, 20)
+    a = v * 1.05
+    mm._REFERENCES.clear()
+    cold = chamfer(a, f, v, f, n=5_000, n_ref=50_000)
+    assert len(mm._REFERENCES) == 1
+    warm = chamfer(a, f, v, f, n=5_000, n_ref=50_000)
+    assert warm == cold  # the cache holds the very arrays a fresh sampling makes: bit-identical
+    # keyed by the mesh's content, not its identity: a moved truth is sampled anew and scores differently
+    moved = v.copy()
+    moved[:, 0] += 0.5
+    assert chamfer(a, f, moved, f, n=5_000, n_ref=50_000)["chamfer"] > cold["chamfer"] + 0.1
+    assert chamfer(a, f, v, f, n=5_000, n_ref=50_000) == cold and len(mm._REFERENCES) == 2
+    # Oracle, as the concentric-spheres test: every point of one sphere lies 0.05 from the other (5 % tolerance)
+    assert abs(cold["chamfer"] - 0.05) < 0.0025
