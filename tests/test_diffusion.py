@@ -285,3 +285,28 @@ def test_decomposed_pairs_join_the_training_set(tiny_views):
     assert len(_Pairs([v, extra], s)) == len(_Pairs([v], s)) + 3
     assert len(_Pairs([v], _tiny_settings(sources=("morphed",)))) == len(v.train)
     assert extra.digest() != IntrinsicViews(v.photos[:3], {"coarse": extra.layers[DECOMPOSED]}, [0, 1, 2], []).digest()
+
+
+def test_bench_references_are_clean_renders_with_their_own_seeds(tiny_views):
+    """The diffrender bench's references: the morphed mesh's recomposition and the ground truth rendered at many
+    samples, with seeds apart from the photos'. Oracles: at the photos' own spp the truth's render is another
+    Monte-Carlo estimate of the same image, not the photo itself (same seeds would reproduce it exactly, see
+    test_morph's truth-scene test); more samples bring it closer to the photos (less noise of its own); the
+    recomposition's mean is the bench G-buffers' (the same expectation: 3 % as above)."""
+    from photoreal.benchmarks.diffrender import references
+
+    tmp, bench, v = tiny_views
+    ids = list(v.test) + list(v.train[:1])
+    photos = v.photos[ids]
+    low = references(bench, tmp / "morph", ids, bench.meta.settings.spp)
+    high = references(bench, tmp / "morph", ids, 64)
+    for r in (low, high):
+        assert set(r) == {"pbr_morphed_clean", "truth_clean"}
+        assert all(a.shape == photos.shape and np.isfinite(a).all() for a in r.values())
+    assert not np.array_equal(low["truth_clean"].astype(np.float16).astype(np.float32), photos)
+
+    def mse(a):
+        return float(np.mean((a - photos) ** 2))
+    assert mse(high["truth_clean"]) < mse(low["truth_clean"])
+    r16 = v.recomposed("morphed")[ids]
+    assert abs(high["pbr_morphed_clean"].mean() - r16.mean()) < 0.03 * r16.mean()

@@ -87,6 +87,26 @@ def test_village_benchmark_has_chimney_artifacts(tmp_path):
 
     v, f = load_mesh_any(b.coarse)
     assert dominant_plane_fraction(v, f) > 1.5 * MorphSettings().planarity_auto_threshold
+    _assert_truth_scene_reproduces_photos(b)
+
+
+def _assert_truth_scene_reproduces_photos(b, ids=(0, 1)):
+    """Oracle: the stored photos themselves. The truth's scene rendered at a photo's camera, spp and seed gives that
+    photo exactly once rounded as the photos are stored (half floats)."""
+    import mitsuba as mi
+
+    from inverse.morph import sensor_dict, truth_scene
+
+    m = b.meta
+    scene = truth_scene(b)
+    for i in ids:
+        sensor = mi.load_dict(sensor_dict(m.cameras[i], m.resolution, m.fov))
+        img = np.array(mi.render(scene, sensor=sensor, spp=m.settings.spp, seed=m.settings.seed + i))[..., :3]
+        np.testing.assert_array_equal(img.astype(np.float16).astype(np.float32), b.photo(i))
+
+
+def test_truth_scene_reproduces_an_objects_photos(small_armadillo):
+    _assert_truth_scene_reproduces_photos(small_armadillo)
 
 
 def test_truth_start_benchmark_starts_at_the_answer(small_armadillo, tmp_path):

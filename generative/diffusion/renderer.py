@@ -106,8 +106,11 @@ def intrinsic_layers(img: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]
 
 
 def render_gbuffers(mesh_ply: Path, bench: MorphBenchmark, ids: list[int], s: GBufferSettings,
-                    desc: str = "G-buffers", show_progress: bool = True) -> dict[str, np.ndarray]:
-    """Intrinsic layers of a coloured PLY at cameras ``ids`` under the benchmark's HDRI → layer → (N, H, W, 3)."""
+                    desc: str = "G-buffers", show_progress: bool = True, seed: int = 0) -> dict[str, np.ndarray]:
+    """Intrinsic layers of a coloured PLY at cameras ``ids`` under the benchmark's HDRI → layer → (N, H, W, 3).
+
+    View ``i`` is rendered with seed ``seed + i``. At the photos' spp, seed 0 correlates the G-buffers' Monte-Carlo
+    noise with the photos' (they use the benchmark's seed + i too): keep the spp apart, or the seed."""
     meta = bench.meta
     res = meta.resolution
     scene = morph_scene(Path(mesh_ply), "lit", meta.hdri, integrator={"type": "intrinsic", "max_depth": s.max_depth})
@@ -115,7 +118,7 @@ def render_gbuffers(mesh_ply: Path, bench: MorphBenchmark, ids: list[int], s: GB
     with progress_bar(total=len(ids), desc=desc, unit="view", disable=not show_progress) as bar:
         for k, i in enumerate(ids):
             sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, meta.fov))
-            img = np.array(mi.render(scene, sensor=sensor, spp=s.spp, seed=int(i)), np.float32)
+            img = np.array(mi.render(scene, sensor=sensor, spp=s.spp, seed=seed + int(i)), np.float32)
             aov = intrinsic_layers(img)[1]
             for name in LAYERS:
                 out[name][k] = aov[name]

@@ -18,7 +18,7 @@ Other features use only the names below.
 
 from .benchmark import (ARTIFACT_REGIONS, Camera, MorphBenchmark, MorphBenchmarkMeta, MorphBenchmarkSettings,
                         artifact_masks, load_morph_benchmark, make_morph_benchmark, sensor_dict, silhouette_margins,
-                        truth_start_benchmark)
+                        truth_scene, truth_start_benchmark)
 from .evaluate import MorphEvaluation, evaluate_morph
 from .gcn import GCNSettings, run_gcn_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
@@ -34,6 +34,7 @@ __all__ = [
     "RepairReport", "artifact_masks", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "remesh",
     "render_views", "repair_flips", "run_gcn_morph", "run_item", "run_morph", "sensor_dict", "start_mesh",
-    "KINDS", "PleatReport", "SUITE", "TracePoint", "silhouette_margins", "suite_mesh", "truth_start_benchmark",
+    "KINDS", "PleatReport", "SUITE", "TracePoint", "silhouette_margins", "suite_mesh", "truth_scene",
+    "truth_start_benchmark",
     "unfold_pleats",
 ]

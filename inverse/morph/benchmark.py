@@ -402,6 +402,30 @@ def misregistered_colours(vc: np.ndarray, gt_points: np.ndarray, gt_colours: np.
 # -- the benchmark -----------------------------------------------------------------------------------------
 
 
+def truth_shapes(folder: Path, kind: str, s: MorphBenchmarkSettings) -> dict:
+    """The ground truth's Mitsuba shapes as the photos show it, from a benchmark folder's ``gt_part*.ply``: the
+    village's parts with their materials' textures (:func:`village_parts` of the benchmark's seed), an object's
+    one part with its vertex colours; two-sided diffuse."""
+    if kind == "village":
+        materials = [p.material for p in village_parts(s.n_houses, s.seed)]
+        textures = {m: mi.TensorXf(material_texture(m)) for m in set(materials)}
+        reflectance = [{"type": "bitmap", "raw": True, "data": textures[m]} for m in materials]
+    else:
+        reflectance = [{"type": "mesh_attribute", "name": "vertex_color"}]
+    return {f"part{i}": {"type": "ply", "filename": str(Path(folder) / f"gt_part{i}.ply"),
+                         "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": r}}}
+            for i, r in enumerate(reflectance)}
+
+
+def truth_scene(bench: "MorphBenchmark", integrator: dict | None = None) -> mi.Scene:
+    """The scene the benchmark's photos were path traced from (ground truth, HDRI; by default the photos'
+    ``path`` integrator): renders of it at a photo's camera, spp and seed reproduce that photo."""
+    meta = bench.meta
+    integrator = integrator or {"type": "path", "max_depth": meta.settings.photo_max_depth}
+    return mi.load_dict({"type": "scene", "integrator": integrator, "env": envmap(meta.hdri),
+                         **truth_shapes(bench.path, meta.kind, meta.settings)})
+
+
 def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkSettings | None = None,
                          show_progress: bool = True) -> Path:
     """Build a benchmark folder from a mesh file or ``"village"``."""
@@ -415,7 +439,6 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
         load_mesh_any(source)  # a missing, unreadable or degenerate mesh is named before the folder is touched
     t0 = time.perf_counter()
     with atomic_dir(out, MARKER) as tmp:
-        shapes: dict = {}
         if str(source) == "village":
             parts = village_parts(s.n_houses, s.seed)
             textures = {m: material_texture(m) for m in {p.material for p in parts}}
@@ -425,11 +448,6 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
             off = 0
             for i, part in enumerate(parts):
                 part_mesh(part, f"part{i}").write_ply(str(tmp / f"gt_part{i}.ply"))
-                shapes[f"part{i}"] = {
-                    "type": "ply", "filename": str(tmp / f"gt_part{i}.ply"),
-                    "bsdf": {"type": "twosided", "bsdf": {
-                        "type": "diffuse", "reflectance": {"type": "bitmap", "raw": True,
-                                                           "data": mi.TensorXf(textures[part.material])}}}}
                 nv = len(part.vertices)
                 gt_v.append(part.vertices)
                 gt_f.append(np.arange(nv).reshape(-1, 3) + off)
@@ -458,15 +476,12 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
             gt_v, gt_f = normalise_mesh(v), f
             col = procedural_colours(gt_v, s.seed)
             write_ply(tmp / "gt_part0.ply", gt_v, gt_f, col)
-            shapes["part0"] = {"type": "ply", "filename": str(tmp / "gt_part0.ply"),
-                               "bsdf": {"type": "twosided", "bsdf": {
-                                   "type": "diffuse", "reflectance": {"type": "mesh_attribute",
-                                                                      "name": "vertex_color"}}}}
             labels = np.zeros(len(gt_v), np.int64)
 
             def albedo_at(fid, w):
                 return np.einsum("nk,nkd->nd", w, col[gt_f[fid]]).astype(np.float32)
             kind = Path(source).stem
+        shapes = truth_shapes(tmp, kind, s)
         lo, hi = gt_v.min(0), gt_v.max(0)
         size = float(np.linalg.norm(hi - lo))
         centre = 0.5 * (lo + hi)

@@ -21,6 +21,9 @@ morphed G-buffers. Everything trained is kept in ``OUT/diffrender_work`` and reu
    MobileNetV2 features, *not* Inception's) and the MobileNetV2 perceptual distance; the unseen bunny.
 5. **Cost**: sampling seconds per 128² image; training FLOPs per step (torch's FlopCounterMode) ÷ step
    time as a fraction of a 2048² float32 GEMM measured in the same run (the ceiling of this CPU).
+6. **References** (:func:`references`, nothing trained): the same held-out views from the morphed mesh's
+   G-buffers at ``reference_spp`` (PBR without its Monte-Carlo noise: what denoising alone can gain) and from the
+   ground truth itself path traced at ``reference_spp`` (the photos' own noise floor).
 """
 
 from __future__ import annotations
@@ -32,6 +35,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+import mi_plugins  # noqa: F401
+import mitsuba as mi
+
 from foundation import validate
 from foundation.errors import UsageError
 from foundation.features import fid, image_features, kid, perceptual_distance
@@ -39,11 +45,12 @@ from foundation.files import read_json
 from foundation.metrics import image_metrics
 from foundation.threads import torch_threads
 from generative.diffusion import (DECOMPOSED, ConditionalDiffusion, DecompDataSettings, DecompSettings,
-                                  DiffRenderSettings, IntrinsicViews, SampleSettings, count_parameters, decompose, diffusion_loss, heldout_psnr,
+                                  DiffRenderSettings, GBufferSettings, IntrinsicViews, SampleSettings, count_parameters, decompose, diffusion_loss, heldout_psnr,
                                   load_decomp_data, load_decomposer, load_diffrender, load_intrinsic_views,
-                                  make_scheduler, photographs, render_views, train_decomposer, train_diffrender,
-                                  training_flops)
+                                  make_scheduler, photographs, render_gbuffers, render_views, train_decomposer,
+                                  train_diffrender, training_flops)
 from generative.gan import GanTrainSettings, load_heldout_predictions, load_paired_views, train_gan
+from inverse.morph import sensor_dict, truth_scene
 
 from .gan import GanBenchSettings, _prepare
 
@@ -70,6 +77,8 @@ class DiffRenderBenchSettings:
     gan_seconds: float = 60.0
     cyclegan_seconds: float = 180.0
     morph_iterations: int = 100  #: as the GAN bench: work folders are interchangeable
+    #: samples per pixel of the references (what the paired targets demand, :func:`references`); 0 = none
+    reference_spp: int = 256
     seed: int = 0
 
     def __post_init__(self):
@@ -88,6 +97,7 @@ class DiffRenderBenchSettings:
         validate.integer("seeds", self.seeds, 1, 100)
         validate.integer("decomp_scenes", self.decomp_scenes, 4)
         validate.integer("morph_iterations", self.morph_iterations, 1)
+        validate.integer("reference_spp", self.reference_spp, 0)
         validate.seed("seed", self.seed)
         DiffRenderSettings(widths=self.small_widths)  # validates the widths
 
@@ -192,6 +202,36 @@ def _decomposition(s: DiffRenderBenchSettings, work: Path, views: dict[str, Intr
     return info, extra
 
 
+#: render seeds of the references (seed + view index): apart from the photos' (the benchmark's seed + view) and
+#: the bench's G-buffers' (the view index), whose noise they must not share
+REFERENCE_SEEDS = {"pbr_morphed_clean": 900_000, "truth_clean": 800_000}
+
+
+def references(bench, morph_dir: Path, ids: list[int], spp: int, show_progress: bool = False) -> dict:
+    """What the paired targets demand, from renders alone (nothing trained): held-out views ``ids`` of
+
+    * ``pbr_morphed_clean`` — R = A·I + S from the morphed mesh's G-buffers at ``spp`` samples: PBR recomposition
+      with its Monte-Carlo noise gone, the most a renderer that only denoises its G-buffers can gain over
+      ``pbr_morphed`` (16 spp);
+    * ``truth_clean`` — the ground truth itself, path traced at ``spp`` (:func:`inverse.morph.truth_scene`): a
+      perfect renderer of the *true* scene, scored against the benchmark's 64-spp photos — their noise floor.
+
+    Returns name → (views, H, W, 3) linear images."""
+    gs = GBufferSettings(spp=spp)
+    L = render_gbuffers(Path(morph_dir) / "morphed.ply", bench, ids, gs, "reference G-buffers", show_progress,
+                        seed=REFERENCE_SEEDS["pbr_morphed_clean"])
+    out = {"pbr_morphed_clean": L["albedo"] * L["irradiance"] + L["specular"]}
+    meta = bench.meta
+    scene = truth_scene(bench)
+    truth = np.empty_like(out["pbr_morphed_clean"])
+    for k, i in enumerate(ids):
+        sensor = mi.load_dict(sensor_dict(meta.cameras[i], meta.resolution, meta.fov))
+        truth[k] = np.array(mi.render(scene, sensor=sensor, spp=spp, seed=REFERENCE_SEEDS["truth_clean"] + int(i)))[..., :3]
+    del scene
+    out["truth_clean"] = truth
+    return out
+
+
 def main_dir(work: Path, widths, seconds: float) -> Path:
     """The main model's run folder: one per (size, budget), so a longer budget trains beside a shorter one."""
     return Path(work) / "main" / f"{'-'.join(map(str, widths))}_{seconds:g}s"
@@ -292,7 +332,9 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
                 train_gan(data, work / c / name, gs, show_progress=show_progress)
                 preds[name] = load_heldout_predictions(work / c / name, tid)
         first = {k: (p[0] if p.ndim == 5 else p) for k, p in preds.items()}
+        refs = references(*prepared[c], tid, s.reference_spp, show_progress) if s.reference_spp else {}
         cases[c] = {"heldout": {k: _paired(p, ph) for k, p in preds.items()},
+                    "references": {k: _paired(p, ph) for k, p in refs.items()},
                     "perceptual_mnv2": {k: float(perceptual_distance(p, ph).mean()) for k, p in first.items()},
                     "views": {"train": len(v.train), "test": len(tid), "resolution": v.resolution},
                     "seen_in_training": c in s.cases}
@@ -311,7 +353,10 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
         ps = [cases[c]["heldout"][k] for c in s.cases]
         heldout[k] = {m: float(np.mean([p[m] for p in ps])) for m in ps[0] if m != "seeds"}
     unseen = {c: cases[c]["heldout"] for c in s.unseen}
-    out = {"heldout": heldout, "cases": cases, "unseen": unseen, "kid_mnv2": kid_mnv2, "fid_mnv2": fid_mnv2,
+    refs = {k: {m: float(np.mean([cases[c]["references"][k][m] for c in s.cases])) for m in PAIRED}
+            for k in (cases[s.cases[0]]["references"] if s.reference_spp else ())}
+    out = {"heldout": heldout, "references": refs, "cases": cases, "unseen": unseen, "kid_mnv2": kid_mnv2,
+           "fid_mnv2": fid_mnv2,
            "decomposition_psnr": decomposition["psnr"], "decomposition": decomposition,
            "ablation": ablation, "sweep": sweep, "chosen": chosen,
            "sample_seconds_128": float(np.mean(sample_s)), "ddim_steps": steps, "guidance": s.guidance,
