@@ -444,6 +444,13 @@ def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None
             f"seeds, {b['ddim_steps']} DDIM steps, guidance {b['guidance']}). diffusion = rendered from the morphed "
             f"mesh's G-buffers, diffusion_coarse = from the coarse mesh's. KID/FID use ImageNet MobileNetV2 "
             f"features (not Inception). Lower is better except PSNR.</p>" + _table(rows, cols))
+    if b.get("references"):
+        body += ("<h4>What the targets demand (nothing trained)</h4><p>pbr_morphed_clean = the morphed mesh's "
+                 "recomposition from G-buffers at " + str(s.get("reference_spp", "")) + " spp (what denoising alone "
+                 "can gain over pbr_morphed); truth_clean = the ground truth itself path traced at as many samples "
+                 "(the photos' own noise floor).</p>"
+                 + _table([{"method": k, **m} for k, m in b["references"].items()],
+                          ["method", "psnr", "one_minus_ssim", "flip", "mse"]))
     for c, u in b.get("unseen", {}).items():
         body += f"<h4>Unseen mesh: {html.escape(c)} (never trained on)</h4>" + _table(
             [{"method": k, **m} for k, m in u.items()], ["method", "psnr", "one_minus_ssim", "flip", "mse"])

@@ -57,7 +57,7 @@ ENCODER_SIZE = 128
 @dataclass
 class GBufferSettings:
     spp: int = 16
-    max_depth: int = 3  #: intrinsic integrator path depth (the photos' scene uses 3 too)
+    max_depth: int = 3  #: intrinsic integrator path depth (the photos use the benchmark's photo_max_depth, 4 by default)
 
     def __post_init__(self):
         validate.integer("spp", self.spp, 1)
