@@ -38,6 +38,7 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from mi_plugins.arrays import aligned
 
 __all__ = [
     "BasisConfig", "Basis", "NeuralMaterial", "NeuralBTFError", "bilinear", "mlp_tensor", "rows",
@@ -198,7 +199,7 @@ def rows(t) -> list:
 def _to_tensor_layers(layers, grad: bool = False):
     out = []
     for w, b in layers:
-        wt, bt = mi.TensorXf(w), mi.TensorXf(b)
+        wt, bt = mi.TensorXf(aligned(w)), mi.TensorXf(aligned(b))
         if grad:
             dr.enable_grad(wt, bt)
         out.append((wt, bt))
@@ -235,8 +236,8 @@ class CoopNet:
                 mods.append(nn.ReLU())
         net = nn.Sequential(*mods).alloc(mi.TensorXf, layers[0][0].shape[1])
         for k, (w, b) in enumerate(layers):
-            net[f"layers.{2 * k}.weights"] = mi.TensorXf(np.ascontiguousarray(w, np.float32))
-            net[f"layers.{2 * k}.bias"] = mi.TensorXf(np.ascontiguousarray(b, np.float32))
+            net[f"layers.{2 * k}.weights"] = mi.TensorXf(aligned(w))
+            net[f"layers.{2 * k}.bias"] = mi.TensorXf(aligned(b))
         self.net = nn.pack(net, layout="training" if training else "inference")
         self.n_out = layers[-1][0].shape[0]
 

@@ -43,3 +43,22 @@ def local_si(wi: mi.Vector3f, uv=(0.5, 0.5)) -> mi.SurfaceInteraction3f:
 @pytest.fixture
 def ctx():
     return mi.BSDFContext()
+
+
+class compiled_kernels:
+    """Counts the Dr.Jit kernels compiled (found in no cache, memory or disk) inside a ``with`` block."""
+
+    def __enter__(self):
+        self.was = dr.flag(dr.JitFlag.KernelHistory)
+        dr.kernel_history_clear()
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        return self
+
+    def __exit__(self, *exc):
+        hist = dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, self.was)
+        self.irs = [k["ir"].getvalue() if hasattr(k["ir"], "getvalue") else str(k["ir"])
+                    for k in hist if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit", False)]
+        self.hashes = [k["hash"] for k in hist if k.get("type") == dr.KernelType.JIT]
+        self.count = len(self.irs)
+        return False

@@ -2,6 +2,8 @@
 
 import os
 
+import numpy as np
+
 import pytest
 
 from mi_plugins import backend as bk
@@ -122,3 +124,32 @@ def test_venv_interpreter_finds_llvm_even_when_mitsuba_is_imported_first():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "5.5"
+
+
+def test_unaligned_host_arrays_compile_kernels_of_their_own_and_aligned_copies_do_not():
+    # Dr.Jit maps a numpy array zero-copy and compiles unaligned inputs with unaligned loads, i.e. as
+    # a different kernel (mi_plugins/arrays.py). The oracle is Dr.Jit's own kernel history: the same
+    # computation on a 16-byte-offset view runs another kernel; aligned() copies of it run the first.
+    import drjit as dr
+    import mitsuba as mi
+    from conftest import compiled_kernels
+    from mi_plugins.arrays import ALIGN, aligned, is_aligned
+
+    buf = aligned(np.random.default_rng(0).random(1040))
+    a, b = buf[:1000], buf[4:1004]  # 16 bytes apart: b is not on a 32-byte boundary
+    assert is_aligned(a) and not is_aligned(b) and aligned(a) is a
+    c = aligned(b)
+    assert is_aligned(c) and c.ctypes.data % ALIGN == 0 and np.array_equal(c, b)
+    assert aligned(b[::2]).flags.c_contiguous and np.array_equal(aligned(b[::2]), b[::2])
+    assert aligned(np.arange(5), np.uint32).dtype == np.uint32 and aligned(b, None).dtype == b.dtype
+
+    def run(x):
+        with compiled_kernels() as k:
+            dr.eval(mi.Float(x) * 2.0 + 1.0)
+        return k.hashes[-1], "".join(k.irs)
+
+    h_a, _ = run(a)
+    h_b, ir_b = run(b)
+    h_c, _ = run(c)
+    assert h_b != h_a and (ir_b == "" or "align 1," in ir_b)  # compiled now, or found in the disk cache
+    assert h_c == h_a

@@ -330,3 +330,17 @@ def test_render_dataset_resumes_and_indexes(tmp_path):
     assert [d.meta["name"] for d in data] == ["wood_000", "wood_001", "metal_000", "metal_001"]
     with pytest.raises(ValueError, match="other settings"):
         render_dataset(tmp_path, **{**kw, "settings": BTFRenderSettings(**{**s.__dict__, "spp": 2})})
+
+
+def test_a_second_material_compiles_no_new_kernel():
+    # The trace kernel takes the relief height as an opaque input and aligned directions: before, every
+    # material compiled its own copy (~1 s each at full size; 885 kernels in the BTF bench test).
+    from conftest import compiled_kernels
+
+    s = BTFRenderSettings(tex_res=8, slices=4, spp=2, max_depth=2, mesh_res=8)
+    a, b = make_svbrdf("stone", 0, 32), make_svbrdf("stone", 1, 32)
+    assert np.ptp(a.height) != np.ptp(b.height)
+    render_btf(a, s, progress=False)
+    with compiled_kernels() as k:
+        render_btf(b, s, progress=False)
+    assert k.count == 0, k.count

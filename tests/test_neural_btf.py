@@ -258,3 +258,18 @@ def test_corrupt_checkpoint_is_named(tmp_path):
     ck.write_bytes(b"truncated")
     with pytest.raises(CheckpointError, match="ck.npz: damaged checkpoint .*delete it to start over"):
         bf.train_basis([_lambert_btf(0)], s=bf.OptimSettings(iterations=2, batch=256), checkpoint=ck, progress=False)
+
+
+def test_training_iterations_reuse_their_kernels():
+    # Every iteration uploads a fresh random batch; with aligned uploads (mi_plugins/arrays.py) the
+    # iterations after the first ones run kernels compiled already. Before, each batch's alignment
+    # picked one of 2^k kernel variants (183 compilations of one kernel in the BTF bench test).
+    from conftest import compiled_kernels
+
+    mats = [_lambert_btf(0, slices=4, res=8)]
+    tr = np.arange(4)
+    s = bf.OptimSettings(iterations=3, batch=1 << 10)
+    bf.train_basis(mats, s=s, slices=tr, progress=False)
+    with compiled_kernels() as k:
+        bf.train_basis(mats, s=bf.OptimSettings(iterations=6, batch=1 << 10, seed=5), slices=tr, progress=False)
+    assert k.count == 0, k.count

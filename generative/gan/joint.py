@@ -18,6 +18,7 @@ import torch
 import mi_plugins  # noqa: F401
 import drjit as dr
 import mitsuba as mi
+from mi_plugins.arrays import aligned
 
 from foundation import validate
 from foundation.bridge import drjit_images_to_torch
@@ -119,14 +120,14 @@ class JointStage(Stage):
                       else {"type": "prb_projective", "max_depth": s.max_depth, "sppi": 0})
         self.scene = morph_scene(self.work_ply, "lit", meta.hdri, integrator=integrator)
         self.params = mi.traverse(self.scene)
-        f_mi = mi.UInt32(np.ascontiguousarray(f0, np.uint32).ravel())
-        self.ls = mi.ad.LargeSteps(mi.Float(np.ascontiguousarray(v0, np.float32).ravel()), f_mi, s.lambda_)
+        f_mi = mi.UInt32(aligned(f0, np.uint32).ravel())
+        self.ls = mi.ad.LargeSteps(mi.Float(aligned(v0).ravel()), f_mi, s.lambda_)
         self.opt = mi.ad.Adam(lr=s.lr * self.size / 10.0, uniform=True)
-        self.opt["u"] = self.ls.to_differential(mi.Float(np.ascontiguousarray(v0, np.float32).ravel()))
-        self.opt["c"] = mi.Float(np.ascontiguousarray(c0, np.float32).ravel())
+        self.opt["u"] = self.ls.to_differential(mi.Float(aligned(v0).ravel()))
+        self.opt["c"] = mi.Float(aligned(c0).ravel())
         self.opt.set_learning_rate({"c": s.lr_colour})
-        self.photos = {i: mi.TensorXf(np.ascontiguousarray(data.photos[i])) for i in data.train}
-        self.coarse = {i: mi.TensorXf(np.ascontiguousarray(data.rendered[i])) for i in data.train}
+        self.photos = {i: mi.TensorXf(aligned(data.photos[i], None)) for i in data.train}
+        self.coarse = {i: mi.TensorXf(aligned(data.rendered[i], None)) for i in data.train}
         self.stash: dict = {}
         self.gen = drjit_images_to_torch(self._generator_terms)
         self.train, _ = split_validation(data.train, s.gan.val_every)  # the views two-stage G trains on

@@ -56,6 +56,7 @@ import numpy as np
 import mi_plugins  # noqa: F401  (sets the variant and registers ggx_uv)
 import drjit as dr
 import mitsuba as mi
+from mi_plugins.arrays import aligned
 
 from foundation.errors import UsageError
 from foundation.files import atomic_path, check_output_dir
@@ -501,7 +502,7 @@ def _slice_directions(svbrdf: SVBRDF, s: BTFRenderSettings, k: int) -> tuple[np.
 
 def _bitmap(a: np.ndarray) -> mi.Texture:
     # raw: the maps are linear data (no sRGB decoding); repeat: the tile is periodic.
-    return mi.load_dict({"type": "bitmap", "data": mi.TensorXf(np.ascontiguousarray(a, np.float32)), "raw": True,
+    return mi.load_dict({"type": "bitmap", "data": mi.TensorXf(aligned(a)), "raw": True,
                          "filter_type": "bilinear", "wrap_mode": "repeat"})
 
 
@@ -571,8 +572,9 @@ def _trace_chunk(scene: mi.Scene, bsdf: mi.BSDF, wi_np: np.ndarray, wo_np: np.nd
                  seed: int, lane0: int, z_top: float) -> tuple[np.ndarray, int]:
     """Mean radiance of ``spp`` paths per texel for a chunk of slices; (values (k, H, W, 3), #non-finite paths).
 
-    The kernel depends only on the settings (constants) — the chunk's data and seeds are opaque
-    inputs — so Dr.Jit compiles it once per material shape and reuses it for every chunk.
+    The kernel depends only on the settings (constants) — the chunk's data, seeds and the relief's
+    height are opaque inputs, its directions aligned host arrays — so Dr.Jit compiles it once per
+    material shape and reuses it for every chunk and material (a literal height compiled it anew per material).
     """
     k, h, w = wi_np.shape[:3]
     n_tex = k * h * w
@@ -583,8 +585,8 @@ def _trace_chunk(scene: mi.Scene, bsdf: mi.BSDF, wi_np: np.ndarray, wo_np: np.nd
     # Per-lane PCG streams keyed by the global lane index: results do not depend on chunking.
     off = dr.opaque(mi.UInt64, lane0)
     rng = mi.PCG32(lanes, dr.opaque(mi.UInt64, seed) + off, off)
-    wi = dr.gather(mi.Vector3f, mi.Vector3f(wi_np.reshape(-1, 3).T), tex)
-    wo = dr.gather(mi.Vector3f, mi.Vector3f(wo_np.reshape(-1, 3).T), tex)
+    wi = dr.gather(mi.Vector3f, mi.Vector3f(aligned(wi_np.reshape(-1, 3).T)), tex)
+    wo = dr.gather(mi.Vector3f, mi.Vector3f(aligned(wo_np.reshape(-1, 3).T)), tex)
 
     # Camera ray: towards a jittered point of the texel footprint on z = 0, along −ω_o, from above the relief.
     def u2() -> mi.Point2f:
@@ -592,7 +594,7 @@ def _trace_chunk(scene: mi.Scene, bsdf: mi.BSDF, wi_np: np.ndarray, wo_np: np.nd
 
     jitter = u2()
     target = mi.Point3f((mi.Float(pix % w) + jitter.x) / w, (mi.Float(pix // w) + jitter.y) / h, 0.0)
-    ray = mi.Ray3f(target + wo * (z_top / wo.z), -wo)
+    ray = mi.Ray3f(target + wo * (dr.opaque(mi.Float, z_top) / wo.z), -wo)
 
     cos_half = math.cos(math.radians(0.5 * s.sun_diameter_deg))
     # Unit irradiance: L·Ω·E[cos] = 1 with E[cos] = (1 + cosδ)/2 over the uniform cone; MC weight 1/E[cos].

@@ -30,6 +30,7 @@ from foundation import validate
 from foundation.errors import CheckpointError
 from foundation.loop import LoopSettings, RunState, Stage, StepResult, all_finite, run_loop
 from foundation.optim_state import load_optimizer_state, optimizer_state
+from mi_plugins.arrays import aligned
 from mi_plugins.neural_basis import (Basis, BasisConfig, NeuralBTFError, NeuralMaterial, _to_tensor_layers, bilinear,
                                      evaluate_tensor, mlp_tensor, offset, rows)
 
@@ -192,9 +193,9 @@ def _forward(cfg: BasisConfig, params, t_off, t_rgb, res, m, uv, wi, wo, grad_ne
     """
     m_off = _to_tensor_layers(_net_layers(params, "m_off", cfg.depth), grad_net)
     m_rgb = _to_tensor_layers(_net_layers(params, "m_rgb", cfg.depth), grad_net)
-    u, v = mi.Float(uv[:, 0]), mi.Float(uv[:, 1])
-    wi_, wo_ = [mi.Float(wi[:, k]) for k in range(3)], [mi.Float(wo[:, k]) for k in range(3)]
-    base = mi.UInt32(m.astype(np.uint32) * np.uint32(res * res))
+    u, v = mi.Float(aligned(uv[:, 0])), mi.Float(aligned(uv[:, 1]))
+    wi_, wo_ = [mi.Float(aligned(wi[:, k])) for k in range(3)], [mi.Float(aligned(wo[:, k])) for k in range(3)]
+    base = mi.UInt32(aligned(m.astype(np.uint32) * np.uint32(res * res), np.uint32))
     if taps is None:
         return evaluate_tensor(cfg, m_off, m_rgb, t_off, t_rgb, res, u, v, wi_, wo_, base), m_off, m_rgb
 
@@ -275,14 +276,14 @@ class BTFStage(Stage):
         uv = np.stack([(x + 0.5) / w, (y + 0.5) / h], 1).astype(np.float32)
         target = vals[m, sl, y, x]
 
-        t_off = mi.Float(gaussian_periodic(self.params["t_off"], s.tau_off.tau(it)).ravel())
-        t_rgb = mi.Float(gaussian_periodic(self.params["t_rgb"], s.tau_rgb.tau(it)).ravel())
+        t_off = mi.Float(aligned(gaussian_periodic(self.params["t_off"], s.tau_off.tau(it)).ravel()))
+        t_rgb = mi.Float(aligned(gaussian_periodic(self.params["t_rgb"], s.tau_rgb.tau(it)).ravel()))
         taps: dict = {}
         pred, m_off, m_rgb = _forward(cfg, self.params, t_off, t_rgb, self.res, m, uv, self.wi[m, sl, y, x],
                                       self.wo[m, sl, y, x], self.train_net, taps)
         loss = 0
         for c in range(3):
-            loss = loss + dr.sum(dr.abs(pred[c] - mi.Float(target[:, c])))
+            loss = loss + dr.sum(dr.abs(pred[c] - mi.Float(aligned(target[:, c]))))
         loss = loss / (3 * s.batch)  # L1 (§4.2)
         dr.backward(loss)
 
@@ -389,7 +390,7 @@ def predict(basis: Basis, mat: NeuralMaterial, data, slices: np.ndarray, chunk: 
     wi = np.asarray(data.wi, np.float32)[slices].reshape(-1, 3)
     wo = np.asarray(data.wo, np.float32)[slices].reshape(-1, 3)
     params = basis.arrays()
-    t_off, t_rgb = mi.Float(mat.t_off.ravel()), mi.Float(mat.t_rgb.ravel())
+    t_off, t_rgb = mi.Float(aligned(mat.t_off.ravel())), mi.Float(aligned(mat.t_rgb.ravel()))
     out = np.empty((len(uv), 3), np.float32)
     for a in range(0, len(uv), chunk):
         b = min(a + chunk, len(uv))

@@ -36,6 +36,7 @@ import numpy as np
 
 import mi_plugins  # noqa: F401
 import mitsuba as mi
+from mi_plugins.arrays import aligned
 
 from foundation import imageio, validate
 from foundation.assets import HDRI_DIR, envmap, hdri_label, hdri_path
@@ -260,7 +261,7 @@ def ground_truth_maps(mesh: UVMesh, geo: GeometryMaps, s: FaceBenchmarkSettings)
 
 def _bitmap(arr: np.ndarray) -> dict:
     # raw: the maps are linear data already; bilinear like the UV shader's texel lookup.
-    return {"type": "bitmap", "raw": True, "data": mi.TensorXf(np.ascontiguousarray(arr, np.float32))}
+    return {"type": "bitmap", "raw": True, "data": mi.TensorXf(aligned(arr))}
 
 
 def material_dict(maps: dict[str, np.ndarray], s_disp: float, bsdf: str = "ggx_uv") -> dict:

@@ -28,6 +28,7 @@ import numpy as np
 import mi_plugins  # noqa: F401
 import drjit as dr
 import mitsuba as mi
+from mi_plugins.arrays import aligned
 
 from foundation import validate
 from foundation.assets import hdri_label
@@ -100,7 +101,7 @@ def _upsample(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _tensor(a: np.ndarray) -> mi.TensorXf:
-    return mi.TensorXf(np.ascontiguousarray(a, dtype=np.float32))
+    return mi.TensorXf(aligned(a))
 
 
 def _grad_penalty(t: mi.TensorXf, h: int, w: int) -> mi.Float:
@@ -564,7 +565,7 @@ class RenderRefineStage(DrJitStage):
         self.params = mi.traverse(self.scene)
         self.keys = {n: self.PREFIX + f"{n}.data" for n in ("albedo", "roughness", "normal")}
         self.irr = {k: mi.Color3f(self.params[f"light{k}.irradiance.value"]) for k in range(len(self.lights))}
-        self.targets = {key: mi.TensorXf(np.ascontiguousarray(img, np.float32)) for key, img in bench.camera.items()}
+        self.targets = {key: mi.TensorXf(aligned(img)) for key, img in bench.camera.items()}
         self.opt = mi.ad.Adam(lr=s.lr)
         for key in self.keys.values():
             self.opt[key] = self.params[key]

@@ -36,6 +36,7 @@ import numpy as np
 import mi_plugins  # noqa: F401
 import drjit as dr
 import mitsuba as mi
+from mi_plugins.arrays import aligned
 
 from foundation import imageio, validate
 from foundation.assets import FACE, envmap, hdri_path
@@ -252,7 +253,7 @@ class LightingStage(DrJitStage):
     def __init__(self, tex: np.ndarray, weight: np.ndarray, geo, s: PhotoFitSettings, view: UVView = PHOTO_VIEW):
         rng = np.random.default_rng(s.seed)
         self.view = view
-        t = lambda a: mi.TensorXf(np.ascontiguousarray(a, np.float32))  # noqa: E731
+        t = lambda a: mi.TensorXf(aligned(a))  # noqa: E731
         self.s, self.shape = s, tex.shape
         self.pos, self.nrm, self.tan = t(geo.position), t(geo.normal), t(geo.tangent)
         self.w, self.target = t(weight[..., None]), t(tex)
@@ -309,7 +310,7 @@ def fit_lighting(tex: np.ndarray, weight: np.ndarray, geo, s: PhotoFitSettings,
 
 def white_shading(geo, lighting: FittedLighting, s: PhotoFitSettings, view: UVView = PHOTO_VIEW) -> np.ndarray:
     """Diffuse shading of a white, non-specular surface under the fitted lights + ambient."""
-    t = lambda a: mi.TensorXf(np.ascontiguousarray(a, np.float32))  # noqa: E731
+    t = lambda a: mi.TensorXf(aligned(a))  # noqa: E731
     lights = [UVLight("directional", tuple(l.to_light), tuple(l.irradiance)) for l in lighting.lights]
     out = shade_uv(t(geo.position), t(geo.normal), t(geo.tangent), UVMaps(albedo=1.0, specular=0.0), lights,
                    view, ambient=lighting.ambient)
@@ -352,7 +353,7 @@ def fill_and_delight(tex: np.ndarray, weight: np.ndarray, geo, s: PhotoFitSettin
 
 def _face_scene(mesh_path: Path, maps: dict[str, np.ndarray], s: PhotoFitSettings, emitters: dict, sensor: dict) -> mi.Scene:
     def bitmap(a):
-        return {"type": "bitmap", "raw": True, "data": mi.TensorXf(np.ascontiguousarray(a, np.float32))}
+        return {"type": "bitmap", "raw": True, "data": mi.TensorXf(aligned(a))}
 
     inner = {"type": "ggx_uv", "albedo": bitmap(maps["albedo"]),
              "roughness": bitmap(maps["roughness"]) if "roughness" in maps else s.roughness,

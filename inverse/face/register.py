@@ -54,6 +54,7 @@ class ScanRegistration:
 def frontal_render(mesh_path: Path, mesh: UVMesh, res: int = 512):
     """Noise-free frontal view of a scan (albedo × (0.35 + 0.65 |n·v|), 8-bit sRGB) and its position AOV."""
     import mitsuba as mi
+    from mi_plugins.arrays import aligned
 
     from foundation import imageio
 
@@ -71,7 +72,7 @@ def frontal_render(mesh_path: Path, mesh: UVMesh, res: int = 512):
               "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
               "sampler": {"type": "independent"}}
     bsdf = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {
-        "type": "bitmap", "raw": True, "data": mi.TensorXf(np.ascontiguousarray(tex))}}}
+        "type": "bitmap", "raw": True, "data": mi.TensorXf(aligned(tex, None))}}}
     scene = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "a:albedo,n:sh_normal,p:position"},
                           "scan": {"type": "obj", "filename": str(mesh_path), "bsdf": bsdf, "face_normals": False},
                           "sensor": sensor})

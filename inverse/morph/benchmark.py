@@ -27,6 +27,7 @@ import numpy as np
 
 import mi_plugins  # noqa: F401
 import mitsuba as mi
+from mi_plugins.arrays import aligned
 
 from foundation import imageio, validate
 from foundation.assets import HDRI_DIR, envmap, hdri_path
@@ -408,7 +409,7 @@ def truth_shapes(folder: Path, kind: str, s: MorphBenchmarkSettings) -> dict:
     one part with its vertex colours; two-sided diffuse."""
     if kind == "village":
         materials = [p.material for p in village_parts(s.n_houses, s.seed)]
-        textures = {m: mi.TensorXf(material_texture(m)) for m in set(materials)}
+        textures = {m: mi.TensorXf(aligned(material_texture(m))) for m in set(materials)}
         reflectance = [{"type": "bitmap", "raw": True, "data": textures[m]} for m in materials]
     else:
         reflectance = [{"type": "mesh_attribute", "name": "vertex_color"}]

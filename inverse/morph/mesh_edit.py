@@ -9,6 +9,7 @@ import numpy as np
 import mi_plugins  # noqa: F401
 import drjit as dr
 import mitsuba as mi
+from mi_plugins.arrays import aligned
 
 from foundation.mesh import edge_lengths, face_normals, graph_laplacian
 
@@ -157,4 +158,4 @@ def undo_flips(opt, key: str, v_before: np.ndarray, positions, to_param, n_start
         v[idx] = v_before[idx]
         changed = True
     if changed:
-        opt[key] = to_param(mi.Float(np.ascontiguousarray(v, np.float32).ravel()))
+        opt[key] = to_param(mi.Float(aligned(v).ravel()))

@@ -39,6 +39,7 @@ import numpy as np
 import mi_plugins  # noqa: F401
 import drjit as dr
 import mitsuba as mi
+from mi_plugins.arrays import aligned
 
 from foundation import validate
 from foundation.errors import UsageError
@@ -277,20 +278,20 @@ class MorphStage(DrJitStage):
         write_ply(self.work_ply, v, f, c)
         self.scene = morph_scene(self.work_ply, s.mode, self.bench.meta.hdri)
         self.params = mi.traverse(self.scene)
-        self.f_mi = mi.UInt32(np.ascontiguousarray(f, np.uint32).ravel())
-        self.pairs = mi.UInt32(np.ascontiguousarray(dihedral_pairs(f), np.uint32).ravel())
+        self.f_mi = mi.UInt32(aligned(f, np.uint32).ravel())
+        self.pairs = mi.UInt32(aligned(dihedral_pairs(f), np.uint32).ravel())
         self.n_start = face_normals(v_ref, f) if s.forbid_flips else None
         if s.parameterisation == "large_steps":
-            self.ls = mi.ad.LargeSteps(mi.Float(np.ascontiguousarray(v_ref, np.float32).ravel()), self.f_mi, self.lam)
+            self.ls = mi.ad.LargeSteps(mi.Float(aligned(v_ref).ravel()), self.f_mi, self.lam)
             self.opt = mi.ad.Adam(lr=self.lr_pos, uniform=True)
             self.key = "u"
-            self.opt["u"] = self.ls.to_differential(mi.Float(np.ascontiguousarray(v, np.float32).ravel()))
+            self.opt["u"] = self.ls.to_differential(mi.Float(aligned(v).ravel()))
         else:
             self.ls = None
             self.opt = mi.ad.Adam(lr=self.lr_pos)
             self.key = "v"
-            self.opt["v"] = mi.Float(np.ascontiguousarray(v, np.float32).ravel())
-        self.opt["c"] = mi.Float(np.ascontiguousarray(c, np.float32).ravel())
+            self.opt["v"] = mi.Float(aligned(v).ravel())
+        self.opt["c"] = mi.Float(aligned(c).ravel())
         self.opt.set_learning_rate({"c": s.lr_colour})
 
     def positions(self):
@@ -386,7 +387,7 @@ class MorphStage(DrJitStage):
             return
         v = self.positions()
         self.lam = lam
-        self.ls = mi.ad.LargeSteps(mi.Float(np.ascontiguousarray(self.v_ref, np.float32).ravel()), self.f_mi, lam)
+        self.ls = mi.ad.LargeSteps(mi.Float(aligned(self.v_ref).ravel()), self.f_mi, lam)
         self.opt["u"] = self.ls.to_differential(dr.detach(v))
         self.opt.reset("u")  # u = (I + λL)v changes scale with λ: old moments would mislead the steps
 

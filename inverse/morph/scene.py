@@ -8,6 +8,7 @@ import numpy as np
 
 import mi_plugins  # noqa: F401
 import mitsuba as mi
+from mi_plugins.arrays import aligned
 
 from foundation.assets import envmap
 from foundation.scene import mitsuba_log_level
@@ -60,4 +61,4 @@ def photo_at(bench: MorphBenchmark, i: int, res: int) -> np.ndarray:
 
 
 def photo_tensors(bench: MorphBenchmark, res: int) -> dict[int, mi.TensorXf]:
-    return {i: mi.TensorXf(photo_at(bench, i, res)) for i in range(len(bench.meta.cameras))}
+    return {i: mi.TensorXf(aligned(photo_at(bench, i, res))) for i in range(len(bench.meta.cameras))}

@@ -70,6 +70,7 @@ import mitsuba as mi
 import numpy as np
 
 from .. import neural_basis as nb
+from ..arrays import aligned
 
 
 def _resolve(props: mi.Properties, name: str) -> str:
@@ -93,8 +94,8 @@ class NeuralBTF(mi.BSDF):
                 raise ValueError(f"neural_btf: parameter '{name}' = {v} must be a positive number")
         self.cfg = basis.config
         self.res = mat.res
-        self.t_off = mi.TensorXf(mat.t_off)
-        self.t_rgb = mi.TensorXf(mat.t_rgb)
+        self.t_off = mi.TensorXf(aligned(mat.t_off))
+        self.t_rgb = mi.TensorXf(aligned(mat.t_rgb))
         # The training layout is what Dr.Jit needs to backpropagate through matvec (into the textures).
         self.m_off = nb.CoopNet(basis.m_off, training=True)
         self.m_rgb = nb.CoopNet(basis.m_rgb, training=True)
