@@ -608,14 +608,43 @@ def test_chamfer_reuses_the_truths_samplings_without_changing_results():
     v, f = _sphere(1.0, 20)
     a = v * 1.05
     mm._REFERENCES.clear()
+    mm._RESULTS.clear()
     cold = chamfer(a, f, v, f, n=5_000, n_ref=50_000)
-    assert len(mm._REFERENCES) == 1
+    assert len(mm._REFERENCES) == 1 and len(mm._RESULTS) == 1
+    mm._RESULTS.clear()
     warm = chamfer(a, f, v, f, n=5_000, n_ref=50_000)
     assert warm == cold  # the cache holds the very arrays a fresh sampling makes: bit-identical
+    # a repeat with equal arrays (other objects) is answered from the results; a caller's edit does not reach them
+    again = chamfer(a.copy(), f.copy(), v.copy(), f.copy(), n=5_000, n_ref=50_000)
+    assert again == cold and len(mm._RESULTS) == 1
+    again["chamfer"] = -1.0
+    assert chamfer(a, f, v, f, n=5_000, n_ref=50_000) == cold
     # keyed by the mesh's content, not its identity: a moved truth is sampled anew and scores differently
     moved = v.copy()
     moved[:, 0] += 0.5
     assert chamfer(a, f, moved, f, n=5_000, n_ref=50_000)["chamfer"] > cold["chamfer"] + 0.1
     assert chamfer(a, f, v, f, n=5_000, n_ref=50_000) == cold and len(mm._REFERENCES) == 2
+    b = a.copy()
+    b[0] *= 1.01  # one vertex moved: a new result, not the remembered one
+    assert chamfer(b, f, v, f, n=5_000, n_ref=50_000) != cold
+    # the dense truth sampling of the orientation check: one object per truth content, equal to a fresh one
+    t1, t2 = mm.truth_surface(v, f, n=20_000), mm.truth_surface(v.copy(), f.copy(), n=20_000)
+    fresh = mm.TruthSurface(v, f, n=20_000)
+    assert t1 is t2 and np.array_equal(t1.normals, fresh.normals) and np.array_equal(t1.tree.data, fresh.tree.data)
     # Oracle, as the concentric-spheres test: every point of one sphere lies 0.05 from the other (5 % tolerance)
     assert abs(cold["chamfer"] - 0.05) < 0.0025
+
+
+def test_remesh_repeats_return_copies_of_the_same_result():
+    import inverse.morph.mesh_edit as me
+
+    v, f = _sphere(1.0, 12)
+    c = np.random.default_rng(0).random((len(v), 3)).astype(np.float32)
+    me._REMESHED.clear()
+    first = me.remesh(v, f, c, 300)
+    direct = me._remesh(v, f, c, 300)  # pymeshlab's remesh is deterministic: the memo returns what a rerun makes
+    assert all(np.array_equal(a, b) for a, b in zip(first, direct))
+    first[0][:] = 0.0  # the caller owns its copy
+    again = me.remesh(v.copy(), f.copy(), c.copy(), 300)
+    assert all(np.array_equal(a, b) for a, b in zip(again, direct)) and len(me._REMESHED) == 1
+    assert len(me.remesh(v, f, c, 600)[0]) > len(again[0]) and len(me._REMESHED) == 2

@@ -560,10 +560,10 @@ def height_mesh(height: np.ndarray, mesh_res: int, bsdf: mi.BSDF | None = None, 
         props["bsdf"] = bsdf
     mesh = mi.Mesh("btf_tile", len(pos), len(faces), props, has_vertex_normals=True, has_vertex_texcoords=True)
     p = mi.traverse(mesh)
-    p["vertex_positions"] = mi.Float(pos.astype(np.float32).ravel())
-    p["vertex_normals"] = mi.Float(nor.astype(np.float32).ravel())
-    p["vertex_texcoords"] = mi.Float(pos[:, :2].astype(np.float32).ravel())
-    p["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
+    p["vertex_positions"] = mi.Float(aligned(pos).ravel())
+    p["vertex_normals"] = mi.Float(aligned(nor).ravel())
+    p["vertex_texcoords"] = mi.Float(aligned(pos[:, :2]).ravel())
+    p["faces"] = mi.UInt32(aligned(faces, np.uint32).ravel())
     p.update()
     return mesh
 

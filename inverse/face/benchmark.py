@@ -311,7 +311,7 @@ def _texel_interactions(scene: mi.Scene, geo: GeometryMaps) -> tuple[np.ndarray,
     h, w = geo.mask.shape
     idx = np.nonzero(geo.mask.ravel())[0]
     uv = texel_uvs(h, w)
-    uv = mi.Point2f(np.array(uv.x)[idx], np.array(uv.y)[idx])
+    uv = mi.Point2f(aligned(np.array(uv.x)[idx]), aligned(np.array(uv.y)[idx]))
     return idx, scene.shapes()[0].eval_parameterization(uv)
 
 
@@ -330,7 +330,7 @@ def texel_observation(scene: mi.Scene, geo: GeometryMaps, eye: np.ndarray, radiu
     d = p - eye[None, :]
     d /= np.linalg.norm(d, axis=1)[:, None]
     o = np.repeat(np.tile(eye, (len(idx), 1)), spp, 0)
-    ray = mi.Ray3f(mi.Point3f(o.T.astype(np.float32)), mi.Vector3f(np.repeat(d, spp, 0).T.astype(np.float32)))
+    ray = mi.Ray3f(mi.Point3f(aligned(o.T)), mi.Vector3f(aligned(np.repeat(d, spp, 0).T)))
     si = scene.ray_intersect(ray)
     first = np.arange(len(idx)) * spp
     hit = np.array(si.p, dtype=np.float64).T[first]

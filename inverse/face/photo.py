@@ -209,7 +209,7 @@ def unwrap_photo(image: np.ndarray, mesh_path: Path, uv_res: int, grazing_cos: f
     from .uv_bake import texel_uvs
 
     uv = texel_uvs(uv_res, uv_res)
-    si = scene.shapes()[0].eval_parameterization(mi.Point2f(np.array(uv.x)[idx], np.array(uv.y)[idx]))
+    si = scene.shapes()[0].eval_parameterization(mi.Point2f(aligned(np.array(uv.x)[idx]), aligned(np.array(uv.y)[idx])))
     occluded = np.array(scene.ray_test(si.spawn_ray(mi.Vector3f(0, 0, 1))))
     n = geo.normal.reshape(-1, 3)[idx]
     facing = np.clip((n[:, 2] - grazing_cos) / (1.0 - grazing_cos), 0.0, 1.0) ** 0.5

@@ -258,9 +258,9 @@ def part_mesh(part: Part, name: str) -> mi.Mesh:
     n = len(part.vertices)
     mesh = mi.Mesh(name, n, n // 3, has_vertex_texcoords=True)
     p = mi.traverse(mesh)
-    p["vertex_positions"] = mi.Float(part.vertices.astype(np.float32).ravel())
-    p["faces"] = mi.UInt32(np.arange(n, dtype=np.uint32))
-    p["vertex_texcoords"] = mi.Float(part.uvs.astype(np.float32).ravel())
+    p["vertex_positions"] = mi.Float(aligned(part.vertices).ravel())
+    p["faces"] = mi.UInt32(aligned(np.arange(n), np.uint32))
+    p["vertex_texcoords"] = mi.Float(aligned(part.uvs).ravel())
     p.update()
     return mesh
 

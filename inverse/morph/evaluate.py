@@ -13,7 +13,7 @@ import mitsuba as mi
 
 from foundation import imageio
 from foundation.mesh import load_mesh_any, write_ply
-from foundation.mesh_metrics import TruthSurface, chamfer, facing_against_truth, spikes
+from foundation.mesh_metrics import chamfer, facing_against_truth, spikes, truth_surface
 from foundation.metrics import ImageMetrics, image_metrics
 
 from .benchmark import MorphBenchmark, sensor_dict
@@ -83,7 +83,7 @@ def evaluate_morph(bench: MorphBenchmark, v_in, f_in, c_in, v_out, f_out, c_out,
         sp = spikes(v0, v_out, f_out)
     else:  # remeshed during the run: no per-vertex displacement to judge
         sp = {"spike_vertices": -1, "far_moved_vertices": -1, "inverted_triangles": -1, "spikes": -1}
-    truth = TruthSurface(gv, gf)
+    truth = truth_surface(gv, gf)
     fa_out, fa_in = facing_against_truth(v_out, f_out, truth), facing_against_truth(v_in, f_in, truth)
     fa_start = fa_in if start is None else facing_against_truth(v0, f0, truth)
     return MorphEvaluation(
