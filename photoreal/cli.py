@@ -1022,8 +1022,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="out/demo", help="report folder (default: out/demo)")
     d.add_argument("--bench-dir", default=None,
                    help="folder with `photoreal bench` JSON files for the report's tables (default: OUT/../bench)")
-    _opt(d, DemoSettings, "resolution")
-    _opt(d, DemoSettings, "spp")
+    _opt(d, DemoSettings, "resolution", help="image side of the renders (the face's camera renders: at most 192)")
+    _opt(d, DemoSettings, "spp", help="samples per pixel (the face's camera renders: at most 64)")
     _opt(d, DemoSettings, "seed")
     _opt(d, DemoSettings, "plugin_bench", "--no-bench", help="skip the plugin speed section")
     _opt(d, DemoSettings, "face", "--no-face", help="skip the face sections")

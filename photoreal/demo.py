@@ -24,8 +24,8 @@ from foundation.scene import RenderSettings, load_scene, recompose, render_scene
 
 @dataclass
 class DemoSettings:
-    resolution: int = 256
-    spp: int = 64
+    resolution: int = 256  #: image side of the renders (the face's camera renders: at most 192)
+    spp: int = 64  #: samples per pixel (the face's camera renders: at most 64)
     seed: int = 0
     face: bool = True
     face_uv_res: int = 256
@@ -144,13 +144,16 @@ def _bench_json(bench_dir: Path | None, name: str) -> dict | None:
     return read_json(Path(bench_dir) / name, "benchmark result")
 
 
-def demo_face(out_dir: Path, uv_res: int = 256, seed: int = 0, bench_dir: Path | None = None) -> dict:
-    """Josie scan: benchmark, UV-space fit, maps and relit renders against ground truth."""
+def demo_face(out_dir: Path, uv_res: int = 256, seed: int = 0, bench_dir: Path | None = None,
+              render_res: int = 192, render_spp: int = 64) -> dict:
+    """Josie scan: benchmark, UV-space fit, maps and relit renders (``render_res``², ``render_spp``) against
+    ground truth."""
     from inverse.face import FaceBenchmarkSettings, FaceFitSettings, evaluate_fit, fit_face, load_benchmark, make_benchmark
 
     face_dir = Path(out_dir) / "face"
     bench = load_benchmark(make_benchmark(FACE / "cyberheads" / "josie.obj", face_dir / "benchmark",
-                                          FaceBenchmarkSettings(uv_res=uv_res, seed=seed)))
+                                          FaceBenchmarkSettings(uv_res=uv_res, seed=seed, render_res=render_res,
+                                                                render_spp=render_spp)))
     result = fit_face(bench, FaceFitSettings(seed=seed))
     relit: dict = {}
     fm = evaluate_fit(bench, result, images=relit)
@@ -358,7 +361,9 @@ def run_demo(out_dir: str | Path, s: DemoSettings, bench_dir: str | Path | None 
     out_dir.mkdir(parents=True, exist_ok=True)
     results = {"scenes": demo_scenes(out_dir, s)}
     if s.face:
-        results["face"] = demo_face(out_dir, uv_res=s.face_uv_res, seed=s.seed, bench_dir=bench_dir)
+        # the camera renders follow --resolution/--spp, capped at the face benchmark's own defaults
+        results["face"] = demo_face(out_dir, uv_res=s.face_uv_res, seed=s.seed, bench_dir=bench_dir,
+                                    render_res=min(s.resolution, 192), render_spp=min(s.spp, 64))
         results["photo"] = demo_photo(out_dir, uv_res=s.face_uv_res, seed=s.seed)
     if s.morph_iterations > 0:
         results["morph"] = demo_morph(out_dir, iterations=s.morph_iterations, seed=s.seed, bench_dir=bench_dir)
