@@ -20,8 +20,9 @@ import math
 import os
 import shutil
 import tempfile
+from collections import OrderedDict
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -262,3 +263,37 @@ def cached_arrays(path: str | os.PathLike, key: str, compute) -> dict:
         np.savez(tmp, key=key, **arrays)
     return arrays
 
+
+def array_key(*arrays) -> tuple:
+    """The content of numpy arrays (SHA-1 of their bytes, shapes, dtypes): equal keys mean equal arrays,
+    whatever objects hold them."""
+    arrays = [np.ascontiguousarray(a) for a in arrays]
+    digest = hashlib.sha1(b"".join(a.tobytes() for a in arrays)).hexdigest()
+    return (digest, *((a.shape, a.dtype.str) for a in arrays))
+
+
+class Memo:
+    """The last ``kept`` values of deterministic computations, by key (least recently used dropped first).
+
+    For work that every run on a benchmark repeats on the same arrays (key them with :func:`array_key`);
+    callers that hand out mutable values copy them.
+    """
+
+    def __init__(self, kept: int):
+        self.kept = kept
+        self._items: OrderedDict = OrderedDict()
+
+    def get(self, key, make: Callable[[], Any]) -> Any:
+        if key in self._items:
+            self._items.move_to_end(key)
+            return self._items[key]
+        value = self._items[key] = make()
+        while len(self._items) > self.kept:
+            self._items.popitem(last=False)
+        return value
+
+    def clear(self) -> None:
+        self._items.clear()
+
+    def __len__(self) -> int:
+        return len(self._items)

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import hashlib
-from collections import OrderedDict
-
 import numpy as np
 
+from .files import Memo, array_key
 from .mesh import edge_lengths, face_normals, sample_surface
 
 
@@ -16,29 +14,12 @@ def _samples(v, f, n, seed):
 
 
 #: the reference side of the last few :func:`chamfer` calls (a morph compares many meshes with one ground truth:
-#: its samplings and k-d tree are built once); key → (query points, their normals, reference normals, tree)
-_REFERENCES: "OrderedDict[tuple, tuple]" = OrderedDict()
-_REFERENCES_KEPT = 2
+#: its samplings and k-d tree are built once): (query points, their normals, reference normals, tree)
+_REFERENCES = Memo(2)
 #: results of the last few calls, and dense truth samplings for :func:`truth_surface`: every run on a benchmark
 #: evaluates the same input mesh against the same truth (a test module's dozen runs, the λ candidates, the suite)
-_RESULTS: "OrderedDict[tuple, dict]" = OrderedDict()
-_RESULTS_KEPT = 32
-_TRUTHS: "OrderedDict[tuple, TruthSurface]" = OrderedDict()
-_TRUTHS_KEPT = 2
-
-
-def _mesh_key(v, f) -> tuple:
-    """A mesh's content (bytes, shapes, dtypes): equal keys mean equal arrays, whatever object holds them."""
-    v, f = np.asarray(v), np.asarray(f)
-    digest = hashlib.sha1(np.ascontiguousarray(v).tobytes() + np.ascontiguousarray(f).tobytes()).hexdigest()
-    return digest, v.shape, v.dtype.str, f.shape, f.dtype.str
-
-
-def _remember(cache: OrderedDict, key, value, kept: int):
-    cache[key] = value
-    while len(cache) > kept:
-        cache.popitem(last=False)
-    return value
+_RESULTS = Memo(32)
+_TRUTHS = Memo(2)
 
 
 def _reference_side(vb, fb, n: int, n_ref: int, seed: int) -> tuple:
@@ -46,13 +27,11 @@ def _reference_side(vb, fb, n: int, n_ref: int, seed: int) -> tuple:
     cached by the mesh's bytes: the same arrays as sampling anew, so results do not depend on the cache."""
     from scipy.spatial import cKDTree
 
-    key = (*_mesh_key(vb, fb), n, n_ref, seed)
-    if key in _REFERENCES:
-        _REFERENCES.move_to_end(key)
-        return _REFERENCES[key]
-    pb, nb = _samples(vb, fb, n, seed + 1)
-    rb, rnb = _samples(vb, fb, n_ref, seed + 3)
-    return _remember(_REFERENCES, key, (pb, nb, rnb, cKDTree(rb)), _REFERENCES_KEPT)
+    def make():
+        pb, nb = _samples(vb, fb, n, seed + 1)
+        rb, rnb = _samples(vb, fb, n_ref, seed + 3)
+        return pb, nb, rnb, cKDTree(rb)
+    return _REFERENCES.get((array_key(vb, fb), n, n_ref, seed), make)
 
 
 def chamfer(va, fa, vb, fb, n: int = 100_000, n_ref: int = 1_000_000, seed: int = 0) -> dict:
@@ -68,18 +47,16 @@ def chamfer(va, fa, vb, fb, n: int = 100_000, n_ref: int = 1_000_000, seed: int 
     """
     from scipy.spatial import cKDTree
 
-    key = (_mesh_key(va, fa), _mesh_key(vb, fb), n, n_ref, seed)
-    if key in _RESULTS:  # the estimator is deterministic in its inputs: a repeat returns the same figures
-        _RESULTS.move_to_end(key)
-        return dict(_RESULTS[key])
-    pa, na = _samples(va, fa, n, seed)
-    pb, nb, nb_ref, tree_b = _reference_side(vb, fb, n, n_ref, seed)
-    ra, na_ref = _samples(va, fa, n_ref, seed + 2)
-    da, ia = tree_b.query(pa)
-    db, ib = cKDTree(ra).query(pb)
-    nc = 0.5 * (np.abs(np.sum(na * nb_ref[ia], axis=1)).mean() + np.abs(np.sum(nb * na_ref[ib], axis=1)).mean())
-    r = {"chamfer": float(0.5 * (da.mean() + db.mean())), "normal_consistency": float(nc)}
-    return dict(_remember(_RESULTS, key, r, _RESULTS_KEPT))
+    def make():
+        pa, na = _samples(va, fa, n, seed)
+        pb, nb, nb_ref, tree_b = _reference_side(vb, fb, n, n_ref, seed)
+        ra, na_ref = _samples(va, fa, n_ref, seed + 2)
+        da, ia = tree_b.query(pa)
+        db, ib = cKDTree(ra).query(pb)
+        nc = 0.5 * (np.abs(np.sum(na * nb_ref[ia], axis=1)).mean() + np.abs(np.sum(nb * na_ref[ib], axis=1)).mean())
+        return {"chamfer": float(0.5 * (da.mean() + db.mean())), "normal_consistency": float(nc)}
+    # the estimator is deterministic in its inputs: a repeat returns the same figures (a copy: callers may edit it)
+    return dict(_RESULTS.get((array_key(va, fa), array_key(vb, fb), n, n_ref, seed), make))
 
 
 def triangle_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -100,11 +77,7 @@ class TruthSurface:
 
 def truth_surface(gv: np.ndarray, gf: np.ndarray, n: int = 1_000_000, seed: int = 0) -> TruthSurface:
     """:class:`TruthSurface` of a mesh, built once for the last few meshes asked for (keyed by content)."""
-    key = (*_mesh_key(gv, gf), n, seed)
-    if key in _TRUTHS:
-        _TRUTHS.move_to_end(key)
-        return _TRUTHS[key]
-    return _remember(_TRUTHS, key, TruthSurface(gv, gf, n, seed), _TRUTHS_KEPT)
+    return _TRUTHS.get((array_key(gv, gf), n, seed), lambda: TruthSurface(gv, gf, n, seed))
 
 
 def facing_against_truth(v: np.ndarray, f: np.ndarray, truth: TruthSurface) -> dict:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,13 +11,13 @@ import drjit as dr
 import mitsuba as mi
 from mi_plugins.arrays import aligned
 
+from foundation.files import Memo, array_key
 from foundation.mesh import edge_lengths, face_normals, graph_laplacian
 
 
-#: the last few remeshes (content digest → result): every run on a benchmark remeshes the same input (the λ
-#: candidates, a resumed run, a test module's runs), seconds each for a dense mesh
-_REMESHED: "OrderedDict[tuple, tuple]" = OrderedDict()
-_REMESHED_KEPT = 4
+#: the last few remeshes: every run on a benchmark remeshes the same input (the λ candidates, a resumed run, a
+#: test module's runs), seconds each for a dense mesh
+_REMESHED = Memo(4)
 
 
 def remesh(v: np.ndarray, f: np.ndarray, c: np.ndarray,
@@ -30,15 +28,8 @@ def remesh(v: np.ndarray, f: np.ndarray, c: np.ndarray,
     edge length scales with 1/sqrt(count) on a surface). Repeats with equal arrays return copies of the
     earlier result.
     """
-    arrays = [np.ascontiguousarray(a) for a in (v, f, c)]
-    key = (hashlib.sha1(b"".join(a.tobytes() for a in arrays)).hexdigest(),
-           *((a.shape, a.dtype.str) for a in arrays), target_vertices)
-    if key not in _REMESHED:
-        _REMESHED[key] = _remesh(v, f, c, target_vertices)
-        while len(_REMESHED) > _REMESHED_KEPT:
-            _REMESHED.popitem(last=False)
-    _REMESHED.move_to_end(key)
-    return tuple(a.copy() for a in _REMESHED[key])
+    done = _REMESHED.get((array_key(v, f, c), target_vertices), lambda: _remesh(v, f, c, target_vertices))
+    return tuple(a.copy() for a in done)
 
 
 def _remesh(v, f, c, target_vertices):
