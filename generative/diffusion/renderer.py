@@ -80,8 +80,7 @@ class IntrinsicViews:
 
     def recomposed(self, source: str) -> np.ndarray:
         """R = A·I + S of every view (the PBR recomposition baseline, seed 000 eq. 4)."""
-        L = self.layers[source]
-        return L["albedo"] * L["irradiance"] + L["specular"]
+        return recompose(self.layers[source])
 
     def digest(self) -> str:
         h = hashlib.sha256()
@@ -207,7 +206,7 @@ def global_condition(layers: dict[str, np.ndarray], source: str) -> np.ndarray |
     validate.one_of("global_source", source, GLOBAL_SOURCES)
     if source == "none":
         return None
-    imgs = [layers["albedo"] * layers["irradiance"] + layers["specular"]] if source == "R" else \
+    imgs = [recompose(layers)] if source == "R" else \
         [layers["albedo"], layers["irradiance"], layers["specular"]]
     net = load_mobilenet()
     toks = []

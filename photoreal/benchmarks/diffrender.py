@@ -43,6 +43,7 @@ from foundation.errors import UsageError
 from foundation.features import fid, image_features, kid, perceptual_distance
 from foundation.files import read_json
 from foundation.metrics import image_metrics
+from foundation.scene import recompose
 from foundation.threads import torch_threads
 from generative.diffusion import (DECOMPOSED, ConditionalDiffusion, DecompDataSettings, DecompSettings,
                                   DiffRenderSettings, GBufferSettings, IntrinsicViews, SampleSettings, count_parameters, decompose, diffusion_loss, heldout_psnr,
@@ -220,7 +221,7 @@ def references(bench, morph_dir: Path, ids: list[int], spp: int, show_progress: 
     gs = GBufferSettings(spp=spp)
     L = render_gbuffers(Path(morph_dir) / "morphed.ply", bench, ids, gs, "reference G-buffers", show_progress,
                         seed=REFERENCE_SEEDS["pbr_morphed_clean"])
-    out = {"pbr_morphed_clean": L["albedo"] * L["irradiance"] + L["specular"]}
+    out = {"pbr_morphed_clean": recompose(L)}
     meta = bench.meta
     scene = truth_scene(bench)
     truth = np.empty_like(out["pbr_morphed_clean"])
