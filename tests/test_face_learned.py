@@ -31,11 +31,8 @@ TINY_COMPLETION = dict(widths=(8, 16), attention_levels=1, head_dim=8, res=16, b
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    """A whole `face train-models` run at toy sizes (every variant), built once for the module.
-
-    One folder per test process: under xdist the module's fixtures can be torn down between the group's tests
-    (the full suite built this one twice, 22 s + 21 s); a rebuilt fixture then resumes the finished run (~3 s)."""
-    out = tmp_path_factory.getbasetemp() / "face_models_run"
+    """A whole `face train-models` run at toy sizes (every variant), built once for the module."""
+    out = tmp_path_factory.mktemp("face_models") / "run"
     s = fr.FaceModelsSettings(
         data=fd.FaceDataSettings(**TINY_DATA),
         completion=fm.CompletionSettings(steps=4, **TINY_COMPLETION),
