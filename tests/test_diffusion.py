@@ -60,6 +60,51 @@ def test_training_target_is_the_velocity():
     assert float(loss) < 1e-8
 
 
+@pytest.mark.parametrize("steps", [1, 4])
+def test_known_zero_holds_x0_at_zero_there_and_a_perfect_predictor_elsewhere(steps):
+    """Closed forms: with a perfect v-predictor of x₀, sampling under a mask returns m·x₀ (0 where m = 0, x₀
+    elsewhere); an all-ones mask changes nothing; a real (untrained) model's sample is exactly 0 where m = 0."""
+    x0 = torch.rand(1, 3, 8, 8) * 2 - 1
+    m = (torch.rand(1, 1, 8, 8, generator=torch.Generator().manual_seed(2)) > 0.4).float()
+    perfect = PerfectV(TINY, x0)
+    loc = torch.zeros(1, 2, 8, 8)
+    out = sample(perfect, loc, None, (1, 3, 8, 8), steps=steps, seed=3, known_zero=m)
+    torch.testing.assert_close(out, x0 * m, rtol=0, atol=2e-4)
+    real = ConditionalDiffusion(TINY, seed=1)
+    free = sample(real, loc, None, (1, 3, 8, 8), steps=steps, seed=3)
+    torch.testing.assert_close(sample(real, loc, None, (1, 3, 8, 8), steps=steps, seed=3,
+                                      known_zero=torch.ones_like(m)), free, rtol=0, atol=1e-5)
+    held = sample(real, loc, None, (1, 3, 8, 8), steps=steps, seed=3, known_zero=m)
+    assert float((held * (1 - m)).abs().max()) < 1e-5 and float((free * (1 - m)).abs().max()) > 1e-2
+    if steps == 1:  # one step: the model's x̂₀ itself, masked
+        torch.testing.assert_close(held, free * m, rtol=0, atol=1e-5)
+
+
+def test_weighted_loss_is_the_mean_over_the_weighted_pixels():
+    """Weights 1 everywhere give the plain loss; 0/1 weights give the plain per-pixel loss averaged over the 1s
+    (same draws of t and noise: same generator seed); zero total weight gives 0, not NaN."""
+    model = ConditionalDiffusion(TINY, seed=1)
+    sch = make_scheduler(TINY)
+    x0, loc = torch.rand(2, 3, 8, 8), torch.rand(2, 2, 8, 8)
+
+    def loss(w):
+        with torch.no_grad():
+            return float(diffusion_loss(model, sch, x0, loc, None, torch.Generator().manual_seed(4), weight=w))
+
+    plain = loss(None)
+    assert loss(torch.ones(2, 1, 8, 8)) == pytest.approx(plain, rel=1e-6)
+    w = torch.zeros(2, 1, 8, 8)
+    w[:, :, :, :3] = 1
+    g = torch.Generator().manual_seed(4)  # the draws diffusion_loss makes, in its order
+    t = torch.randint(0, TINY.train_timesteps, (2,), generator=g)
+    noise = torch.randn(x0.shape, generator=g)
+    torch.rand(2, generator=g)
+    with torch.no_grad():
+        per = (model(sch.add_noise(x0, noise, t), t, loc, model.tokens(None, 2)) - sch.get_velocity(x0, noise, t)) ** 2
+    assert loss(w) == pytest.approx(float(per[..., :3].mean()), rel=1e-5)
+    assert loss(torch.zeros(2, 1, 8, 8)) == 0.0
+
+
 def test_sampling_is_seeded_and_cfg_limits_are_the_branches():
     m = ConditionalDiffusion(TINY, seed=1)
     with torch.no_grad():  # make the global condition matter
@@ -179,11 +224,39 @@ def test_training_lowers_the_loss_on_a_tiny_task(tiny_views, tmp_path, residual,
         rng, g = np.random.default_rng(123), torch.Generator().manual_seed(123)
         sch = make_scheduler(model.cfg)
         with torch.no_grad():
-            return np.mean([float(diffusion_loss(model, sch, *pairs.batch(rng, 8, 16), g, p_uncond=0.0))
-                            for _ in range(8)])
+            losses = []
+            for _ in range(8):
+                x, c, gc, w = pairs.batch(rng, 8, 16)
+                losses.append(float(diffusion_loss(model, sch, x, c, gc, g, p_uncond=0.0, weight=w)))
+            return np.mean(losses)
 
     before, after = fixed_loss(fresh), fixed_loss(trained)
     assert after < ratio * before, (before, after)
+
+
+def test_background_residual_is_the_photos_noise_and_is_known(tiny_views):
+    """Where no sample of a pixel hits the mesh, R is the environment the photo sees: photo − R there is zero-mean
+    noise (mean within 2 % of the photo's there), so the model need not learn it; the training target is 0 there
+    and maps back to R exactly."""
+    from generative.diffusion.renderer import coverage, from_target_space, model_to_photo, photo_to_model, \
+        target_space
+
+    _, _, v = tiny_views
+    L = v.layers["coarse"]
+    bg = coverage(L) == 0
+    r = v.recomposed("coarse")
+    d = v.photos - r
+    assert abs(float(d[bg].mean())) < 0.02 * float(v.photos[bg].mean())
+    s = _tiny_settings()
+    x = target_space(v.photos, L, s)
+    assert np.all(x[bg] == 0) and np.abs(x[~bg]).max() > 0
+    back = from_target_space(x, L, s)
+
+    def shown(img):  # what the model space can hold: sRGB clipped to [0, 1]
+        return model_to_photo(photo_to_model(img))
+
+    np.testing.assert_allclose(back[bg], shown(r)[bg], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(back[~bg], shown(v.photos)[~bg], rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.slow
@@ -199,6 +272,14 @@ def test_render_views_and_bad_inputs(tiny_views, tmp_path):
     assert out.shape == (len(v.test), 32, 32, 3) and np.isfinite(out).all() and (out >= 0).all() and sec > 0
     again, _ = render_views(model, s, layers, SampleSettings(steps=3), show_progress=False)
     np.testing.assert_array_equal(out, again)
+    # known background: where the G-buffer sees no mesh the render is R = A·I + S itself (the residual is held at 0)
+    from generative.diffusion.renderer import coverage
+
+    bg = coverage(layers) == 0
+    assert 0.1 < bg.mean() < 0.9
+    r = v.recomposed("morphed")[v.test]
+    np.testing.assert_allclose(out[bg], r[bg], rtol=1e-5, atol=1e-6)
+    assert np.abs(out[~bg] - r[~bg]).max() > 1e-3  # the untrained residual is not 0 on the mesh
     bad = dict(layers, irradiance=np.where(np.arange(32)[None, :, None, None] == 3, np.nan, layers["irradiance"]))
     with pytest.raises(UsageError, match="layer 'irradiance' has .* NaN"):
         local_condition(bad)
@@ -231,12 +312,13 @@ def test_cli_errors_name_the_input(tiny_views, tmp_path, capsys):
 
 
 def test_residual_target_space_inverts_and_an_untrained_residual_returns_r(tiny_views):
-    """photo → target → photo is the identity (residual and direct); a residual of 0 is the PBR recomposition R."""
+    """photo → target → photo is the identity (residual over every pixel, and direct); a residual of 0 is the PBR
+    recomposition R. (With the known background, see the test above.)"""
     from generative.diffusion.renderer import from_target_space, target_space
 
     _, _, v = tiny_views
     L = v.layers["morphed"]
-    for s in (_tiny_settings(), _tiny_settings(residual=False)):
+    for s in (_tiny_settings(known_background=False), _tiny_settings(residual=False)):
         x = target_space(v.photos, L, s)
         back = from_target_space(x, L, s)
         # sRGB round trip of values clipped to [0, 1]

@@ -147,8 +147,13 @@ def check_size(cfg: DiffusionConfig, h: int, w: int) -> None:
 
 
 def diffusion_loss(model: ConditionalDiffusion, scheduler, x0: torch.Tensor, local: torch.Tensor | None,
-                   global_cond: torch.Tensor | None, generator: torch.Generator, p_uncond: float = 0.1) -> torch.Tensor:
-    """One Monte-Carlo estimate of the training loss: MSE to the v (or ε) target at uniform t."""
+                   global_cond: torch.Tensor | None, generator: torch.Generator, p_uncond: float = 0.1,
+                   weight: torch.Tensor | None = None) -> torch.Tensor:
+    """One Monte-Carlo estimate of the training loss: MSE to the v (or ε) target at uniform t.
+
+    ``weight`` (B, 1, H, W), optional: per-pixel weights; the loss is then their weighted mean (pixels of weight 0,
+    e.g. where the sample is known, teach the model nothing). A batch of zero total weight gives a zero loss.
+    """
     b = x0.shape[0]
     check_size(model.cfg, *x0.shape[-2:])
     t = torch.randint(0, model.cfg.train_timesteps, (b,), generator=generator)
@@ -157,16 +162,32 @@ def diffusion_loss(model: ConditionalDiffusion, scheduler, x0: torch.Tensor, loc
     noisy = scheduler.add_noise(x0, noise, t)
     target = scheduler.get_velocity(x0, noise, t) if model.cfg.prediction == "v_prediction" else noise
     pred = model(noisy, t, local, model.tokens(global_cond, b, drop))
-    return torch.mean((pred - target) ** 2)
+    if weight is None:
+        return torch.mean((pred - target) ** 2)
+    w = weight.to(pred.dtype).expand_as(pred)
+    return torch.sum(w * (pred - target) ** 2) / torch.clamp(torch.sum(w), min=1.0)
+
+
+def _known_zero(out: torch.Tensor, x: torch.Tensor, t, sch, mask: torch.Tensor, prediction: str) -> torch.Tensor:
+    """Model output → the output whose x̂₀ is 0 where ``mask`` is 0 (samples known to be zero there), with ε̂ taken
+    consistent with x_t = α x̂₀ + σ ε̂ — the deterministic form of inpainting a known region: those pixels follow the
+    trajectory of x₀ = 0 and the rest is the model's."""
+    a = sch.alphas_cumprod[int(t)].to(x.dtype)
+    al, sg = a.sqrt(), (1 - a).sqrt()
+    x0 = al * x - sg * out if prediction == "v_prediction" else (x - sg * out) / al
+    x0 = x0 * mask
+    eps = (x - al * x0) / sg
+    return al * eps - sg * x0 if prediction == "v_prediction" else eps
 
 
 @torch.no_grad()
 def sample(model: ConditionalDiffusion, local: torch.Tensor | None, global_cond: torch.Tensor | None,
            shape: tuple[int, int, int, int], steps: int = 20, guidance: float = 1.0, seed: int = 0,
-           progress=None) -> torch.Tensor:
+           progress=None, known_zero: torch.Tensor | None = None) -> torch.Tensor:
     """DDIM sampling (η = 0) with classifier-free guidance ``guidance`` (1 = conditional only, 0 = unconditional).
 
-    ``shape`` = (B, C, H, W); returns x₀ in the model's space. Deterministic given ``seed``.
+    ``shape`` = (B, C, H, W); returns x₀ in the model's space. Deterministic given ``seed``. ``known_zero``
+    (B, 1, H, W), optional: 0 where x₀ is known to be 0 — every step's x̂₀ is held there (:func:`_known_zero`).
     """
     validate.integer("steps", steps, 1, model.cfg.train_timesteps)
     validate.non_negative("guidance", guidance)
@@ -190,6 +211,8 @@ def sample(model: ConditionalDiffusion, local: torch.Tensor | None, global_cond:
             out = u + guidance * (c - u)
         else:
             out = model(x, tt, local, cond)
+        if known_zero is not None:
+            out = _known_zero(out, x, t, sch, known_zero, model.cfg.prediction)
         x = sch.step(out, t, x, eta=0.0).prev_sample
         if progress is not None:
             progress(1)

@@ -28,6 +28,8 @@ morphed G-buffers. Everything trained is kept in ``OUT/diffrender_work`` and reu
 
 from __future__ import annotations
 
+import hashlib
+import json
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -43,6 +45,7 @@ from foundation.errors import UsageError
 from foundation.features import fid, image_features, kid, perceptual_distance
 from foundation.files import read_json
 from foundation.metrics import image_metrics
+from foundation.records import from_json, to_json
 from foundation.scene import recompose
 from foundation.threads import torch_threads
 from generative.diffusion import (DECOMPOSED, ConditionalDiffusion, DecompDataSettings, DecompSettings,
@@ -233,9 +236,16 @@ def references(bench, morph_dir: Path, ids: list[int], spp: int, show_progress: 
     return out
 
 
-def main_dir(work: Path, widths, seconds: float) -> Path:
-    """The main model's run folder: one per (size, budget), so a longer budget trains beside a shorter one."""
-    return Path(work) / "main" / f"{'-'.join(map(str, widths))}_{seconds:g}s"
+def run_dir(parent: Path, name: str, ds: DiffRenderSettings) -> Path:
+    """A training run's folder, named by its settings' digest too: a rerun reuses a run only when its settings are
+    the same (a folder of other settings would refuse to resume) and changed settings train beside the old run."""
+    key = hashlib.sha256(json.dumps(to_json(ds), sort_keys=True).encode()).hexdigest()[:8]
+    return Path(parent) / f"{name}_{key}"
+
+
+def main_dir(work: Path, ds: DiffRenderSettings) -> Path:
+    """The main model's run folder: one per (size, budget, settings), so a longer budget trains beside a shorter one."""
+    return run_dir(Path(work) / "main", f"{'-'.join(map(str, ds.widths))}_{ds.max_seconds:g}s", ds)
 
 
 def _choose(sweep: list[dict], tol: float) -> dict:
@@ -266,9 +276,9 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
             "none": (replace(base, global_source="none"), False), "R+decomposed": (base, True),
             "direct": (replace(base, residual=False), False), "small": (replace(base, widths=s.small_widths), False)}
     t = time.perf_counter()
+    dirs = {name: run_dir(work / "ablation", name, ds) for name, (ds, _) in runs.items()}
     for name, (ds, use_extra) in runs.items():
-        train_diffrender(train_views + (extra if use_extra else []), work / "ablation" / name, ds,
-                         show_progress=show_progress)
+        train_diffrender(train_views + (extra if use_extra else []), dirs[name], ds, show_progress=show_progress)
     timing["ablation_training"] = time.perf_counter() - t
     ids = {c: list(views[c].test) for c in s.cases}
     photos = np.concatenate([views[c].photos[ids[c]] for c in s.cases])
@@ -276,10 +286,10 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     mid = sorted(s.sweep_steps)[len(s.sweep_steps) // 2]
     ablation = []
     t = time.perf_counter()
-    loaded = {name: load_diffrender(work / "ablation" / name) for name in runs}
+    loaded = {name: load_diffrender(dirs[name]) for name in runs}
     for name, (ds, use_extra) in runs.items():
         pred, sec = _sample(loaded[name], morphed, mid, s.guidance, 1, show_progress)
-        trained = read_json(work / "ablation" / name / "metrics.json", "ablation metrics")
+        trained = read_json(dirs[name] / "metrics.json", "ablation metrics")
         ablation.append({"run": name, "global_source": ds.global_source, "residual": ds.residual,
                          "decomposed_pairs": use_extra, "widths": list(ds.widths), "steps": mid,
                          "train_steps": trained["training"]["steps"], "train_pairs": trained["train_pairs"],
@@ -306,7 +316,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     with torch_threads(main_s.threads):
         tput = throughput(main_s)
     t = time.perf_counter()
-    main = main_dir(work, main_s.widths, s.train_seconds)
+    main = main_dir(work, main_s)
     train_diffrender(train_views, main, main_s, show_progress=show_progress)
     trained_main = load_diffrender(main)
     timing["main_training"] = time.perf_counter() - t
@@ -434,7 +444,7 @@ def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 
     s = DiffRenderBenchSettings(**{k: v for k, v in result["settings"].items()})
     work = Path(out_dir) / "diffrender_work"
     gb = GanBenchSettings(cases=s.cases, morph_iterations=s.morph_iterations, seed=s.seed)
-    trained = load_diffrender(main_dir(work, result["model"]["widths"], s.train_seconds))
+    trained = load_diffrender(main_dir(work, from_json(DiffRenderSettings, result["model"], "diffrender result")))
     rows = []
     for c in (*s.cases, *s.unseen):
         bench, mdir = prepare(c, work, gb, show_progress)[:2]
