@@ -683,6 +683,8 @@ def _add_diffrender_parser(sub) -> None:
     _opt(t, DiffRenderSettings, "p_uncond")
     _opt(t, DiffRenderSettings, "residual", "--direct",
          help="generate the photo itself (the seed) instead of its residual over R = A·I + S")
+    _opt(t, DiffRenderSettings, "known_background", "--every-pixel",
+         help="learn the residual on every pixel instead of holding it at 0 where the G-buffer sees no surface")
     _opt(t, DiffRenderSettings, "threads", help="torch threads (0: all cores)")
     _opt(t, DiffRenderSettings, "seed")
     t.add_argument("--json", default=None)

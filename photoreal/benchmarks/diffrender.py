@@ -10,7 +10,8 @@ morphed G-buffers. Everything trained is kept in ``OUT/diffrender_work`` and reu
    makes (decomposed layers → photo) pairs for the data ablation.
 2. **Equal-time ablations** (``ablation_seconds`` each, one seed): global features from R (the seed),
    from A‖I‖S (recomposition ablation), off; R plus the decomposed pairs (data ablation); the photo
-   generated directly instead of the residual over R; a smaller UNet.
+   generated directly instead of the residual over R; a smaller UNet; the residual learned on every pixel
+   instead of being known (0) where the G-buffer sees no surface.
 3. **Sweep** of DDIM steps × model size (the R and small runs, on the first ``sweep_views`` held-out
    views per case): seconds per 128² image and ꟻLIP; **chosen** = the cheapest (seconds) within
    ``tolerance_flip`` of the best ꟻLIP. The main model is trained (``train_seconds``) at the chosen size
@@ -274,7 +275,8 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     base = DiffRenderSettings(max_seconds=s.ablation_seconds, seed=s.seed)
     runs = {"R": (base, False), "AIS": (replace(base, global_source="AIS"), False),
             "none": (replace(base, global_source="none"), False), "R+decomposed": (base, True),
-            "direct": (replace(base, residual=False), False), "small": (replace(base, widths=s.small_widths), False)}
+            "direct": (replace(base, residual=False), False), "small": (replace(base, widths=s.small_widths), False),
+            "every_pixel": (replace(base, known_background=False), False)}
     t = time.perf_counter()
     dirs = {name: run_dir(work / "ablation", name, ds) for name, (ds, _) in runs.items()}
     for name, (ds, use_extra) in runs.items():
@@ -291,6 +293,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
         pred, sec = _sample(loaded[name], morphed, mid, s.guidance, 1, show_progress)
         trained = read_json(dirs[name] / "metrics.json", "ablation metrics")
         ablation.append({"run": name, "global_source": ds.global_source, "residual": ds.residual,
+                         "known_background": ds.known_background,
                          "decomposed_pairs": use_extra, "widths": list(ds.widths), "steps": mid,
                          "train_steps": trained["training"]["steps"], "train_pairs": trained["train_pairs"],
                          **_paired(pred[0], photos), "seconds_per_image": sec})
