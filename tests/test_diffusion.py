@@ -234,6 +234,24 @@ def test_training_lowers_the_loss_on_a_tiny_task(tiny_views, tmp_path, residual,
     assert after < ratio * before, (before, after)
 
 
+def test_renderer_samples_with_the_weights_moving_average(tiny_views, tmp_path):
+    """load_diffrender returns the checkpoint's EMA weights (the shared mixin's average), not the last ones; with
+    ema = 0 the two are the same."""
+    from foundation.loop import read_checkpoint
+    from generative.diffusion.renderer import load_diffrender, train_diffrender
+
+    _, _, v = tiny_views
+    for ema in (0.5, 0.0):
+        train_diffrender([v], tmp_path / f"e{ema}", _tiny_settings(steps=3, ema=ema), show_progress=False)
+        model, _ = load_diffrender(tmp_path / f"e{ema}")
+        saved = read_checkpoint(tmp_path / f"e{ema}" / "checkpoint.npz").stage
+        name, w = next((k, p) for k, p in model.state_dict().items() if k.endswith("conv_in.weight"))
+        assert ("ema" in saved) == (ema > 0)
+        np.testing.assert_array_equal(w.numpy(), np.asarray(saved["ema" if ema else "model"][name]))
+        if ema:
+            assert np.abs(np.asarray(saved["ema"][name]) - np.asarray(saved["model"][name])).max() > 1e-6
+
+
 def test_background_residual_is_the_photos_noise_and_is_known(tiny_views):
     """Where no sample of a pixel hits the mesh, R is the environment the photo sees: photo − R there is zero-mean
     noise (mean within 2 % of the photo's there), so the model need not learn it; the training target is 0 there

@@ -223,10 +223,19 @@ def sample(model: ConditionalDiffusion, local: torch.Tensor | None, global_cond:
 class OptimizerStage:
     """Mixin for a :class:`foundation.loop.Stage` with one torch ``model``, one optimiser ``opt``, a numpy ``rng`` and
     optionally a torch generator ``gen``: ``backward`` a loss into a :class:`StepResult` (the loop applies the step only
-    when the loss and every gradient are finite), and the checkpoint state of all four."""
+    when the loss and every gradient are finite), and the checkpoint state of all four.
+
+    With ``ema_decay`` > 0 (set by the stage; call :meth:`start_ema` after building the model) it also keeps an
+    exponential moving average of the weights, saved as the checkpoint's ``ema`` entry (what sampling loads)."""
 
     model: nn.Module
     opt: torch.optim.Optimizer
+    ema_decay: float = 0.0
+    ema: dict | None = None
+
+    def start_ema(self, decay: float) -> None:
+        self.ema_decay = float(decay)
+        self.ema = {k: v.detach().clone() for k, v in self.model.state_dict().items()} if decay else None
 
     def backward(self, loss: torch.Tensor):
         from foundation.loop import StepResult, all_finite
@@ -238,6 +247,11 @@ class OptimizerStage:
 
     def apply(self, it: int) -> None:
         self.opt.step()
+        if self.ema is not None:  # warm-up (1 + it)/(10 + it) so the average forgets the initialisation early
+            d = min(self.ema_decay, (1.0 + it) / (10.0 + it))
+            with torch.no_grad():
+                for k, v in self.model.state_dict().items():
+                    self.ema[k].lerp_(v, 1.0 - d) if v.is_floating_point() else self.ema[k].copy_(v)
 
     def discard(self, it: int) -> None:
         self.opt.zero_grad(set_to_none=True)
@@ -252,6 +266,8 @@ class OptimizerStage:
         tree = {"model": self.model.state_dict(), "opt": optimizer_state(self.opt), "rng": rng_state(self.rng)}
         if getattr(self, "gen", None) is not None:
             tree["gen"] = np.asarray(self.gen.get_state().numpy())
+        if self.ema is not None:
+            tree["ema"] = self.ema
         return tree
 
     def load_state(self, tree: dict) -> None:
@@ -265,6 +281,8 @@ class OptimizerStage:
         set_rng_state(self.rng, tree["rng"])
         if getattr(self, "gen", None) is not None:
             self.gen.set_state(torch.as_tensor(np.asarray(tree["gen"]), dtype=torch.uint8))
+        if self.ema is not None:
+            self.ema = {k: torch.as_tensor(v).clone() for k, v in tree["ema"].items()}
 
 
 def train_stage(make_stage, out, s, budget_steps: int | None, show_progress: bool, metrics: bool = True):

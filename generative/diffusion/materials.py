@@ -287,29 +287,10 @@ class MatDiffStage(OptimizerStage, Stage):
         self.model = build_model(s)
         self.sched = make_material_scheduler(s, self.res)
         self.opt = torch.optim.AdamW(self.model.parameters(), lr=s.lr, weight_decay=0.0)
-        self.ema = {k: v.detach().clone() for k, v in self.model.state_dict().items()} if s.ema else None
+        self.start_ema(s.ema)
 
     def fingerprint(self) -> dict:
         return {"settings": self.s, "data": self.digest}
-
-    def apply(self, it: int) -> None:
-        self.opt.step()
-        if self.ema is not None:  # warm-up (1 + it)/(10 + it) so the average forgets the initialisation early
-            d = min(self.s.ema, (1.0 + it) / (10.0 + it))
-            with torch.no_grad():
-                for k, v in self.model.state_dict().items():
-                    self.ema[k].lerp_(v, 1.0 - d) if v.is_floating_point() else self.ema[k].copy_(v)
-
-    def state(self) -> dict:
-        tree = super().state()
-        if self.ema is not None:
-            tree["ema"] = self.ema
-        return tree
-
-    def load_state(self, tree: dict) -> None:
-        super().load_state(tree)
-        if self.ema is not None:
-            self.ema = {k: torch.as_tensor(v).clone() for k, v in tree["ema"].items()}
 
     def step(self, it: int) -> StepResult:
         s, rng = self.s, self.rng
