@@ -260,8 +260,8 @@ class DiffRenderSettings:
     #: mesh's pixels only, held at 0 elsewhere while sampling (residual only; see the module docstring)
     known_background: bool = True
     #: decay of the weights' moving average that sampling uses (0: the last weights). The last weights of a short
-    #: CPU run wander: three 720 s runs of the same settings (1913–2126 steps) gave held-out ꟻLIP 0.070–0.079; the
-    #: average (0.995) of one of them 0.071 against its last weights' 0.076
+    #: CPU run wander: three 720 s runs of the same settings, stopped by the budget at 1913–2126 steps, gave held-out
+    #: ꟻLIP 0.070–0.079; the average (0.995) of one of them 0.071 against its last weights' 0.076
     ema: float = 0.995
     seed: int = 0
 
