@@ -450,7 +450,7 @@ def load_diffrender(run: str | Path) -> tuple[ConditionalDiffusion, DiffRenderSe
 @dataclass
 class SampleSettings:
     #: DDIM steps; 1 (from pure noise: the posterior mean) is what `bench diffrender` chose, its lowest ꟻLIP on
-    #: held-out views (0.107 vs 0.117 at 5 steps, 0.126 at 40); more steps give sharper, stochastic samples
+    #: held-out views (0.091 vs 0.109 at 5 steps, 0.119 at 40; 2026-11-26); more steps give sharper, stochastic samples
     steps: int = 1
     guidance: float = 1.5  #: classifier-free guidance weight on the global condition (1 = none)
     seed: int = 0
