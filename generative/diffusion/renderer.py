@@ -348,15 +348,15 @@ class _Pairs:
                 L = {k: a[ids] for k, a in v.layers[src].items()}
                 self.x.append(target_space(v.photos[ids], L, s))
                 m = known_mask(L, s)
-                self.w.append(m if m is not None else np.ones(L["normal"].shape[:-1], np.float32))
+                if m is not None:
+                    self.w.append(m)
                 self.c.append(local_condition(L))
                 g = global_condition(L, s.global_source)
                 self.g.append(g if g is not None else np.zeros((len(ids), 0, 0), np.float32))
         self.x = np.concatenate(self.x)
         self.c = np.concatenate(self.c)
         self.g = np.concatenate(self.g)
-        self.w = np.concatenate(self.w)
-        self.weighted = s.residual and s.known_background
+        self.w = np.concatenate(self.w) if self.w else None  #: loss weights per pixel (known background only)
         self.use_global = s.global_source != "none"
 
     def __len__(self) -> int:
@@ -375,11 +375,12 @@ class _Pairs:
                 ch = cw = crop
             xs.append(self.x[i, y0:y0 + ch, x0:x0 + cw])
             cs.append(self.c[i, y0:y0 + ch, x0:x0 + cw])
-            ws.append(self.w[i, y0:y0 + ch, x0:x0 + cw])
+            if self.w is not None:
+                ws.append(self.w[i, y0:y0 + ch, x0:x0 + cw])
         x = torch.from_numpy(np.ascontiguousarray(np.stack(xs).transpose(0, 3, 1, 2)))
         c = torch.from_numpy(np.ascontiguousarray(np.stack(cs).transpose(0, 3, 1, 2)))
         g = torch.from_numpy(self.g[ids]) if self.use_global else None
-        w = torch.from_numpy(np.ascontiguousarray(np.stack(ws)[:, None])) if self.weighted else None
+        w = torch.from_numpy(np.ascontiguousarray(np.stack(ws)[:, None])) if ws else None
         return x, c, g, w
 
 
