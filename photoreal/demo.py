@@ -446,7 +446,7 @@ def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None
              "fid_mnv2": b["fid_mnv2"].get(k, "")} for k, m in b["heldout"].items()]
     s = b["settings"]
     body = (f"<p>Held-out views of {', '.join(s['cases'])} (mean over cases; diffusion: mean over {s['seeds']} sampling "
-            f"seeds, {b['ddim_steps']} DDIM steps, guidance {b['guidance']}). diffusion = rendered from the morphed "
+            f"seeds, {b['ddim_steps']} DDIM steps, mean of {b.get('draws', 1)} per view, guidance {b['guidance']}). diffusion = rendered from the morphed "
             f"mesh's G-buffers, diffusion_coarse = from the coarse mesh's. KID/FID use ImageNet MobileNetV2 "
             f"features (not Inception). Lower is better except PSNR.</p>" + _table(rows, cols))
     if b.get("references"):

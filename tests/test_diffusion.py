@@ -277,6 +277,38 @@ def test_background_residual_is_the_photos_noise_and_is_known(tiny_views):
     np.testing.assert_allclose(back[~bg], shown(v.photos)[~bg], rtol=1e-4, atol=1e-5)
 
 
+def test_draws_average_the_samples_of_one_view_in_model_space(tiny_views):
+    """``draws`` = K: a view's render is from_target_space of the mean of the K samples that one batch of K noises
+    (the view's seed) gives — the same numbers as calling :func:`sample` on that batch (rtol 1e-5); K = 1 is the
+    single sample; the mean of K varies less between seeds than one sample does."""
+    from generative.diffusion.core import ConditionalDiffusion
+    from generative.diffusion.renderer import SampleSettings, from_target_space, known_mask, local_condition, \
+        render_views
+
+    _, _, v = tiny_views
+    s = _tiny_settings(global_source="none")
+    model = ConditionalDiffusion(s.model_config(), seed=3).eval()
+    k = int(v.test[0])
+    layers = {n: a[[k]] for n, a in v.layers["morphed"].items()}
+    c = torch.from_numpy(np.ascontiguousarray(local_condition(layers).transpose(0, 3, 1, 2)))
+    kz = torch.from_numpy(np.ascontiguousarray(known_mask(layers, s)[:, None]))
+    h, w = c.shape[2:]
+    with torch.no_grad():
+        x = sample(model, c.repeat(4, 1, 1, 1), None, (4, 3, h, w), steps=1, seed=7, known_zero=kz.repeat(4, 1, 1, 1))
+    one = {n: a[0] for n, a in layers.items()}
+    want = from_target_space(x.mean(0).permute(1, 2, 0).numpy(), one, s)
+    got, _ = render_views(model, s, layers, SampleSettings(steps=1, draws=4, seed=7), show_progress=False)
+    np.testing.assert_allclose(got[0], want, rtol=1e-5, atol=1e-6)
+    single, _ = render_views(model, s, layers, SampleSettings(steps=1, seed=7), show_progress=False)
+    np.testing.assert_allclose(single[0], from_target_space(x[0].permute(1, 2, 0).numpy(), one, s), rtol=1e-5,
+                               atol=1e-6)
+    other, _ = render_views(model, s, layers, SampleSettings(steps=1, draws=4, seed=8), show_progress=False)
+    other1, _ = render_views(model, s, layers, SampleSettings(steps=1, seed=8), show_progress=False)
+    assert np.abs(got - other).mean() < np.abs(single - other1).mean()
+    with pytest.raises(UsageError, match="draws"):
+        SampleSettings(draws=0)
+
+
 @pytest.mark.slow
 def test_render_views_and_bad_inputs(tiny_views, tmp_path):
     from generative.diffusion.renderer import SampleSettings, load_diffrender, local_condition, render_views, \

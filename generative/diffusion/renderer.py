@@ -62,7 +62,10 @@ ENCODER_SIZE = 128
 
 @dataclass
 class GBufferSettings:
-    spp: int = 16
+    #: as many as the GAN stages' input renders (:class:`generative.gan.data.GanDataSettings`): the bench compares
+    #: them on the same views, and at 16 spp the PBR recomposition carried twice their Monte-Carlo variance (held-out
+    #: armadillo ꟻLIP 0.039 at 16 spp, 0.036 at 32, Morph-GAN 0.037, 2026-11-26)
+    spp: int = 32
     max_depth: int = 3  #: intrinsic integrator path depth (the photos use the benchmark's photo_max_depth, 4 by default)
 
     def __post_init__(self):
@@ -454,10 +457,15 @@ class SampleSettings:
     #: held-out views (0.091 vs 0.109 at 5 steps, 0.119 at 40; 2026-11-26); more steps give sharper, stochastic samples
     steps: int = 1
     guidance: float = 1.5  #: classifier-free guidance weight on the global condition (1 = none)
+    #: samples averaged per view. At 1 step from pure noise each sample is x̂₀(x_T) ≈ E[x₀ | G-buffers, x_T], and x_T
+    #: carries nothing about x₀ (ᾱ_T ≈ 2e-9), so their mean over x_T estimates the posterior mean E[x₀ | G-buffers]
+    #: without the noise an imperfect model lets through from x_T (cost: ``draws`` × the network evaluations)
+    draws: int = 1
     seed: int = 0
 
     def __post_init__(self):
         validate.integer("steps", self.steps, 1, 1000)
+        validate.integer("draws", self.draws, 1, 256)
         validate.non_negative("guidance", self.guidance)
         validate.seed("seed", self.seed)
 
@@ -466,7 +474,8 @@ def render_views(model: ConditionalDiffusion, s: DiffRenderSettings, layers: dic
                  sample_s: SampleSettings | None = None, show_progress: bool = True) -> tuple[np.ndarray, float]:
     """Generate photos of whole views from G-buffers (layer → (N, H, W, 3)) → (N, H, W, 3) linear, s per image.
 
-    View k uses noise seed ``sample_s.seed + k``, so a view's image does not depend on the batch.
+    View k uses noise seed ``sample_s.seed + k`` (all its ``draws`` in one batch), so a view's image does not depend
+    on the batch of views.
     """
     ss = sample_s or SampleSettings()
     local = local_condition(layers)
@@ -477,12 +486,15 @@ def render_views(model: ConditionalDiffusion, s: DiffRenderSettings, layers: dic
     t0 = time.perf_counter()
     with progress_bar(total=n * ss.steps, desc="diffusion render", unit="step", disable=not show_progress) as bar:
         for k in range(n):
-            c = torch.from_numpy(np.ascontiguousarray(local[k:k + 1].transpose(0, 3, 1, 2)))
-            g = None if glob is None else torch.from_numpy(glob[k:k + 1])
-            kz = None if known is None else torch.from_numpy(np.ascontiguousarray(known[k:k + 1, None]))
-            x = sample(model, c, g, (1, 3, h, w), steps=ss.steps, guidance=ss.guidance, seed=ss.seed + k,
+            d = ss.draws
+            c = torch.from_numpy(np.ascontiguousarray(local[k:k + 1].transpose(0, 3, 1, 2))).expand(d, -1, -1, -1)
+            g = None if glob is None else torch.from_numpy(glob[k:k + 1]).expand(d, -1, -1)
+            kz = None if known is None else torch.from_numpy(np.ascontiguousarray(known[k:k + 1, None])).expand(
+                d, -1, -1, -1)
+            x = sample(model, c, g, (d, 3, h, w), steps=ss.steps, guidance=ss.guidance, seed=ss.seed + k,
                        progress=bar.update, known_zero=kz)
-            out[k] = from_target_space(x[0].permute(1, 2, 0).numpy(), {n: a[k] for n, a in layers.items()}, s)
+            x = x.mean(0)  # in model space, where the loss (and so the posterior mean) lives
+            out[k] = from_target_space(x.permute(1, 2, 0).numpy(), {n: a[k] for n, a in layers.items()}, s)
     return out, (time.perf_counter() - t0) / max(n, 1)
 
 
@@ -535,7 +547,7 @@ def render_benchmark(run: str | Path, bench: MorphBenchmark, morph_dir: str | Pa
     return DiffRenderOutput(files, sec, ids, source, mean(images), mean(data.recomposed(source)[ids]))
 
 
-def render_scene_file(run: str | Path, scene_path: str | Path, out_dir: str | Path, spp: int = 16,
+def render_scene_file(run: str | Path, scene_path: str | Path, out_dir: str | Path, spp: int = 32,
                       sample_s: SampleSettings | None = None, show_progress: bool = True) -> DiffRenderOutput:
     """G-buffers of every sensor of a Mitsuba scene (``intrinsic`` integrator) → diffusion renders."""
     from foundation.scene import RenderSettings, load_scene, render_scene, sensor_count

@@ -54,7 +54,7 @@ from generative.diffusion import (DECOMPOSED, ConditionalDiffusion, DecompDataSe
                                   load_decomp_data, load_decomposer, load_diffrender, load_intrinsic_views,
                                   make_scheduler, photographs, render_gbuffers, render_views, train_decomposer,
                                   train_diffrender, training_flops)
-from generative.gan import GanTrainSettings, load_heldout_predictions, load_paired_views, train_gan
+from generative.gan import GanDataSettings, GanTrainSettings, load_heldout_predictions, load_paired_views, train_gan
 from inverse.morph import sensor_dict, truth_scene
 
 from .gan import GanBenchSettings, _prepare
@@ -73,6 +73,9 @@ class DiffRenderBenchSettings:
     small_widths: tuple[int, ...] = (16, 32, 48, 64)  #: the smaller model of the size sweep
     sweep_steps: tuple[int, ...] = (1, 2, 5, 10, 20, 40)  #: 1 step from pure noise = the model's posterior mean
     sweep_views: int = 4  #: held-out views per case in the sweep
+    #: the sweep also tries the mean of this many one-step samples per view (SampleSettings.draws): the posterior
+    #: mean without the noise the model passes through from x_T; 1 = no such rows
+    mean_draws: int = 8
     tolerance_flip: float = 0.003  #: chosen = cheapest within this ꟻLIP of the sweep's best
     guidance: float = 1.5
     seeds: int = 3  #: sampling seeds of the main model's held-out renders
@@ -84,6 +87,8 @@ class DiffRenderBenchSettings:
     morph_iterations: int = 100  #: as the GAN bench: work folders are interchangeable
     #: samples per pixel of the references (what the paired targets demand, :func:`references`); 0 = none
     reference_spp: int = 256
+    #: samples per pixel of every method's input: the G-buffers (PBR and diffusion) and the GANs' renders alike
+    input_spp: int = 32
     seed: int = 0
 
     def __post_init__(self):
@@ -97,12 +102,14 @@ class DiffRenderBenchSettings:
         for k in self.sweep_steps:
             validate.integer("sweep_steps", k, 1, 1000)
         validate.integer("sweep_views", self.sweep_views, 1)
+        validate.integer("mean_draws", self.mean_draws, 1, 256)
         validate.non_negative("tolerance_flip", self.tolerance_flip)
         validate.non_negative("guidance", self.guidance)
         validate.integer("seeds", self.seeds, 1, 100)
         validate.integer("decomp_scenes", self.decomp_scenes, 4)
         validate.integer("morph_iterations", self.morph_iterations, 1)
         validate.integer("reference_spp", self.reference_spp, 0)
+        validate.integer("input_spp", self.input_spp, 1)
         validate.seed("seed", self.seed)
         DiffRenderSettings(widths=self.small_widths)  # validates the widths
 
@@ -170,14 +177,15 @@ def _test_layers(v: IntrinsicViews, source: str, ids: list[int]) -> dict:
     return {k: a[ids] for k, a in v.layers[source].items()}
 
 
-def _sample(trained: tuple, layers: dict, steps: int, guidance: float, seeds: int, show_progress: bool):
+def _sample(trained: tuple, layers: dict, steps: int, guidance: float, seeds: int, show_progress: bool,
+            draws: int = 1):
     """(seeds, N, H, W, 3) renders of a loaded run (:func:`load_diffrender`) and seconds per image (mean over seeds)."""
     model, ds = trained
     imgs, secs = [], []
     with torch_threads(0):
         for k in range(seeds):
-            im, sec = render_views(model, ds, layers, SampleSettings(steps=steps, guidance=guidance, seed=1000 * k),
-                                   show_progress)
+            im, sec = render_views(model, ds, layers, SampleSettings(steps=steps, guidance=guidance, seed=1000 * k,
+                                                                     draws=draws), show_progress)
             imgs.append(im)
             secs.append(sec)
     return np.stack(imgs), float(np.mean(secs))
@@ -217,7 +225,7 @@ def references(bench, morph_dir: Path, ids: list[int], spp: int, show_progress: 
 
     * ``pbr_morphed_clean`` — R = A·I + S from the morphed mesh's G-buffers at ``spp`` samples: PBR recomposition
       with its Monte-Carlo noise gone, the most a renderer that only denoises its G-buffers can gain over
-      ``pbr_morphed`` (16 spp);
+      ``pbr_morphed`` (:class:`GBufferSettings` spp, 32);
     * ``truth_clean`` — the ground truth itself, path traced at ``spp`` (:func:`inverse.morph.truth_scene`): a
       perfect renderer of the *true* scene, scored against the benchmark's 64-spp photos — their noise floor.
 
@@ -252,7 +260,7 @@ def main_dir(work: Path, ds: DiffRenderSettings) -> Path:
 def _choose(sweep: list[dict], tol: float) -> dict:
     best = min(r["flip"] for r in sweep)
     ok = [r for r in sweep if r["flip"] <= best + tol]
-    pick = min(ok, key=lambda r: (r["seconds_per_image"], r["parameters"], r["steps"]))
+    pick = min(ok, key=lambda r: (r["seconds_per_image"], r["parameters"], r["steps"], r.get("draws", 1)))
     return {**pick, "best_flip": best, "tolerance_flip": tol}
 
 
@@ -263,7 +271,8 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     t0 = time.perf_counter()
     gb = GanBenchSettings(cases=s.cases, morph_iterations=s.morph_iterations, seed=s.seed)
     prepared = {c: _prepare(c, work, gb, show_progress)[:2] for c in (*s.cases, *s.unseen)}
-    views = {c: load_intrinsic_views(b, m, show_progress=show_progress) for c, (b, m) in prepared.items()}
+    views = {c: load_intrinsic_views(b, m, GBufferSettings(spp=s.input_spp), show_progress=show_progress)
+             for c, (b, m) in prepared.items()}
     train_views = [views[c] for c in s.cases]
     timing = {}
 
@@ -306,11 +315,12 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     for name in ("R", "small"):
         ds = loaded[name][1]
         params = count_parameters(loaded[name][0])
-        for steps in s.sweep_steps:
-            pred, sec = _sample(loaded[name], sw_layers, steps, s.guidance, 1, show_progress)
+        tries = [(k, 1) for k in s.sweep_steps] + ([(1, s.mean_draws)] if s.mean_draws > 1 else [])
+        for steps, draws in tries:
+            pred, sec = _sample(loaded[name], sw_layers, steps, s.guidance, 1, show_progress, draws)
             m = _paired(pred[0], sw_photos)
             sweep.append({"model": name, "widths": list(ds.widths), "parameters": int(params), "steps": steps,
-                          "seconds_per_image": sec, **{k: m[k] for k in PAIRED}})
+                          "draws": draws, "seconds_per_image": sec, **{k: m[k] for k in PAIRED}})
     chosen = _choose(sweep, s.tolerance_flip)
     timing["ablation_and_sweep_sampling"] = time.perf_counter() - t
 
@@ -324,7 +334,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     trained_main = load_diffrender(main)
     timing["main_training"] = time.perf_counter() - t
     main_metrics = read_json(main / "metrics.json", "diffusion metrics")
-    steps = int(chosen["steps"])
+    steps, draws = int(chosen["steps"]), int(chosen.get("draws", 1))
     t = time.perf_counter()
     cases, all_pred, all_photos, sample_s = {}, {}, [], []
     for c in (*s.cases, *s.unseen):
@@ -333,13 +343,13 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
         ph = v.photos[tid]
         preds = {"pbr_coarse": v.recomposed("coarse")[tid], "pbr_morphed": v.recomposed("morphed")[tid]}
         preds["diffusion"], sec = _sample(trained_main, _test_layers(v, "morphed", tid), steps, s.guidance, s.seeds,
-                                          show_progress)
+                                          show_progress, draws)
         sample_s.append(sec)
         preds["diffusion_coarse"], _ = _sample(trained_main, _test_layers(v, "coarse", tid), steps, s.guidance, 1,
-                                               show_progress)
+                                               show_progress, draws)
         if s.gans and c in s.cases:
             bench, mdir = prepared[c]
-            data = load_paired_views(bench, mdir, show_progress=show_progress)
+            data = load_paired_views(bench, mdir, GanDataSettings(spp=s.input_spp), show_progress=show_progress)
             for name in ("cyclegan", "pix2pix", "morph_gan"):
                 gs = GanTrainSettings(model=name, max_seconds=s.cyclegan_seconds if name == "cyclegan" else s.gan_seconds,
                                       residual=name != "cyclegan", seed=s.seed)
@@ -373,7 +383,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
            "fid_mnv2": fid_mnv2,
            "decomposition_psnr": decomposition["psnr"], "decomposition": decomposition,
            "ablation": ablation, "sweep": sweep, "chosen": chosen,
-           "sample_seconds_128": float(np.mean(sample_s)), "ddim_steps": steps, "guidance": s.guidance,
+           "sample_seconds_128": float(np.mean(sample_s)), "ddim_steps": steps, "draws": draws, "guidance": s.guidance,
            "train_flops_fraction": tput["train_flops_fraction"], "throughput": tput,
            "main_training": main_metrics["training"], "parameters": main_metrics["parameters"],
            "loss_curve": main_metrics.get("loss_curve"), "settings": asdict(s), "model": asdict(main_s),
@@ -411,19 +421,23 @@ def sweep_chart(result: dict, path: Path) -> Path:
 
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     for model in sorted({r["model"] for r in result["sweep"]}):
-        rows = [r for r in result["sweep"] if r["model"] == model]
-        ax.plot([r["seconds_per_image"] for r in rows], [r["flip"] for r in rows], "-o",
-                label=f"{model} ({rows[0]['parameters'] / 1e6:.2f} M params)")
-        for r in rows:
-            ax.annotate(f"{r['steps']}", (r["seconds_per_image"], r["flip"]), fontsize=7, xytext=(3, 3),
-                        textcoords="offset points")
+        rows = [r for r in result["sweep"] if r["model"] == model and r.get("draws", 1) == 1]
+        line, = ax.plot([r["seconds_per_image"] for r in rows], [r["flip"] for r in rows], "-o",
+                        label=f"{model} ({rows[0]['parameters'] / 1e6:.2f} M params)")
+        means = [r for r in result["sweep"] if r["model"] == model and r.get("draws", 1) > 1]
+        for r in rows + means:
+            ax.annotate(f"{r['steps']}" + (f" (mean of {r['draws']})" if r.get("draws", 1) > 1 else ""),
+                        (r["seconds_per_image"], r["flip"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        if means:
+            ax.plot([r["seconds_per_image"] for r in means], [r["flip"] for r in means], "s", color=line.get_color())
     c = result["chosen"]
-    ax.plot([c["seconds_per_image"]], [c["flip"]], "k*", ms=13, label=f"chosen ({c['model']}, {c['steps']} steps)")
+    how = f"{c['steps']} steps" + (f", mean of {c['draws']}" if c.get("draws", 1) > 1 else "")
+    ax.plot([c["seconds_per_image"]], [c["flip"]], "k*", ms=13, label=f"chosen ({c['model']}, {how})")
     sub = result["heldout"]
     for name, ls in (("pbr_coarse", "--"), ("pbr_morphed", ":")):
         ax.axhline(sub[name]["flip"], color="gray", ls=ls, lw=1, label=f"{name} (all held-out views)")
     ax.set_xscale("log")
-    ax.set_xlabel("seconds per 128² image (2 CPU cores; labels: DDIM steps)")
+    ax.set_xlabel("seconds per 128² image (2 CPU cores; labels: DDIM steps; squares: mean of one-step samples)")
     ax.set_ylabel("held-out ꟻLIP (lower is better)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
@@ -444,14 +458,15 @@ def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 
 
     from .gan import _prepare as prepare
 
-    s = DiffRenderBenchSettings(**{k: v for k, v in result["settings"].items()})
+    # results from before input_spp rendered the G-buffers at 16 spp
+    s = DiffRenderBenchSettings(**{"input_spp": 16, **result["settings"]})
     work = Path(out_dir) / "diffrender_work"
     gb = GanBenchSettings(cases=s.cases, morph_iterations=s.morph_iterations, seed=s.seed)
     trained = load_diffrender(main_dir(work, from_json(DiffRenderSettings, result["model"], "diffrender result")))
     rows = []
     for c in (*s.cases, *s.unseen):
         bench, mdir = prepare(c, work, gb, show_progress)[:2]
-        v = load_intrinsic_views(bench, mdir, show_progress=show_progress)
+        v = load_intrinsic_views(bench, mdir, GBufferSettings(spp=s.input_spp), show_progress=show_progress)
         for i in list(v.test)[:per_case]:
             L = v.layers["coarse"]
             cols = [("A (coarse)", L["albedo"][i]), ("I (coarse)", L["irradiance"][i] / (1 + L["irradiance"][i])),
@@ -461,7 +476,7 @@ def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 
                 if (work / c / name / "checkpoint.npz").is_file():
                     cols.append((name, load_heldout_predictions(work / c / name, list(v.test))[list(v.test).index(i)]))
             img, _ = _sample(trained, _test_layers(v, "morphed", [i]), int(result["ddim_steps"]),
-                             float(result["guidance"]), 1, show_progress)
+                             float(result["guidance"]), 1, show_progress, int(result.get("draws", 1)))
             cols += [("diffusion", img[0, 0]), ("photo", v.photos[i])]
             rows.append((f"{c} view {i}", cols))
     n = max(len(r[1]) for r in rows)
