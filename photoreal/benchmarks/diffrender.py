@@ -46,7 +46,7 @@ from foundation.errors import UsageError
 from foundation.features import fid, image_features, kid, perceptual_distance
 from foundation.files import read_json
 from foundation.metrics import image_metrics
-from foundation.records import from_json, to_json
+from foundation.records import to_json
 from foundation.scene import recompose
 from foundation.threads import torch_threads
 from generative.diffusion import (DECOMPOSED, ConditionalDiffusion, DecompDataSettings, DecompSettings,
@@ -245,16 +245,17 @@ def references(bench, morph_dir: Path, ids: list[int], spp: int, show_progress: 
     return out
 
 
-def run_dir(parent: Path, name: str, ds: DiffRenderSettings) -> Path:
-    """A training run's folder, named by its settings' digest too: a rerun reuses a run only when its settings are
-    the same (a folder of other settings would refuse to resume) and changed settings train beside the old run."""
-    key = hashlib.sha256(json.dumps(to_json(ds), sort_keys=True).encode()).hexdigest()[:8]
-    return Path(parent) / f"{name}_{key}"
+def run_dir(parent: Path, name: str, ds: DiffRenderSettings, data: list[IntrinsicViews]) -> Path:
+    """A training run's folder, named by a digest of its settings and training data too: a rerun reuses a run only
+    when both are the same (a folder of others would refuse to resume) and a change trains beside the old run."""
+    key = {"settings": to_json(ds), "data": [v.digest() for v in data]}
+    return Path(parent) / f"{name}_{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:8]}"
 
 
-def main_dir(work: Path, ds: DiffRenderSettings) -> Path:
-    """The main model's run folder: one per (size, budget, settings), so a longer budget trains beside a shorter one."""
-    return run_dir(Path(work) / "main", f"{'-'.join(map(str, ds.widths))}_{ds.max_seconds:g}s", ds)
+def main_dir(work: Path, ds: DiffRenderSettings, data: list[IntrinsicViews]) -> Path:
+    """The main model's run folder: one per (size, budget, settings, data), so a longer budget trains beside a
+    shorter one."""
+    return run_dir(Path(work) / "main", f"{'-'.join(map(str, ds.widths))}_{ds.max_seconds:g}s", ds, data)
 
 
 def _choose(sweep: list[dict], tol: float) -> dict:
@@ -287,7 +288,8 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
             "direct": (replace(base, residual=False), False), "small": (replace(base, widths=s.small_widths), False),
             "every_pixel": (replace(base, known_background=False), False)}
     t = time.perf_counter()
-    dirs = {name: run_dir(work / "ablation", name, ds) for name, (ds, _) in runs.items()}
+    dirs = {name: run_dir(work / "ablation", name, ds, train_views + (extra if use_extra else []))
+            for name, (ds, use_extra) in runs.items()}
     for name, (ds, use_extra) in runs.items():
         train_diffrender(train_views + (extra if use_extra else []), dirs[name], ds, show_progress=show_progress)
     timing["ablation_training"] = time.perf_counter() - t
@@ -329,7 +331,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     with torch_threads(main_s.threads):
         tput = throughput(main_s)
     t = time.perf_counter()
-    main = main_dir(work, main_s)
+    main = main_dir(work, main_s, train_views)
     train_diffrender(train_views, main, main_s, show_progress=show_progress)
     trained_main = load_diffrender(main)
     timing["main_training"] = time.perf_counter() - t
@@ -387,6 +389,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
            "train_flops_fraction": tput["train_flops_fraction"], "throughput": tput,
            "main_training": main_metrics["training"], "parameters": main_metrics["parameters"],
            "loss_curve": main_metrics.get("loss_curve"), "settings": asdict(s), "model": asdict(main_s),
+           "main_run": str(main.relative_to(work)),
            "timing_seconds": timing, "seconds": time.perf_counter() - t0}
     out["verdict"] = _verdict(out, s)
     return out
@@ -462,7 +465,10 @@ def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 
     s = DiffRenderBenchSettings(**{"input_spp": 16, **result["settings"]})
     work = Path(out_dir) / "diffrender_work"
     gb = GanBenchSettings(cases=s.cases, morph_iterations=s.morph_iterations, seed=s.seed)
-    trained = load_diffrender(main_dir(work, from_json(DiffRenderSettings, result["model"], "diffrender result")))
+    if "main_run" not in result:
+        raise UsageError("the diffrender result predates `main_run` (the main model's folder): rerun "
+                         "`photoreal bench diffrender`, which reuses every finished training run")
+    trained = load_diffrender(work / result["main_run"])
     rows = []
     for c in (*s.cases, *s.unseen):
         bench, mdir = prepare(c, work, gb, show_progress)[:2]
