@@ -470,7 +470,8 @@ def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None
                                       "one_minus_ssim", "mse", "seconds_per_image"]))
     c = b["chosen"]
     body += (f"<p>Chosen automatically (cheapest within {c['tolerance_flip']} ꟻLIP of the best): <b>{c['model']}</b> "
-             f"model, <b>{c['steps']}</b> DDIM steps, {c['seconds_per_image']:.2f} s per 128² image.</p>")
+             f"model, <b>{c['steps']}</b> DDIM steps, mean of {c.get('draws', 1)} per view, "
+             f"{c['seconds_per_image']:.2f} s per 128² image.</p>")
     for key, name in (("chart", "diffrender_sweep.png"), ("views_figure", "diffrender_views.png")):
         if _copy_chart({"chart": b.get(key)}, bench_dir, out_dir / name):
             body += f"<img src='{name}' style='max-width:100%'>"

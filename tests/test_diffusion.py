@@ -442,3 +442,21 @@ def test_bench_references_are_clean_renders_with_their_own_seeds(tiny_views):
     assert mse(high["truth_clean"]) < mse(low["truth_clean"])
     r16 = v.recomposed("morphed")[ids]
     assert abs(high["pbr_morphed_clean"].mean() - r16.mean()) < 0.03 * r16.mean()
+
+
+def test_bench_run_folders_follow_settings_and_data(tiny_views, tmp_path):
+    """A bench training run is reused only for the same settings *and* training data: new G-buffers (here another
+    sample count) or other settings name another folder, the same ones the same folder."""
+    from dataclasses import replace as dc_replace
+
+    from generative.diffusion.renderer import GBufferSettings, load_intrinsic_views
+    from photoreal.benchmarks.diffrender import main_dir, run_dir
+
+    tmp, bench, v = tiny_views
+    other = load_intrinsic_views(bench, tmp / "morph", GBufferSettings(spp=2), show_progress=False)
+    s = _tiny_settings()
+    a = run_dir(tmp_path, "R", s, [v])
+    assert a == run_dir(tmp_path, "R", dc_replace(s), [v]) and a.name.startswith("R_")
+    assert a != run_dir(tmp_path, "R", s, [other]) and a != run_dir(tmp_path, "R", dc_replace(s, lr=1e-3), [v])
+    assert main_dir(tmp_path, s, [v]).parent == tmp_path / "main"
+    assert main_dir(tmp_path, s, [v]) != main_dir(tmp_path, s, [other])

@@ -255,7 +255,8 @@ def run_dir(parent: Path, name: str, ds: DiffRenderSettings, data: list[Intrinsi
 def main_dir(work: Path, ds: DiffRenderSettings, data: list[IntrinsicViews]) -> Path:
     """The main model's run folder: one per (size, budget, settings, data), so a longer budget trains beside a
     shorter one."""
-    return run_dir(Path(work) / "main", f"{'-'.join(map(str, ds.widths))}_{ds.max_seconds:g}s", ds, data)
+    budget = f"{ds.max_seconds:g}s" if ds.max_seconds is not None else f"{ds.steps}steps"
+    return run_dir(Path(work) / "main", f"{'-'.join(map(str, ds.widths))}_{budget}", ds, data)
 
 
 def _choose(sweep: list[dict], tol: float) -> dict:
