@@ -441,7 +441,7 @@ def sweep_chart(result: dict, path: Path) -> Path:
     for name, ls in (("pbr_coarse", "--"), ("pbr_morphed", ":")):
         ax.axhline(sub[name]["flip"], color="gray", ls=ls, lw=1, label=f"{name} (all held-out views)")
     ax.set_xscale("log")
-    ax.set_xlabel("seconds per 128² image (2 CPU cores; labels: DDIM steps; squares: mean of one-step samples)")
+    ax.set_xlabel("seconds per 128² image, 2 cores (labels: DDIM steps; squares: mean of draws)")
     ax.set_ylabel("held-out ꟻLIP (lower is better)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
