@@ -462,13 +462,12 @@ def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 
 
     from .gan import _prepare as prepare
 
-    # results from before input_spp rendered the G-buffers at 16 spp
-    s = DiffRenderBenchSettings(**{"input_spp": 16, **result["settings"]})
-    work = Path(out_dir) / "diffrender_work"
-    gb = GanBenchSettings(cases=s.cases, morph_iterations=s.morph_iterations, seed=s.seed)
     if "main_run" not in result:
         raise UsageError("the diffrender result predates `main_run` (the main model's folder): rerun "
                          "`photoreal bench diffrender`, which reuses every finished training run")
+    s = DiffRenderBenchSettings(**result["settings"])
+    work = Path(out_dir) / "diffrender_work"
+    gb = GanBenchSettings(cases=s.cases, morph_iterations=s.morph_iterations, seed=s.seed)
     trained = load_diffrender(work / result["main_run"])
     rows = []
     for c in (*s.cases, *s.unseen):
