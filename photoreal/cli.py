@@ -667,7 +667,7 @@ def _add_diffrender_parser(sub) -> None:
     g = sub.add_parser("diffrender", help="intrinsic-conditioned diffusion renderer: G-buffers (A, I, S, N) → photo "
                                           "(seed 000)")
     gs = g.add_subparsers(dest="dr_cmd", required=True)
-    t = gs.add_parser("train", help="train on morph benchmarks (coarse and morphed G-buffers → photos); resumes from OUT")
+    t = gs.add_parser("train", help="train on morph benchmarks (morphed G-buffers → photos); resumes from OUT")
     t.add_argument("benchmarks", nargs="+", help="folders made by `photoreal morph make-benchmark`")
     t.add_argument("--morph", nargs="+", default=None, help="their morph run folders, in order (default BENCHMARK/morph)")
     t.add_argument("--out", required=True, help="training folder (checkpoint.npz, metrics.json)")
@@ -685,6 +685,9 @@ def _add_diffrender_parser(sub) -> None:
          help="generate the photo itself (the seed) instead of its residual over R = A·I + S")
     _opt(t, DiffRenderSettings, "known_background", "--every-pixel",
          help="learn the residual on every pixel instead of holding it at 0 where the G-buffer sees no surface")
+    _opt(t, DiffRenderSettings, "sources", choices=["coarse", "morphed"],
+         help="whose G-buffers are training inputs (the coarse mesh's too: worse on held-out and unseen meshes, "
+              "measured)")
     _opt(t, DiffRenderSettings, "threads", help="torch threads (0: all cores)")
     _opt(t, DiffRenderSettings, "seed")
     t.add_argument("--json", default=None)

@@ -466,8 +466,10 @@ def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None
              "S = 0: " + ", ".join(f"{k} {v:.2f}" for k, v in d.get("psnr_trivial", {}).items())
              + f"); {d['extra_pairs']} extra pairs.</p>")
     body += (f"<h4>Equal-time ablations ({s['ablation_seconds']:.0f} s each)</h4>"
-             + _table(b["ablation"], ["run", "global_source", "residual", "known_background", "decomposed_pairs", "train_steps", "steps", "psnr", "flip",
-                                      "one_minus_ssim", "mse", "seconds_per_image"]))
+             + _table([{**r, **{f"{c} flip": m["flip"] for c, m in r.get("unseen", {}).items()}} for r in b["ablation"]],
+                      ["run", "global_source", "residual", "known_background", "decomposed_pairs", "sources",
+                       "train_steps", "steps", "psnr", "flip", "one_minus_ssim", "mse",
+                       *[f"{c} flip" for c in s.get("unseen", ())], "seconds_per_image"]))
     c = b["chosen"]
     body += (f"<p>Chosen automatically (cheapest within {c['tolerance_flip']} ꟻLIP of the best): <b>{c['model']}</b> "
              f"model, <b>{c['steps']}</b> DDIM steps, mean of {c.get('draws', 1)} per view, "

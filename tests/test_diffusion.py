@@ -191,7 +191,7 @@ def test_training_resumes_exactly_and_descends(tiny_views, tmp_path):
     _, _, v = tiny_views
     s = _tiny_settings()
     r = train_diffrender([v], tmp_path / "a", s, show_progress=False)
-    assert r.training.steps == 6 and r.train_pairs == 2 * len(v.train)
+    assert r.training.steps == 6 and r.train_pairs == len(v.train)  # the morphed G-buffers of each train view
     assert train_diffrender([v], tmp_path / "b", s, show_progress=False, budget_steps=3) is None
     train_diffrender([v], tmp_path / "b", s, show_progress=False)
     wa = read_checkpoint(tmp_path / "a" / "checkpoint.npz").stage["model"]
@@ -415,7 +415,8 @@ def test_decomposed_pairs_join_the_training_set(tiny_views):
                            [], "decomposed:test")
     s = _tiny_settings()
     assert len(_Pairs([v, extra], s)) == len(_Pairs([v], s)) + 3
-    assert len(_Pairs([v], _tiny_settings(sources=("morphed",)))) == len(v.train)
+    assert len(_Pairs([v], s)) == len(v.train)  # by default the morphed mesh's G-buffers only
+    assert len(_Pairs([v], _tiny_settings(sources=("coarse", "morphed")))) == 2 * len(v.train)
     assert extra.digest() != IntrinsicViews(v.photos[:3], {"coarse": extra.layers[DECOMPOSED]}, [0, 1, 2], []).digest()
 
 

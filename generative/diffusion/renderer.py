@@ -3,8 +3,8 @@
 Paired data from 3D (§3.1): for every camera of a morph benchmark, the intrinsic layers of the
 **coarse** and of the **morphed** mesh (Mitsuba's ``intrinsic`` integrator: albedo A, irradiance
 I = D / A, specular-and-emission S, world normal N), beside the benchmark's path-traced photos.
-Both meshes' layers are training inputs for the same photo (a coarse model and a better one of the
-same object); held-out views are never trained on.
+By default only the morphed mesh's layers are training inputs (``sources``; the coarse ones can be
+added: the bench ablates it); held-out views are never trained on.
 
 The model (§3.2–3.3, :mod:`generative.diffusion.core`): local condition [A ‖ I ‖ S ‖ N] concatenated
 with the noisy image (12 channels); global condition = MobileNetV2 tokens of the recomposition
@@ -250,7 +250,12 @@ class DiffRenderSettings:
     cross_dim: int = 64
     global_source: str = "R"  #: "R" (seed 000), "AIS" (recomposition ablation), "none" (global features off)
     p_uncond: float = 0.1  #: probability of dropping the global condition (classifier-free guidance)
-    sources: tuple[str, ...] = SOURCES  #: whose G-buffers are training inputs
+    #: whose G-buffers are training inputs. The morphed mesh's alone: the coarse mesh's residuals (photo − R) are
+    #: its large geometry errors, and a model trained on both learns corrections that overshoot on the morphed
+    #: G-buffers it is applied to and do not transfer to a mesh it never saw. Measured 2026-11-26 (scratch, H200, at
+    #: the CPU bench's 780 steps, 1 step × mean of 8; ꟻLIP held-out village + armadillo / unseen bunny; PBR morphed
+    #: 0.0650 / 0.0391): both sources 0.0670 / 0.0415, morphed only 0.0632 / 0.0391; at 1500 steps 0.0563 / 0.0387
+    sources: tuple[str, ...] = ("morphed",)
     checkpoint_every: int = 50
     threads: int = 0  #: torch intra-op threads while training (0: all cores)
     channels_last: bool = True  #: NHWC convolutions (1.3–1.6× faster steps on this CPU, measured)
