@@ -178,13 +178,9 @@ def _pool_init(threads: int) -> None:
 
 
 def _digest(item: Item) -> str:
-    import hashlib
-    import json
+    from .records import json_digest
 
-    from .records import to_json
-
-    text = json.dumps([item.fn, to_json(list(item.args)), to_json(item.kwargs)], sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    return json_digest([item.fn, list(item.args), item.kwargs])
 
 
 def _stamp(item: Item) -> Path:

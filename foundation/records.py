@@ -30,6 +30,15 @@ def to_json(obj: Any) -> Any:
     return obj
 
 
+def json_digest(obj: Any, n: int = 16) -> str:
+    """First ``n`` hex digits of the SHA-256 of ``obj`` as sorted-key JSON (via :func:`to_json`; other values as
+    ``str``): a stable name for a set of settings and inputs."""
+    import hashlib
+    import json
+
+    return hashlib.sha256(json.dumps(to_json(obj), sort_keys=True, default=str).encode()).hexdigest()[:n]
+
+
 def _convert(tp: Any, value: Any, where: str) -> Any:
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)

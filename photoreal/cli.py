@@ -798,7 +798,11 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bd, DiffRenderBenchSettings, "sweep_steps", nargs="+", type=int, help="DDIM steps of the sweep")
     _opt(bd, DiffRenderBenchSettings, "seeds", help="sampling seeds of the main model's held-out renders")
     _opt(bd, DiffRenderBenchSettings, "guidance")
-    _opt(bd, DiffRenderBenchSettings, "mean_draws", help="the sweep's mean of one-step samples per view (1: none)")
+    _opt(bd, DiffRenderBenchSettings, "mean_draws", type=int,
+         help="the sweep's means of one-step samples per view it tries (1: none)")
+    _opt(bd, DiffRenderBenchSettings, "sweep_guidance", type=float, help="guidance weights tried with those means")
+    _opt(bd, DiffRenderBenchSettings, "tolerance_rel", type=float,
+         help="the choice: cheapest within this fraction of the sweep's best ꟻLIP")
     _opt(bd, DiffRenderBenchSettings, "input_spp", help="samples per pixel of every method's input renders")
     _opt(bd, DiffRenderBenchSettings, "gans", "--no-gans", help="skip training the GAN baselines")
     _opt(bd, DiffRenderBenchSettings, "gan_seconds", type=float, help="pix2pix / Morph-GAN budget each")

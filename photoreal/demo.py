@@ -471,9 +471,11 @@ def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None
                        "train_steps", "steps", "psnr", "flip", "one_minus_ssim", "mse",
                        *[f"{c} flip" for c in s.get("unseen", ())], "seconds_per_image"]))
     c = b["chosen"]
-    body += (f"<p>Chosen automatically (cheapest within {c['tolerance_flip']} ꟻLIP of the best): <b>{c['model']}</b> "
-             f"model, <b>{c['steps']}</b> DDIM steps, mean of {c.get('draws', 1)} per view, "
-             f"{c['seconds_per_image']:.2f} s per 128² image.</p>")
+    tol = (f"{100 * c['tolerance_rel']:g} % of the best ꟻLIP" if "tolerance_rel" in c
+           else f"{c.get('tolerance_flip')} ꟻLIP of the best")
+    body += (f"<p>Chosen automatically (cheapest within {tol}): <b>{c['model']}</b> "
+             f"model, <b>{c['steps']}</b> DDIM steps, mean of {c.get('draws', 1)} per view, guidance "
+             f"{c.get('guidance', b['guidance'])}, {c['seconds_per_image']:.2f} s per 128² image.</p>")
     for key, name in (("chart", "diffrender_sweep.png"), ("views_figure", "diffrender_views.png")):
         if _copy_chart({"chart": b.get(key)}, bench_dir, out_dir / name):
             body += f"<img src='{name}' style='max-width:100%'>"
