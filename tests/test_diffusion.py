@@ -461,3 +461,23 @@ def test_bench_run_folders_follow_settings_and_data(tiny_views, tmp_path):
     assert a != run_dir(tmp_path, "R", s, [other]) and a != run_dir(tmp_path, "R", dc_replace(s, lr=1e-3), [v])
     assert main_dir(tmp_path, s, [v]).parent == tmp_path / "main"
     assert main_dir(tmp_path, s, [v]) != main_dir(tmp_path, s, [other])
+
+
+def test_bench_choice_is_the_cheapest_within_a_fraction_of_the_best():
+    """The sweep's automatic choice. Oracle: hand-made rows — with a 1 % tolerance of the best ꟻLIP 0.0700 (limit
+    0.0707) the 0.0705 row at 0.9 s wins over the slower best and the 0.0749 row at 0.1 s is out; a 10 % tolerance
+    lets the 0.1 s row in. Ties in time go to fewer parameters."""
+    from photoreal.benchmarks.diffrender import DiffRenderBenchSettings, _choose
+
+    rows = [{"model": "R", "parameters": 5, "steps": 1, "draws": 8, "seconds_per_image": 3.0, "flip": 0.0700},
+            {"model": "small", "parameters": 1, "steps": 1, "draws": 8, "seconds_per_image": 0.9, "flip": 0.0705},
+            {"model": "small", "parameters": 1, "steps": 1, "draws": 1, "seconds_per_image": 0.1, "flip": 0.0749},
+            {"model": "R", "parameters": 5, "steps": 1, "draws": 8, "seconds_per_image": 0.9, "flip": 0.0704}]
+    c = _choose(rows, 0.01)
+    assert (c["model"], c["seconds_per_image"], c["best_flip"], c["tolerance_rel"]) == ("small", 0.9, 0.07, 0.01)
+    assert _choose(rows, 0.10)["seconds_per_image"] == 0.1
+    assert _choose(rows, 0.0)["model"] == "R" and _choose(rows, 0.0)["flip"] == 0.07
+    with pytest.raises(UsageError, match="tolerance_rel"):
+        DiffRenderBenchSettings(tolerance_rel=-0.1)
+    with pytest.raises(UsageError, match="mean_draws"):
+        DiffRenderBenchSettings(mean_draws=(8, 0))
