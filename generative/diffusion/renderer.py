@@ -461,7 +461,9 @@ class SampleSettings:
     #: DDIM steps; 1 (from pure noise: the posterior mean) is what `bench diffrender` chose, its lowest ꟻLIP on
     #: held-out views (0.087 vs 0.110 at 5 steps, 0.120 at 40; 2026-11-26); more steps give sharper, stochastic samples
     steps: int = 1
-    guidance: float = 1.5  #: classifier-free guidance weight on the global condition (1 = none)
+    #: classifier-free guidance weight on the global condition (1 = none, one network pass). With the mean of draws the
+    #: bench chose 1 (ꟻLIP 0.0726 at 1 and 1.5 alike for the small UNet, 2026-11-26: the cheaper wins)
+    guidance: float = 1.5
     #: samples averaged per view. At 1 step from pure noise each sample is x̂₀(x_T) ≈ E[x₀ | G-buffers, x_T], and x_T
     #: carries nothing about x₀ (ᾱ_T ≈ 2e-9), so their mean over x_T estimates the posterior mean E[x₀ | G-buffers]
     #: without the noise an imperfect model lets through from x_T (cost: ``draws`` × the network evaluations). The
