@@ -182,6 +182,21 @@ def image_features(images, linear: bool = True, batch: int = 32, size: int | Non
     return torch.cat(out).double().numpy()
 
 
+@torch.no_grad()
+def spatial_features(images, linear: bool = True, batch: int = 32) -> np.ndarray:
+    """MobileNetV2's last feature map of (N, H, W, 3) numpy or (N, 3, H, W) torch images, one 1280-d vector per
+    position → (N·h·w, 1280) (h = H / 32: 16 vectors per 128² image); their mean per image is
+    :func:`image_features`. Many samples per image for KID, which 16 images alone cannot power (the positions of one
+    image are not independent samples: read such a KID as a comparison between methods on the same views)."""
+    net = load_mobilenet()
+    x = _nchw(images)
+    out = []
+    for k in range(0, len(x), batch):
+        f = net.features(normalise(x[k:k + batch].float(), linear))
+        out.append(f.flatten(2).transpose(1, 2).reshape(-1, f.shape[1]))
+    return torch.cat(out).double().numpy()
+
+
 def _sqrtm_psd_product(a: np.ndarray, b: np.ndarray) -> float:
     """tr √(A B) for symmetric PSD A, B, through √A B √A (symmetric, so eigh is stable)."""
     w, v = np.linalg.eigh(a)

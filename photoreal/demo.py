@@ -441,14 +441,16 @@ def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None
         return None
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    cols = ["method", "psnr", "one_minus_ssim", "flip", "mse", "kid_mnv2", "fid_mnv2"]
+    cols = ["method", "psnr", "one_minus_ssim", "flip", "mse", "kid_mnv2", "fid_mnv2", "kid_mnv2_spatial"]
     rows = [{"method": k, **{c: m[c] for c in cols[1:5]}, "kid_mnv2": b["kid_mnv2"].get(k, ""),
-             "fid_mnv2": b["fid_mnv2"].get(k, "")} for k, m in b["heldout"].items()]
+             "fid_mnv2": b["fid_mnv2"].get(k, ""), "kid_mnv2_spatial": b.get("kid_mnv2_spatial", {}).get(k, "")}
+            for k, m in b["heldout"].items()]
     s = b["settings"]
     body = (f"<p>Held-out views of {', '.join(s['cases'])} (mean over cases; diffusion: mean over {s['seeds']} sampling "
             f"seeds, {b['ddim_steps']} DDIM steps, mean of {b.get('draws', 1)} per view, guidance {b['guidance']}). diffusion = rendered from the morphed "
             f"mesh's G-buffers, diffusion_coarse = from the coarse mesh's. KID/FID use ImageNet MobileNetV2 "
-            f"features (not Inception). Lower is better except PSNR.</p>" + _table(rows, cols))
+            f"features (not Inception); kid_mnv2_spatial uses every position of their 4×4 last feature map (16 "
+            f"vectors per image). Lower is better except PSNR.</p>" + _table(rows, cols))
     if b.get("references"):
         body += ("<h4>What the targets demand (nothing trained)</h4><p>pbr_morphed_clean = the morphed mesh's "
                  "recomposition from G-buffers at " + str(s.get("reference_spp", "")) + " spp (what denoising alone "

@@ -64,6 +64,16 @@ def test_image_features_shapes_and_linear_input():
         features.image_features(rng.random((2, 8, 8)))
 
 
+def test_spatial_features_are_the_positions_whose_mean_is_the_image_feature():
+    """Oracle: image_features is the spatial mean of the last feature map, so the 16 position vectors of a 128²
+    image (4×4 map) average to it (float32 summation order: atol 2e-5)."""
+    rng = np.random.default_rng(2)
+    imgs = rng.random((2, 128, 128, 3)).astype(np.float32)
+    sp = features.spatial_features(imgs)
+    assert sp.shape == (2 * 16, features.FEATURE_DIM) and (sp >= 0).all()
+    np.testing.assert_allclose(sp.reshape(2, 16, -1).mean(1), features.image_features(imgs), rtol=0, atol=2e-5)
+
+
 def test_fid_closed_forms():
     """FID(x, x) = 0; a translation by d of the same sample adds exactly |d|² (equal covariances)."""
     rng = np.random.default_rng(1)
