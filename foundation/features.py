@@ -165,21 +165,25 @@ def feature_maps(net: MobileNetV2, x: torch.Tensor, stages=PERCEPTUAL_STAGES) ->
     return out
 
 
+def _last_maps(images, linear: bool, batch: int, size: int | None = None):
+    """MobileNetV2's last feature map (B, 1280, h, w) of each batch of images (numpy (N, H, W, 3) or torch
+    (N, 3, H, W)); ``size`` resizes (bilinear) to size² first."""
+    net = load_mobilenet()
+    x = _nchw(images)
+    for k in range(0, len(x), batch):
+        xb = x[k:k + batch].float()
+        if size is not None and xb.shape[-1] != size:
+            xb = nn.functional.interpolate(xb, size=(size, size), mode="bilinear", align_corners=False, antialias=True)
+        yield net.features(normalise(xb, linear))
+
+
 @torch.no_grad()
 def image_features(images, linear: bool = True, batch: int = 32, size: int | None = None) -> np.ndarray:
     """Pooled 1280-d MobileNetV2 features of (N, H, W, 3) numpy or (N, 3, H, W) torch images → (N, 1280).
 
     ``size`` resizes (bilinear) to size² first; None keeps the images' size (≥ 32 px).
     """
-    net = load_mobilenet()
-    x = _nchw(images)
-    out = []
-    for k in range(0, len(x), batch):
-        xb = x[k:k + batch].float()
-        if size is not None and xb.shape[-1] != size:
-            xb = nn.functional.interpolate(xb, size=(size, size), mode="bilinear", align_corners=False, antialias=True)
-        out.append(net.features(normalise(xb, linear)).mean((2, 3)))
-    return torch.cat(out).double().numpy()
+    return torch.cat([f.mean((2, 3)) for f in _last_maps(images, linear, batch, size)]).double().numpy()
 
 
 @torch.no_grad()
@@ -188,13 +192,8 @@ def spatial_features(images, linear: bool = True, batch: int = 32) -> np.ndarray
     position → (N·h·w, 1280) (h = H / 32: 16 vectors per 128² image); their mean per image is
     :func:`image_features`. Many samples per image for KID, which 16 images alone cannot power (the positions of one
     image are not independent samples: read such a KID as a comparison between methods on the same views)."""
-    net = load_mobilenet()
-    x = _nchw(images)
-    out = []
-    for k in range(0, len(x), batch):
-        f = net.features(normalise(x[k:k + batch].float(), linear))
-        out.append(f.flatten(2).transpose(1, 2).reshape(-1, f.shape[1]))
-    return torch.cat(out).double().numpy()
+    return torch.cat([f.flatten(2).transpose(1, 2).reshape(-1, f.shape[1])
+                      for f in _last_maps(images, linear, batch)]).double().numpy()
 
 
 def _sqrtm_psd_product(a: np.ndarray, b: np.ndarray) -> float:

@@ -358,7 +358,8 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     trained_main = load_diffrender(main)
     timing["main_training"] = time.perf_counter() - t
     main_metrics = read_json(main / "metrics.json", "diffusion metrics")
-    steps, draws, guidance = int(chosen["steps"]), int(chosen.get("draws", 1)), float(chosen.get("guidance", s.guidance))
+    steps, draws = int(chosen["steps"]), int(chosen.get("draws", 1))
+    guidance = float(chosen.get("guidance", s.guidance))
     t = time.perf_counter()
     cases, all_pred, all_photos, sample_s = {}, {}, [], []
     for c in (*s.cases, *s.unseen):
@@ -463,7 +464,8 @@ def sweep_chart(result: dict, path: Path) -> Path:
         if means:
             ax.plot([r["seconds_per_image"] for r in means], [r["flip"] for r in means], "s", color=line.get_color())
     c = result["chosen"]
-    how = f"{c['steps']} steps" + (f", mean of {c['draws']}, guidance {c.get('guidance')}" if c.get("draws", 1) > 1 else "")
+    how = f"{c['steps']} steps" + (f", mean of {c['draws']}, guidance {c.get('guidance')}"
+                                   if c.get("draws", 1) > 1 else "")
     ax.plot([c["seconds_per_image"]], [c["flip"]], "k*", ms=13, label=f"chosen ({c['model']}, {how})")
     sub = result["heldout"]
     for name, ls in (("pbr_coarse", "--"), ("pbr_morphed", ":")):
