@@ -228,6 +228,35 @@ def kid(x: np.ndarray, y: np.ndarray) -> float:
                  - 2 * kxy.mean())
 
 
+def _kid_from_kernels(kxx, kyy, kxy, mx, my) -> float:
+    """KID from the polynomial kernel matrices, keeping the rows/columns where the masks mx, my are true."""
+    a, b, c = kxx[np.ix_(mx, mx)], kyy[np.ix_(my, my)], kxy[np.ix_(mx, my)]
+    m, n = len(a), len(b)
+    return float((a.sum() - np.trace(a)) / (m * (m - 1)) + (b.sum() - np.trace(b)) / (n * (n - 1)) - 2 * c.mean())
+
+
+def kid_std(x: np.ndarray, y: np.ndarray, groups_x=None, groups_y=None) -> float:
+    """Standard error of :func:`kid` (x, y) by the delete-one-group jackknife over each set's groups, the two sets'
+    variances added. ``groups_*`` label the rows (e.g. the image each of :func:`spatial_features`' positions came
+    from, so that one image's positions leave together); None = every row its own group. With 16 images per set the
+    image-level KID's error is as large as the gaps between methods: read the KIDs with it."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    gx = np.arange(len(x)) if groups_x is None else np.asarray(groups_x)
+    gy = np.arange(len(y)) if groups_y is None else np.asarray(groups_y)
+    if len(gx) != len(x) or len(gy) != len(y):
+        raise UsageError(f"kid_std: {len(gx)} / {len(gy)} group labels for {len(x)} / {len(y)} rows")
+    if len(np.unique(gx)) < 3 or len(np.unique(gy)) < 3:
+        raise UsageError("kid_std needs at least 3 groups per set")
+    d = x.shape[1]
+    kxx, kyy, kxy = (x @ x.T / d + 1) ** 3, (y @ y.T / d + 1) ** 3, (x @ y.T / d + 1) ** 3
+    all_x, all_y = np.ones(len(x), bool), np.ones(len(y), bool)
+    var = 0.0
+    for leave_outs in ([(gx != u, all_y) for u in np.unique(gx)], [(all_x, gy != u) for u in np.unique(gy)]):
+        vals = np.array([_kid_from_kernels(kxx, kyy, kxy, mx, my) for mx, my in leave_outs])
+        var += (len(vals) - 1) / len(vals) * ((vals - vals.mean()) ** 2).sum()
+    return float(np.sqrt(var))
+
+
 @torch.no_grad()
 def perceptual_distance(a, b, linear: bool = True) -> np.ndarray:
     """Per-image distance between image sets a and b (same shapes): channel-normalised stage outputs,

@@ -269,8 +269,8 @@ def _cmd_bench_diffrender(a) -> int:
     result["chart"] = str(sweep_chart(result, out.with_name(out.stem + "_sweep.png")))
     result["views_figure"] = str(views_figure(result, out.parent, out.with_name(out.stem + "_views.png")))
     write_json(out, result)
-    _print({k: result[k] for k in ("heldout", "unseen", "kid_mnv2", "fid_mnv2", "decomposition_psnr", "chosen",
-                                   "sample_seconds_128", "train_flops_fraction", "verdict")})
+    _print({k: result[k] for k in ("heldout", "unseen", "kid_mnv2", "fid_mnv2", "kid_mnv2_clean", "decomposition_psnr",
+                                   "chosen", "sample_seconds_128", "train_flops_fraction", "verdict") if k in result})
     return 0
 
 

@@ -103,6 +103,26 @@ def test_kid_is_unbiased_and_grows_with_a_shift():
     assert shifted > 10 * np.std(same)
 
 
+def test_kid_std_matches_the_spread_of_kid_over_independent_draws():
+    """The jackknife standard error against the empirical std of KID over 300 independent pairs of 16-sample sets
+    (the bench's size): within a factor 0.7–1.5 (jackknife variances are known to be conservative). Grouping rows
+    that are copies of one another must widen it (the copies are one sample, not four)."""
+    rng = np.random.default_rng(3)
+    vals, ses = [], []
+    for _ in range(300):
+        x, y = rng.normal(size=(16, 8)), rng.normal(size=(16, 8)) + 0.3
+        vals.append(features.kid(x, y))
+        ses.append(features.kid_std(x, y))
+    ratio = np.mean(ses) / np.std(vals)
+    assert 0.7 < ratio < 1.5, ratio
+    x, y = rng.normal(size=(16, 8)), rng.normal(size=(16, 8))
+    xr, yr = np.repeat(x, 4, 0), np.repeat(y, 4, 0)
+    g = np.repeat(np.arange(16), 4)
+    assert features.kid_std(xr, yr, g, g) > 1.5 * features.kid_std(xr, yr)
+    with pytest.raises(UsageError, match="group labels"):
+        features.kid_std(x, y, g, None)
+
+
 def test_perceptual_distance_zero_symmetric_and_monotone_in_blur():
     import skimage.data
     from scipy.ndimage import gaussian_filter

@@ -27,6 +27,11 @@ morphed G-buffers. Everything trained is kept in ``OUT/diffrender_work`` and reu
 6. **References** (:func:`references`, nothing trained): the same held-out views from the morphed mesh's
    G-buffers at ``reference_spp`` (PBR without its Monte-Carlo noise: what denoising alone can gain) and from the
    ground truth itself path traced at ``reference_spp`` (the photos' own noise floor).
+7. **Distribution distances** (:func:`distribution`, ``distribution`` in the JSON): every method's and reference's
+   MobileNetV2-KID (± jackknife over images), -FID and spatial KID against the held-out photos *and* against the
+   same views path traced again at ``reference_spp`` (``photos_clean``): the features respond to the photos'
+   Monte-Carlo noise as to texture, and the clean ground truth's KID against the photos is the oracle of what that
+   comparison can tell.
 """
 
 from __future__ import annotations
@@ -43,7 +48,7 @@ import mitsuba as mi
 
 from foundation import validate
 from foundation.errors import UsageError
-from foundation.features import fid, image_features, kid, perceptual_distance, spatial_features
+from foundation.features import fid, image_features, kid, kid_std, perceptual_distance, spatial_features
 from foundation.files import read_json
 from foundation.metrics import image_metrics
 from foundation.records import json_digest
@@ -229,7 +234,21 @@ def _decomposition(s: DiffRenderBenchSettings, work: Path, views: dict[str, Intr
 
 #: render seeds of the references (seed + view index): apart from the photos' (the benchmark's seed + view) and
 #: the bench's G-buffers' (the view index), whose noise they must not share
-REFERENCE_SEEDS = {"pbr_morphed_clean": 900_000, "truth_clean": 800_000}
+REFERENCE_SEEDS = {"pbr_morphed_clean": 900_000, "truth_clean": 800_000, "photos_clean": 700_000}
+
+
+def truth_renders(bench, ids: list[int], spp: int, seed: int) -> np.ndarray:
+    """(views, H, W, 3) linear renders of the benchmark's ground truth at held-out views ``ids``, ``spp`` samples,
+    render seed ``seed`` + view index."""
+    meta = bench.meta
+    scene = truth_scene(bench)
+    out = []
+    for i in ids:
+        sensor = mi.load_dict(sensor_dict(meta.cameras[i], meta.resolution, meta.fov))
+        out.append(np.array(mi.render(scene, sensor=sensor, spp=spp, seed=seed + int(i)))[..., :3])
+    del scene
+    return np.stack(out).astype(np.float32)
+
 
 
 def references(bench, morph_dir: Path, ids: list[int], spp: int, show_progress: bool = False) -> dict:
@@ -245,15 +264,23 @@ def references(bench, morph_dir: Path, ids: list[int], spp: int, show_progress: 
     gs = GBufferSettings(spp=spp)
     L = render_gbuffers(Path(morph_dir) / "morphed.ply", bench, ids, gs, "reference G-buffers", show_progress,
                         seed=REFERENCE_SEEDS["pbr_morphed_clean"])
-    out = {"pbr_morphed_clean": recompose(L)}
-    meta = bench.meta
-    scene = truth_scene(bench)
-    truth = np.empty_like(out["pbr_morphed_clean"])
-    for k, i in enumerate(ids):
-        sensor = mi.load_dict(sensor_dict(meta.cameras[i], meta.resolution, meta.fov))
-        truth[k] = np.array(mi.render(scene, sensor=sensor, spp=spp, seed=REFERENCE_SEEDS["truth_clean"] + int(i)))[..., :3]
-    del scene
-    out["truth_clean"] = truth
+    return {"pbr_morphed_clean": recompose(L),
+            "truth_clean": truth_renders(bench, ids, spp, REFERENCE_SEEDS["truth_clean"])}
+
+
+def distribution(preds: dict[str, np.ndarray], reference: np.ndarray) -> dict:
+    """MobileNetV2 distribution distances of each image set in ``preds`` to ``reference``: image-level KID (with its
+    jackknife standard error over images) and FID, and the spatial KID over the last map's positions (jackknife over
+    images, each image's positions leaving together)."""
+    f_ref, f_ref_sp = image_features(reference), spatial_features(reference)
+    per = len(f_ref_sp) // len(f_ref)
+    g_ref = np.repeat(np.arange(len(f_ref)), per)
+    out = {}
+    for k, p in preds.items():
+        f, f_sp = image_features(p), spatial_features(p)
+        g = np.repeat(np.arange(len(f)), per)
+        out[k] = {"kid": kid(f, f_ref), "kid_std": kid_std(f, f_ref), "fid": fid(f, f_ref),
+                  "kid_spatial": kid(f_sp, f_ref_sp), "kid_spatial_std": kid_std(f_sp, f_ref_sp, g, g_ref)}
     return out
 
 
@@ -361,7 +388,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     steps, draws = int(chosen["steps"]), int(chosen.get("draws", 1))
     guidance = float(chosen.get("guidance", s.guidance))
     t = time.perf_counter()
-    cases, all_pred, all_photos, sample_s = {}, {}, [], []
+    cases, all_pred, all_photos, all_refs, all_clean, sample_s = {}, {}, [], {}, [], []
     for c in (*s.cases, *s.unseen):
         v = views[c]
         tid = list(v.test)
@@ -390,15 +417,24 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
         if c in s.cases:
             for k, p in first.items():
                 all_pred.setdefault(k, []).append(p)
+            for k, p in refs.items():
+                all_refs.setdefault(k, []).append(p)
             all_photos.append(ph)
+            if s.reference_spp:  # the held-out photos again, without their Monte-Carlo noise (another render seed)
+                all_clean.append(truth_renders(prepared[c][0], tid, s.reference_spp, REFERENCE_SEEDS["photos_clean"]))
     timing["evaluation"] = time.perf_counter() - t
     photos = np.concatenate(all_photos)
-    f_photo, f_photo_sp = image_features(photos), spatial_features(photos)
-    kid_mnv2, fid_mnv2, kid_sp, heldout = {}, {}, {}, {}
-    for k, ps in all_pred.items():
-        f = image_features(np.concatenate(ps))
-        kid_mnv2[k], fid_mnv2[k] = kid(f, f_photo), fid(f, f_photo)
-        kid_sp[k] = kid(spatial_features(np.concatenate(ps)), f_photo_sp)
+    # distribution distances to the held-out photos (the issue's), and to the same views path traced without the
+    # photos' Monte-Carlo noise: MobileNetV2 features respond to that noise as to texture, so the first alone would
+    # reward a method for reproducing the photos' noise (the references' rows show by how much)
+    sets = {k: np.concatenate(ps) for k, ps in {**all_pred, **all_refs}.items()}
+    dist = {"photos": distribution(sets, photos)}
+    if all_clean:
+        dist["photos_clean"] = distribution({**sets, "photos": photos}, np.concatenate(all_clean))
+    kid_mnv2 = {k: dist["photos"][k]["kid"] for k in all_pred}
+    fid_mnv2 = {k: dist["photos"][k]["fid"] for k in all_pred}
+    kid_sp = {k: dist["photos"][k]["kid_spatial"] for k in all_pred}
+    heldout = {}
     for k in all_pred:  # pooled over the trained cases' held-out views, with the seeds where there are some
         ps = [cases[c]["heldout"][k] for c in s.cases]
         heldout[k] = {m: float(np.mean([p[m] for p in ps])) for m in ps[0] if m != "seeds"}
@@ -406,7 +442,10 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     refs = {k: {m: float(np.mean([cases[c]["references"][k][m] for c in s.cases])) for m in PAIRED}
             for k in (cases[s.cases[0]]["references"] if s.reference_spp else ())}
     out = {"heldout": heldout, "references": refs, "cases": cases, "unseen": unseen, "kid_mnv2": kid_mnv2,
-           "fid_mnv2": fid_mnv2, "kid_mnv2_spatial": kid_sp,
+           "fid_mnv2": fid_mnv2, "kid_mnv2_spatial": kid_sp, "distribution": dist,
+           **({"kid_mnv2_clean": {k: v["kid"] for k, v in dist["photos_clean"].items()},
+               "kid_mnv2_spatial_clean": {k: v["kid_spatial"] for k, v in dist["photos_clean"].items()}}
+              if "photos_clean" in dist else {}),
            "decomposition_psnr": decomposition["psnr"], "decomposition": decomposition,
            "ablation": ablation, "sweep": sweep, "chosen": chosen,
            "sample_seconds_128": float(np.mean(sample_s)), "ddim_steps": steps, "draws": draws, "guidance": guidance,
@@ -428,6 +467,15 @@ def _verdict(r: dict, s: DiffRenderBenchSettings) -> dict:
     ks = r.get("kid_mnv2_spatial", {})
     if ks:  # the better-powered KID over feature-map positions (not the issue's image-level figure)
         v["beats_pbr_morphed_kid_spatial"] = ks["diffusion"] < ks["pbr_morphed"]
+    d = r.get("distribution", {})
+    if "truth_clean" in d.get("photos", {}):
+        # the oracle: does the ground truth itself, rendered without noise, pass the KID comparison against the photos?
+        v["truth_clean_beats_pbr_morphed_kid"] = d["photos"]["truth_clean"]["kid"] < k["pbr_morphed"]
+        v["truth_clean_beats_pbr_morphed_kid_spatial"] = d["photos"]["truth_clean"]["kid_spatial"] < ks["pbr_morphed"]
+    if "photos_clean" in d:
+        c = d["photos_clean"]
+        v["beats_pbr_morphed_kid_clean"] = c["diffusion"]["kid"] < c["pbr_morphed"]["kid"]
+        v["beats_pbr_morphed_kid_spatial_clean"] = c["diffusion"]["kid_spatial"] < c["pbr_morphed"]["kid_spatial"]
     for c in s.unseen:
         u = r["unseen"][c]
         v[f"{c}_beats_pbr_morphed_flip"] = u["diffusion"]["flip"] < u["pbr_morphed"]["flip"]
