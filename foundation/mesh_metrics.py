@@ -30,7 +30,7 @@ def _reference_side(vb, fb, n: int, n_ref: int, seed: int) -> tuple:
     def make():
         pb, nb = _samples(vb, fb, n, seed + 1)
         rb, rnb = _samples(vb, fb, n_ref, seed + 3)
-        return pb, nb, rnb, cKDTree(rb)
+        return pb, nb, rnb, cKDTree(rb, balanced_tree=False, compact_nodes=False)
     return _REFERENCES.get((array_key(vb, fb), n, n_ref, seed), make)
 
 
@@ -52,7 +52,7 @@ def chamfer(va, fa, vb, fb, n: int = 100_000, n_ref: int = 1_000_000, seed: int 
         pb, nb, nb_ref, tree_b = _reference_side(vb, fb, n, n_ref, seed)
         ra, na_ref = _samples(va, fa, n_ref, seed + 2)
         da, ia = tree_b.query(pa)
-        db, ib = cKDTree(ra).query(pb)
+        db, ib = cKDTree(ra, balanced_tree=False, compact_nodes=False).query(pb)
         nc = 0.5 * (np.abs(np.sum(na * nb_ref[ia], axis=1)).mean() + np.abs(np.sum(nb * na_ref[ib], axis=1)).mean())
         return {"chamfer": float(0.5 * (da.mean() + db.mean())), "normal_consistency": float(nc)}
     # the estimator is deterministic in its inputs: a repeat returns the same figures (a copy: callers may edit it)
@@ -72,7 +72,7 @@ class TruthSurface:
 
         pts, fid, _ = sample_surface(gv, gf, n, np.random.default_rng(seed))
         self.normals = face_normals(gv, gf)[fid]
-        self.tree = cKDTree(pts)
+        self.tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
 
 
 def truth_surface(gv: np.ndarray, gf: np.ndarray, n: int = 1_000_000, seed: int = 0) -> TruthSurface:
