@@ -701,8 +701,10 @@ def _add_diffrender_parser(sub) -> None:
     r.add_argument("--spp", type=int, default=32, help="scene: samples per pixel of the G-buffers (default: 32, as "
                    "the bench's)")
     _opt(r, SampleSettings, "steps", "--ddim-steps", help="DDIM steps")
-    _opt(r, SampleSettings, "guidance", help="classifier-free guidance weight on the global condition")
-    _opt(r, SampleSettings, "draws", help="samples averaged per view (at 1 step: the posterior mean)")
+    _opt(r, SampleSettings, "guidance", type=float, help="classifier-free guidance weight on the global condition "
+         "(default: 1 for a mean of draws, 1.5 for single samples: the bench's choices)")
+    _opt(r, SampleSettings, "draws", type=int, help="samples averaged per view (at 1 step: the posterior mean; "
+         "default: 8 at 1 step, the bench's choice, 1 for more steps)")
     _opt(r, SampleSettings, "seed")
     r.add_argument("--json", default=None)
     g.set_defaults(func=_cmd_diffrender)

@@ -299,14 +299,18 @@ def test_draws_average_the_samples_of_one_view_in_model_space(tiny_views):
     want = from_target_space(x.mean(0).permute(1, 2, 0).numpy(), one, s)
     got, _ = render_views(model, s, layers, SampleSettings(steps=1, draws=4, seed=7), show_progress=False)
     np.testing.assert_allclose(got[0], want, rtol=1e-5, atol=1e-6)
-    single, _ = render_views(model, s, layers, SampleSettings(steps=1, seed=7), show_progress=False)
+    single, _ = render_views(model, s, layers, SampleSettings(steps=1, draws=1, seed=7), show_progress=False)
     np.testing.assert_allclose(single[0], from_target_space(x[0].permute(1, 2, 0).numpy(), one, s), rtol=1e-5,
                                atol=1e-6)
     other, _ = render_views(model, s, layers, SampleSettings(steps=1, draws=4, seed=8), show_progress=False)
-    other1, _ = render_views(model, s, layers, SampleSettings(steps=1, seed=8), show_progress=False)
+    other1, _ = render_views(model, s, layers, SampleSettings(steps=1, draws=1, seed=8), show_progress=False)
     assert np.abs(got - other).mean() < np.abs(single - other1).mean()
     with pytest.raises(UsageError, match="draws"):
         SampleSettings(draws=0)
+    # defaults: the bench's choice at 1 step (the mean of 8 at guidance 1), single samples at guidance 1.5 otherwise
+    assert (SampleSettings().draws, SampleSettings().guidance) == (8, 1.0)
+    assert (SampleSettings(steps=5).draws, SampleSettings(steps=5).guidance) == (1, 1.5)
+    assert SampleSettings(draws=1).guidance == 1.5 and SampleSettings(draws=4, guidance=2.0).guidance == 2.0
 
 
 @pytest.mark.slow

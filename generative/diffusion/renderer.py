@@ -461,20 +461,25 @@ class SampleSettings:
     #: DDIM steps; 1 (from pure noise: the posterior mean) is what `bench diffrender` chose, its lowest ꟻLIP on
     #: held-out views (0.087 vs 0.110 at 5 steps, 0.120 at 40; 2026-11-26); more steps give sharper, stochastic samples
     steps: int = 1
-    #: classifier-free guidance weight on the global condition (1 = none, one network pass). With the mean of draws the
-    #: bench chose 1 (ꟻLIP 0.0726 at 1 and 1.5 alike for the small UNet, 2026-11-26: the cheaper wins)
-    guidance: float = 1.5
+    #: classifier-free guidance weight on the global condition (1 = none, one network pass). None = the bench's
+    #: choices: 1 for a mean of draws (ꟻLIP 0.0726 at 1 and 1.5 alike for the small UNet, 2026-11-26: the cheaper
+    #: wins), 1.5 for single samples (the guidance the sweep's step rows use)
+    guidance: float | None = None
     #: samples averaged per view. At 1 step from pure noise each sample is x̂₀(x_T) ≈ E[x₀ | G-buffers, x_T], and x_T
     #: carries nothing about x₀ (ᾱ_T ≈ 2e-9), so their mean over x_T estimates the posterior mean E[x₀ | G-buffers]
-    #: without the noise an imperfect model lets through from x_T (cost: ``draws`` × the network evaluations). The
-    #: bench chose 8 (held-out ꟻLIP 0.077 vs 0.087 for one draw, 2026-11-26); 1 by default so that ``steps`` > 1
-    #: gives samples, not their mean
-    draws: int = 1
+    #: without the noise an imperfect model lets through from x_T (cost: ``draws`` × the network evaluations). None =
+    #: the bench's choice at 1 step, 8 (held-out ꟻLIP 0.0726 vs 0.0749 for one draw, 2026-11-26), and 1 for more
+    #: steps, so that ``steps`` > 1 gives samples, not their mean
+    draws: int | None = None
     seed: int = 0
 
     def __post_init__(self):
         validate.integer("steps", self.steps, 1, 1000)
+        if self.draws is None:
+            self.draws = 8 if self.steps == 1 else 1
         validate.integer("draws", self.draws, 1, 256)
+        if self.guidance is None:
+            self.guidance = 1.0 if self.draws > 1 else 1.5
         validate.non_negative("guidance", self.guidance)
         validate.seed("seed", self.seed)
 
