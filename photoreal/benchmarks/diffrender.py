@@ -250,7 +250,6 @@ def truth_renders(bench, ids: list[int], spp: int, seed: int) -> np.ndarray:
     return np.stack(out).astype(np.float32)
 
 
-
 def references(bench, morph_dir: Path, ids: list[int], spp: int, show_progress: bool = False) -> dict:
     """What the paired targets demand, from renders alone (nothing trained): held-out views ``ids`` of
 
