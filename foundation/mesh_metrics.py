@@ -8,6 +8,13 @@ from .files import Memo, array_key
 from .mesh import edge_lengths, face_normals, sample_surface
 
 
+#: sample counts (queries per direction, reference samples) of :func:`chamfer` and :func:`truth_surface` where a
+#: caller names none. At these the estimator's floor (two samplings of one surface) is an order of magnitude below
+#: the artifacts the benches measure; the test suite lowers them (tests/conftest.py: 20k / 200k, the morph trace's
+#: own counts), where only orderings and thresholds far above that floor are checked
+DEFAULT_SAMPLES = (100_000, 1_000_000)
+
+
 def _samples(v, f, n, seed):
     pts, fid, _ = sample_surface(v, f, n, np.random.default_rng(seed))
     return pts, face_normals(v, f)[fid]
@@ -34,7 +41,7 @@ def _reference_side(vb, fb, n: int, n_ref: int, seed: int) -> tuple:
     return _REFERENCES.get((array_key(vb, fb), n, n_ref, seed), make)
 
 
-def chamfer(va, fa, vb, fb, n: int = 100_000, n_ref: int = 1_000_000, seed: int = 0) -> dict:
+def chamfer(va, fa, vb, fb, n: int | None = None, n_ref: int | None = None, seed: int = 0) -> dict:
     """Two-sided Chamfer distance (mean of both directions' mean nearest distances) and normal consistency.
 
     Each direction queries ``n`` points of one surface against ``n_ref`` points
@@ -43,9 +50,12 @@ def chamfer(va, fa, vb, fb, n: int = 100_000, n_ref: int = 1_000_000, seed: int 
     magnitude below the artifacts being measured (see test_mesh_metrics).
     Normal consistency is the mean |n_a · n_b| over nearest pairs (orientation-free).
     Surface b (the ground truth, in every use here) has its samplings and k-d tree cached between calls, and
-    a call repeated with equal arrays returns its earlier result.
+    a call repeated with equal arrays returns its earlier result. ``n`` / ``n_ref`` None: :data:`DEFAULT_SAMPLES`.
     """
     from scipy.spatial import cKDTree
+
+    n = DEFAULT_SAMPLES[0] if n is None else n
+    n_ref = DEFAULT_SAMPLES[1] if n_ref is None else n_ref
 
     def make():
         pa, na = _samples(va, fa, n, seed)
@@ -75,8 +85,10 @@ class TruthSurface:
         self.tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
 
 
-def truth_surface(gv: np.ndarray, gf: np.ndarray, n: int = 1_000_000, seed: int = 0) -> TruthSurface:
-    """:class:`TruthSurface` of a mesh, built once for the last few meshes asked for (keyed by content)."""
+def truth_surface(gv: np.ndarray, gf: np.ndarray, n: int | None = None, seed: int = 0) -> TruthSurface:
+    """:class:`TruthSurface` of a mesh, built once for the last few meshes asked for (keyed by content); ``n`` None:
+    the reference count of :data:`DEFAULT_SAMPLES`."""
+    n = DEFAULT_SAMPLES[1] if n is None else n
     return _TRUTHS.get((array_key(gv, gf), n, seed), lambda: TruthSurface(gv, gf, n, seed))
 
 
