@@ -180,6 +180,7 @@ def _paired(pred: np.ndarray, ref: np.ndarray) -> dict:
             out[f"{k}_std"] = float(np.mean([d[f"{k}_std"] for d in per_seed]))  # over views, mean over seeds
             out[f"{k}_seed_std"] = float(np.std([d[k] for d in per_seed]))  # of the per-seed means
         out["seeds"] = len(pred)
+        out["flip_per_view"] = np.mean([d["flip_per_view"] for d in per_seed], axis=0).tolist()  # mean over seeds
         return out
     per = [image_metrics(p, r) for p, r in zip(pred, ref)]
     out = {}
@@ -187,6 +188,7 @@ def _paired(pred: np.ndarray, ref: np.ndarray) -> dict:
         v = np.array([getattr(m, k) for m in per], np.float64)
         out[k] = float(v.mean())
         out[f"{k}_std"] = float(v.std())
+    out["flip_per_view"] = [float(m.flip) for m in per]
     return out
 
 
@@ -408,7 +410,12 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
                 preds[name] = load_heldout_predictions(work / c / name, tid)
         first = {k: (p[0] if p.ndim == 5 else p) for k, p in preds.items()}
         refs = references(*prepared[c], tid, s.reference_spp, show_progress) if s.reference_spp else {}
-        cases[c] = {"heldout": {k: _paired(p, ph) for k, p in preds.items()},
+        paired = {k: _paired(p, ph) for k, p in preds.items()}
+        base = np.array(paired["pbr_morphed"]["flip_per_view"])
+        cases[c] = {"heldout": paired,
+                    # on how many views each method's ꟻLIP is below PBR morphed's (a mean can hide a split)
+                    "views_better_than_pbr_morphed": {k: int((np.array(m["flip_per_view"]) < base).sum())
+                                                      for k, m in paired.items() if k != "pbr_morphed"},
                     "references": {k: _paired(p, ph) for k, p in refs.items()},
                     "perceptual_mnv2": {k: float(perceptual_distance(p, ph).mean()) for k, p in first.items()},
                     "views": {"train": len(v.train), "test": len(tid), "resolution": v.resolution},
@@ -436,7 +443,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     heldout = {}
     for k in all_pred:  # pooled over the trained cases' held-out views, with the seeds where there are some
         ps = [cases[c]["heldout"][k] for c in s.cases]
-        heldout[k] = {m: float(np.mean([p[m] for p in ps])) for m in ps[0] if m != "seeds"}
+        heldout[k] = {m: float(np.mean([p[m] for p in ps])) for m in ps[0] if m not in ("seeds", "flip_per_view")}
     unseen = {c: cases[c]["heldout"] for c in s.unseen}
     refs = {k: {m: float(np.mean([cases[c]["references"][k][m] for c in s.cases])) for m in PAIRED}
             for k in (cases[s.cases[0]]["references"] if s.reference_spp else ())}
@@ -479,6 +486,9 @@ def _verdict(r: dict, s: DiffRenderBenchSettings) -> dict:
         u = r["unseen"][c]
         v[f"{c}_beats_pbr_morphed_flip"] = u["diffusion"]["flip"] < u["pbr_morphed"]["flip"]
         v[f"{c}_beats_pbr_coarse_flip"] = u["diffusion"]["flip"] < u["pbr_coarse"]["flip"]
+        if "views_better_than_pbr_morphed" in r.get("cases", {}).get(c, {}):  # a count, beside the mean's verdict
+            v[f"{c}_views_better_than_pbr_morphed"] = (r["cases"][c]["views_better_than_pbr_morphed"]["diffusion"],
+                                                       len(u["diffusion"]["flip_per_view"]))
     if "cyclegan" in h:
         v["beats_cyclegan_flip"] = h["diffusion"]["flip"] < h["cyclegan"]["flip"]
         v["beats_cyclegan_kid"] = k["diffusion"] < k["cyclegan"]
