@@ -214,25 +214,26 @@ def fid(x: np.ndarray, y: np.ndarray) -> float:
     return float(max(((mx - my) ** 2).sum() + np.trace(cx) + np.trace(cy) - 2 * _sqrtm_psd_product(cx, cy), 0.0))
 
 
+def _poly_kernels(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """KID's kernel k(a, b) = (a·b / D + 1)³ within x, within y and between them."""
+    d = x.shape[1]
+    return (x @ x.T / d + 1) ** 3, (y @ y.T / d + 1) ** 3, (x @ y.T / d + 1) ** 3
+
+
+def _unbiased_mmd2(kxx: np.ndarray, kyy: np.ndarray, kxy: np.ndarray) -> float:
+    """Unbiased squared MMD from the kernel matrices (diagonals left out)."""
+    m, n = len(kxx), len(kyy)
+    return float((kxx.sum() - np.trace(kxx)) / (m * (m - 1)) + (kyy.sum() - np.trace(kyy)) / (n * (n - 1))
+                 - 2 * kxy.mean())
+
+
 def kid(x: np.ndarray, y: np.ndarray) -> float:
     """Unbiased squared MMD with the kernel k(a, b) = (a·b / D + 1)³ (KID); 0 in expectation for equal laws."""
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
     m, n = len(x), len(y)
     if m < 2 or n < 2:
         raise UsageError(f"KID needs at least 2 samples per set, got {m} and {n}")
-    d = x.shape[1]
-    kxx = (x @ x.T / d + 1) ** 3
-    kyy = (y @ y.T / d + 1) ** 3
-    kxy = (x @ y.T / d + 1) ** 3
-    return float((kxx.sum() - np.trace(kxx)) / (m * (m - 1)) + (kyy.sum() - np.trace(kyy)) / (n * (n - 1))
-                 - 2 * kxy.mean())
-
-
-def _kid_from_kernels(kxx, kyy, kxy, mx, my) -> float:
-    """KID from the polynomial kernel matrices, keeping the rows/columns where the masks mx, my are true."""
-    a, b, c = kxx[np.ix_(mx, mx)], kyy[np.ix_(my, my)], kxy[np.ix_(mx, my)]
-    m, n = len(a), len(b)
-    return float((a.sum() - np.trace(a)) / (m * (m - 1)) + (b.sum() - np.trace(b)) / (n * (n - 1)) - 2 * c.mean())
+    return _unbiased_mmd2(*_poly_kernels(x, y))
 
 
 def kid_std(x: np.ndarray, y: np.ndarray, groups_x=None, groups_y=None) -> float:
@@ -247,12 +248,12 @@ def kid_std(x: np.ndarray, y: np.ndarray, groups_x=None, groups_y=None) -> float
         raise UsageError(f"kid_std: {len(gx)} / {len(gy)} group labels for {len(x)} / {len(y)} rows")
     if len(np.unique(gx)) < 3 or len(np.unique(gy)) < 3:
         raise UsageError("kid_std needs at least 3 groups per set")
-    d = x.shape[1]
-    kxx, kyy, kxy = (x @ x.T / d + 1) ** 3, (y @ y.T / d + 1) ** 3, (x @ y.T / d + 1) ** 3
+    kxx, kyy, kxy = _poly_kernels(x, y)
     all_x, all_y = np.ones(len(x), bool), np.ones(len(y), bool)
     var = 0.0
     for leave_outs in ([(gx != u, all_y) for u in np.unique(gx)], [(all_x, gy != u) for u in np.unique(gy)]):
-        vals = np.array([_kid_from_kernels(kxx, kyy, kxy, mx, my) for mx, my in leave_outs])
+        vals = np.array([_unbiased_mmd2(kxx[np.ix_(mx, mx)], kyy[np.ix_(my, my)], kxy[np.ix_(mx, my)])
+                         for mx, my in leave_outs])
         var += (len(vals) - 1) / len(vals) * ((vals - vals.mean()) ** 2).sum()
     return float(np.sqrt(var))
 

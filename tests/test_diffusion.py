@@ -495,12 +495,12 @@ def test_bench_distribution_distances_rank_a_blurred_set_behind_the_same_photos(
     from PIL import Image
     from scipy.ndimage import gaussian_filter
 
-    from photoreal.benchmarks.diffrender import distribution
+    from photoreal.benchmarks.diffrender import distribution, set_features
 
     imgs = [skimage.data.astronaut(), skimage.data.coffee(), skimage.data.chelsea(), skimage.data.rocket()]
     ref = np.stack([np.asarray(Image.fromarray(i[..., :3]).resize((128, 128)), np.float32) / 255 for i in imgs]) ** 2.2
     blurred = np.stack([gaussian_filter(r, (2, 2, 0)) for r in ref]).astype(np.float32)
-    d = distribution({"same": ref, "blurred": blurred}, ref)
+    d = distribution({"same": set_features(ref), "blurred": set_features(blurred)}, set_features(ref))
     for row in d.values():
         assert all(np.isfinite(v) for v in row.values()) and row["kid_std"] > 0 and row["kid_spatial_std"] > 0
     assert d["same"]["fid"] < 1e-3 * d["blurred"]["fid"]

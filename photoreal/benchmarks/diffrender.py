@@ -269,16 +269,20 @@ def references(bench, morph_dir: Path, ids: list[int], spp: int, show_progress: 
             "truth_clean": truth_renders(bench, ids, spp, REFERENCE_SEEDS["truth_clean"])}
 
 
-def distribution(preds: dict[str, np.ndarray], reference: np.ndarray) -> dict:
-    """MobileNetV2 distribution distances of each image set in ``preds`` to ``reference``: image-level KID (with its
-    jackknife standard error over images) and FID, and the spatial KID over the last map's positions (jackknife over
-    images, each image's positions leaving together)."""
-    f_ref, f_ref_sp = image_features(reference), spatial_features(reference)
+def set_features(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An image set's MobileNetV2 features for :func:`distribution`: per image and per last-map position."""
+    return image_features(images), spatial_features(images)
+
+
+def distribution(sets: dict[str, tuple], reference: tuple) -> dict:
+    """MobileNetV2 distribution distances of each set in ``sets`` (name → :func:`set_features`) to ``reference``
+    (its :func:`set_features`): image-level KID (with its jackknife standard error over images) and FID, and the
+    spatial KID over the last map's positions (jackknife over images, each image's positions leaving together)."""
+    f_ref, f_ref_sp = reference
     per = len(f_ref_sp) // len(f_ref)
     g_ref = np.repeat(np.arange(len(f_ref)), per)
     out = {}
-    for k, p in preds.items():
-        f, f_sp = image_features(p), spatial_features(p)
+    for k, (f, f_sp) in sets.items():
         g = np.repeat(np.arange(len(f)), per)
         out[k] = {"kid": kid(f, f_ref), "kid_std": kid_std(f, f_ref), "fid": fid(f, f_ref),
                   "kid_spatial": kid(f_sp, f_ref_sp), "kid_spatial_std": kid_std(f_sp, f_ref_sp, g, g_ref)}
@@ -433,10 +437,11 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     # distribution distances to the held-out photos (the issue's), and to the same views path traced without the
     # photos' Monte-Carlo noise: MobileNetV2 features respond to that noise as to texture, so the first alone would
     # reward a method for reproducing the photos' noise (the references' rows show by how much)
-    sets = {k: np.concatenate(ps) for k, ps in {**all_pred, **all_refs}.items()}
-    dist = {"photos": distribution(sets, photos)}
+    sets = {k: set_features(np.concatenate(ps)) for k, ps in {**all_pred, **all_refs}.items()}
+    f_photos = set_features(photos)
+    dist = {"photos": distribution(sets, f_photos)}
     if all_clean:
-        dist["photos_clean"] = distribution({**sets, "photos": photos}, np.concatenate(all_clean))
+        dist["photos_clean"] = distribution({**sets, "photos": f_photos}, set_features(np.concatenate(all_clean)))
     kid_mnv2 = {k: dist["photos"][k]["kid"] for k in all_pred}
     fid_mnv2 = {k: dist["photos"][k]["fid"] for k in all_pred}
     kid_sp = {k: dist["photos"][k]["kid_spatial"] for k in all_pred}
