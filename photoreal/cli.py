@@ -286,7 +286,7 @@ def _cmd_bench_matdiff(a) -> int:
     write_json(out, result)
     _print({k: result[k] for k in ("classifier_accuracy_real", "keyword_accuracy", "kid_classifier", "kid_mnv2",
                                    "nn_distance_ratio", "diversity", "exemplar_flip", "seam_error", "sample_seconds",
-                                   "chosen_steps", "verdict")})
+                                   "chosen_steps", "chosen_guidance", "keyword_accuracy_chosen", "verdict")})
     return 0
 
 
@@ -1014,7 +1014,7 @@ def build_parser() -> argparse.ArgumentParser:
     tt.add_argument("data", help="folder made by `btf dataset`")
     tt.add_argument("--out", required=True, help="run folder (checkpoint.npz, metrics.json)")
     _opt(tt, MatDiffSettings, "max_seconds", "--seconds", type=float, help="training budget (summed over resumes)")
-    for name in ("steps", "batch", "lr", "widths", "seed"):
+    for name in ("steps", "batch", "train_crop", "lr", "widths", "seed"):
         _opt(tt, MatDiffSettings, name, **({"type": int} if name == "widths" else {}))
     tt.set_defaults(func=_cmd_btf_train_diffusion)
     tg = tsub.add_parser("generate", help="a new material from keywords and/or an exemplar image; loads in "

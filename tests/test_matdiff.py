@@ -3,6 +3,7 @@ resume, the dataset build, generation into a neural_btf scene, the evaluation he
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -64,8 +65,12 @@ def test_shifted_schedule_scales_snr_and_reaches_the_scheduler():
 
 def test_min_snr_weight_and_cube_root_round_trip():
     snr = torch.tensor([0.1, 1.0, 5.0, 50.0])
-    v = mm.loss_weight(snr, mm.MatDiffSettings(min_snr_gamma=5.0))
+    v = mm.loss_weight(snr, mm.MatDiffSettings(min_snr_gamma=5.0, snr_floor=False))
     np.testing.assert_allclose(v.numpy(), [0.1 / 1.1, 1 / 2, 5 / 6, 5 / 51], rtol=1e-6)
+    # the floor: x₀ weight (SNR + 1)·w = min(SNR, γ) + 1 — 1 at pure noise (plain v-loss there), γ + 1 at high SNR
+    vf = mm.loss_weight(snr, mm.MatDiffSettings(min_snr_gamma=5.0, snr_floor=True))
+    np.testing.assert_allclose((vf * (snr + 1)).numpy(), [1.1, 2, 6, 6], rtol=1e-6)
+    np.testing.assert_allclose(mm.loss_weight(torch.tensor([0.0]), mm.MatDiffSettings(snr_floor=True)).numpy(), [1.0])
     e = mm.loss_weight(snr, mm.MatDiffSettings(min_snr_gamma=5.0, prediction="epsilon"))
     np.testing.assert_allclose(e.numpy(), [1, 1, 1, 0.1], rtol=1e-6)
     assert torch.all(mm.loss_weight(snr, mm.MatDiffSettings(min_snr_gamma=0.0)) == 1)
@@ -318,3 +323,20 @@ def test_ema_weights_are_the_running_average_that_sampling_loads(tmp_path):
     loaded, _ = mm.load_matdiff(tmp_path / "r3")
     torch.testing.assert_close(loaded.state_dict()[key], e, rtol=1e-5, atol=1e-7)
     assert not torch.equal(loaded.state_dict()[key], raws[3][key])  # not the raw weights
+
+
+def test_crop_training_sees_wrapped_crops_with_zero_padding_and_samples_stay_circular(tmp_path):
+    data = _toy_set(res=16)
+    s = mm.MatDiffSettings(**TINY, steps=2, train_crop=8)
+    seen = []
+    stage = mm.MatDiffStage(data, dataclasses.replace(s, feature_scale=1.0, train_res=16),
+                            np.zeros((8, 4, mm.EXEMPLAR_TOKENS, mm.FEATURE_DIM), np.float32))
+    conv = stage.model.unet.conv_in
+    conv.register_forward_hook(lambda m, i, o: seen.append((tuple(i[0].shape[-2:]), m.padding_mode)))
+    r = stage.step(0)
+    assert np.isfinite(r.loss) and seen == [((8, 8), "zeros")]  # a crop is not periodic: no wrap-around in training
+    assert conv.padding_mode == "circular"  # restored: sampling at any size still tiles
+    whole = mm.train_matdiff(data, tmp_path / "c", s, show_progress=False)
+    assert whole.training.steps == 2 and np.isfinite(whole.training.loss_last)
+    with pytest.raises(UsageError, match="train_crop"):
+        mm.MatDiffSettings(**TINY, train_crop=3)  # the UNet halves the size once
