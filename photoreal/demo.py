@@ -337,7 +337,10 @@ def demo_matdiff(out_dir: Path, s: DemoSettings, bench_dir: Path | None = None) 
                  "nn_distance_ratio": b["nn_distance_ratio_all"].get(k, "")} for k in b["kid_mnv2"]]
         body += (f"<p><code>photoreal bench matdiff</code>: family classifier {b['classifier_accuracy_real']:.2f} on "
                  f"held-out real materials; keyword-conditioned samples classified as their family "
-                 f"{b['keyword_accuracy']:.2f}; exemplar ꟻLIP: " + ", ".join(
+                 f"{b['keyword_accuracy']:.2f}" + (
+                     f" ({c['triples']:.2f} at the chosen {c['steps']} steps, CFG {c['guidance']:g}, on fresh samples)"
+                     if (c := b.get("keyword_accuracy_chosen")) else "")
+                 + "; exemplar ꟻLIP: " + ", ".join(
                      f"{html.escape(k)} {v:.3f}" for k, v in b["exemplar_flip"].items())
                  + f"; seam ratio at 2× size {b['seam_error']:.2f} (1 = seamless).</p>"
                  + _table(rows, ["method", "kid_classifier", "kid_mnv2", "nn_distance_ratio"])
