@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from foundation import validate
+from foundation.errors import UsageError
 from foundation.features import fid, kid
 from foundation.threads import torch_threads
 
@@ -187,6 +188,8 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
     index = read_json(Path(s.data) / "index.json", "material dataset index")
     ds = load_material_dataset(s.data)
     train, held = ds.subset(~ds.heldout), ds.subset(ds.heldout)
+    if s.samples < len(held.names):  # the exemplar comparison pairs one unconditional sample with each held-out one
+        raise UsageError(f"--samples {s.samples}: at least the {len(held.names)} held-out materials of {s.data}")
     fams = [f for f in dict.fromkeys(e["family"] for e in index["materials"])]
     result["dataset"] = {
         "materials": len(ds.names), "train": len(train.names), "heldout": len(held.names),
