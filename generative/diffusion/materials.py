@@ -140,10 +140,14 @@ def diffusion_config(s: MatDiffSettings) -> DiffusionConfig:
                            class_dim=KEYWORD_TOKENS * len(VOCABULARY) if s.keyword_embedding else 0)
 
 
+def _padded_convs(model: torch.nn.Module) -> list[torch.nn.Conv2d]:
+    return [m for m in model.modules() if isinstance(m, torch.nn.Conv2d) and max(m.padding) > 0]
+
+
 @contextlib.contextmanager
 def padding_mode(model: torch.nn.Module, mode: str | None):
     """Temporarily set every padded convolution of ``model`` to ``mode`` (None: leave as built)."""
-    convs = [m for m in model.modules() if isinstance(m, torch.nn.Conv2d) and max(m.padding) > 0] if mode else []
+    convs = _padded_convs(model) if mode else []
     old = [m.padding_mode for m in convs]
     for m in convs:
         m.padding_mode = mode
@@ -157,9 +161,8 @@ def padding_mode(model: torch.nn.Module, mode: str | None):
 def build_model(s: MatDiffSettings) -> ConditionalDiffusion:
     model = ConditionalDiffusion(diffusion_config(s), seed=s.seed)
     if s.circular:
-        for m in model.modules():  # §3.2: periodic boundaries in every convolution → tileable feature textures
-            if isinstance(m, torch.nn.Conv2d) and max(m.padding) > 0:
-                m.padding_mode = "circular"
+        for m in _padded_convs(model):  # §3.2: periodic boundaries in every convolution → tileable feature textures
+            m.padding_mode = "circular"
     return model
 
 
