@@ -290,6 +290,23 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
     return Checkpoint(tree["stage_name"], tree["fingerprint"], tree["stage"], RunState.from_tree(tree["loop"]))
 
 
+def weights_only(path: str | Path, out: str | Path, keep: tuple[str, ...] = ("model", "ema")) -> Path:
+    """Copy a finished run's checkpoint keeping only the stage entries ``keep`` (weights): no optimiser or random
+    state, so about a third of the size, to share or move a trained model. It loads for sampling (same kind and
+    fingerprint) and is refused by :func:`run_loop` as a run to resume."""
+    saved = read_checkpoint(path)
+    if not saved.run.done:
+        raise CheckpointError(f"{path}: the run is not finished (step {saved.run.step}); finish it before stripping")
+    stage = {k: saved.stage[k] for k in keep if k in saved.stage}
+    if not stage:
+        raise CheckpointError(f"{path}: holds none of {list(keep)} (it has {sorted(saved.stage)})")
+    stage["weights_only"] = True
+    out = Path(out)
+    save_tree(out, {"stage_name": saved.kind, "fingerprint": saved.fingerprint, "stage": stage,
+                    "loop": saved.run.to_tree()})
+    return out
+
+
 def run_loop(stage: Stage, settings: LoopSettings, checkpoint: str | Path | None = None,
              budget_steps: int | None = None, show_progress: bool = True,
              metrics_path: str | Path | None = None) -> Any:
@@ -314,6 +331,9 @@ def run_loop(stage: Stage, settings: LoopSettings, checkpoint: str | Path | None
             shown = "; ".join(diff[:4]) + ("; …" if len(diff) > 4 else "")
             raise CheckpointError(f"{checkpoint}: checkpoint was made with other settings or data ({shown}); "
                                   "delete it or use the same ones")
+        if saved.stage.get("weights_only"):
+            raise CheckpointError(f"{checkpoint}: a weights-only checkpoint (optimiser and random state stripped): it "
+                                  "loads for sampling but cannot be resumed; use another output folder")
         stage.load_state(saved.stage)
         run = saved.run
 

@@ -558,8 +558,8 @@ def _cmd_btf_train_diffusion(a) -> int:
 
     s = _settings(MatDiffSettings, a)
     ds = load_material_dataset(a.data)
-    r = train_matdiff(ds.subset(~ds.heldout), a.out, s)
-    print(json.dumps({"run": str(a.out), "materials": r.materials, "parameters": r.parameters,
+    r = train_matdiff(ds.subset(~ds.heldout), a.out, s, device=a.device)
+    print(json.dumps({"run": str(a.out), "device": a.device, "materials": r.materials, "parameters": r.parameters,
                       "training": to_json(r.training)}, default=str))
     return 0
 
@@ -817,6 +817,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "memorisation, seams, speed, ablations, dataset sweep (builds/continues its dataset first)")
     for name in ("data", "count", "train_seconds", "ablation_seconds", "samples", "steps", "guidance", "seed"):
         _opt(bmd, MatDiffBenchSettings, name)
+    _opt(bmd, MatDiffBenchSettings, "main_run", help="finished `btf train-diffusion` run (e.g. trained with --device "
+         "cuda) to evaluate instead of training the main model here; default: train here")
     _opt(bmd, MatDiffBenchSettings, "ablations", "--no-ablations", help="skip the ablation runs")
     bmd.set_defaults(func=_cmd_bench_matdiff)
     from .benchmarks.face_learned import FaceLearnedBenchSettings
@@ -1014,8 +1016,10 @@ def build_parser() -> argparse.ArgumentParser:
     tt.add_argument("data", help="folder made by `btf dataset`")
     tt.add_argument("--out", required=True, help="run folder (checkpoint.npz, metrics.json)")
     _opt(tt, MatDiffSettings, "max_seconds", "--seconds", type=float, help="training budget (summed over resumes)")
-    for name in ("steps", "batch", "train_crop", "lr", "widths", "seed"):
+    for name in ("steps", "batch", "train_crop", "lr", "widths", "attention_levels", "ema", "seed"):
         _opt(tt, MatDiffSettings, name, **({"type": int} if name == "widths" else {}))
+    tt.add_argument("--device", default="cpu", help="torch device of the model (cpu, cuda, cuda:N, mps; default: cpu); "
+                    "a run resumes on any device")
     tt.set_defaults(func=_cmd_btf_train_diffusion)
     tg = tsub.add_parser("generate", help="a new material from keywords and/or an exemplar image; loads in "
                          "neural_btf with the basis the model was trained on")

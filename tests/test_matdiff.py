@@ -340,3 +340,44 @@ def test_crop_training_sees_wrapped_crops_with_zero_padding_and_samples_stay_cir
     assert whole.training.steps == 2 and np.isfinite(whole.training.loss_last)
     with pytest.raises(UsageError, match="train_crop"):
         mm.MatDiffSettings(**TINY, train_crop=3)  # the UNet halves the size once
+
+
+def test_device_names_weights_only_runs_and_the_bench_main_run_check(tmp_path):
+    from foundation.errors import CheckpointError
+    from foundation.loop import read_checkpoint, weights_only
+    from generative.diffusion.core import torch_device
+    from photoreal.benchmarks.matdiff import _check_trained_on
+
+    assert torch_device("cpu") == "cpu"
+    if torch.cuda.is_available():
+        assert torch_device("cuda").startswith("cuda")
+    else:  # the CPU machines this suite runs on: asking for a GPU is refused by name, before any training
+        with pytest.raises(UsageError, match="--device cuda: torch sees no CUDA device"):
+            mm.train_matdiff(_toy_set(), tmp_path / "g", mm.MatDiffSettings(**TINY, steps=2), device="cuda")
+        assert not (tmp_path / "g").exists()
+    with pytest.raises(UsageError, match="not a torch device"):
+        torch_device("gpu0")
+
+    data = _toy_set()
+    s = mm.MatDiffSettings(**TINY, steps=3, ema=0.5)
+    mm.train_matdiff(data, tmp_path / "full", s, show_progress=False)
+    slim = tmp_path / "slim"
+    slim.mkdir()
+    weights_only(tmp_path / "full" / "checkpoint.npz", slim / "checkpoint.npz", keep=("ema",))
+    (slim / "metrics.json").write_text((tmp_path / "full" / "metrics.json").read_text())
+    assert "opt" not in read_checkpoint(slim / "checkpoint.npz").stage
+    assert (slim / "checkpoint.npz").stat().st_size < 0.4 * (tmp_path / "full" / "checkpoint.npz").stat().st_size
+    (a, _), (b, _) = mm.load_matdiff(tmp_path / "full"), mm.load_matdiff(slim)  # sampling loads the same EMA weights
+    assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
+    with pytest.raises(CheckpointError, match="weights-only"):
+        mm.train_matdiff(data, slim, s, show_progress=False)
+    mm.train_matdiff(data, tmp_path / "half", s, budget_steps=1, show_progress=False)
+    with pytest.raises(CheckpointError, match="not finished"):
+        weights_only(tmp_path / "half" / "checkpoint.npz", tmp_path / "x.npz")
+
+    # the bench evaluates a run trained elsewhere only if it was trained on exactly its training split
+    _check_trained_on(slim, data)
+    with pytest.raises(UsageError, match="other materials"):
+        _check_trained_on(slim, _toy_set(seed=1))
+    with pytest.raises(UsageError, match="not finished"):
+        _check_trained_on(tmp_path / "half", data)

@@ -42,7 +42,7 @@ from .face_models import train_decomposer as train_face_decomposer
 from .face_models import (VARIANTS, CompletionSettings, SuperResSettings, at_resolution, complete, decompose_maps,
                           load_completion, load_superres, normalise_albedo, upscale)
 from .face_run import FaceModelsSettings, completion_albedo, load_face_models, photo_maps_fn, train_face_models
-from .materials import (MaterialPrompt, MatDiffSettings, from_model_space, generate_material, load_matdiff,
+from .materials import (MaterialPrompt, MatDiffSettings, data_digest, from_model_space, generate_material, load_matdiff,
                         sample_materials, split_features, to_model_space, train_matdiff)
 
 __all__ = [
@@ -56,7 +56,7 @@ __all__ = [
     "load_material_dataset", "parse_keywords", "ClassifierSettings", "aligned_flip", "classify", "copy_baseline",
     "denoising_check", "family_gaussian_baseline", "phase_randomised_baseline", "random_roll", "crop_baseline",
     "decode_all", "gaussian_baseline", "mean_pairwise", "mnv2_features", "nearest_distances",
-    "seam_ratio", "train_classifier", "MaterialPrompt", "MatDiffSettings", "generate_material", "load_matdiff",
+    "seam_ratio", "train_classifier", "MaterialPrompt", "MatDiffSettings", "data_digest", "generate_material", "load_matdiff",
     "sample_materials", "split_features", "train_matdiff", "to_model_space", "from_model_space",
     "DECOMPOSED", "DecompDataSettings", "DecompResult", "DecompSettings", "Decomposer", "condition_to_layers", "decompose",
     "from_target_space", "heldout_psnr", "intrinsic_layers", "load_decomp_data", "load_decomposer", "photographs",

@@ -282,7 +282,26 @@ class OptimizerStage:
         if getattr(self, "gen", None) is not None:
             self.gen.set_state(torch.as_tensor(np.asarray(tree["gen"]), dtype=torch.uint8))
         if self.ema is not None:
-            self.ema = {k: torch.as_tensor(v).clone() for k, v in tree["ema"].items()}
+            live = self.model.state_dict()
+            self.ema = {k: torch.as_tensor(v).to(live[k].device).clone() for k, v in tree["ema"].items()}
+
+
+def torch_device(name: str) -> str:
+    """``name`` checked as a torch device that exists here (``cpu``, ``cuda``, ``cuda:1``, ``mps``), by name."""
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise UsageError(f"--device {name!r}: not a torch device name (cpu, cuda, cuda:N, mps)") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise UsageError(f"--device {name}: torch sees no CUDA device here (torch {torch.__version__})")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise UsageError(f"--device {name}: only {torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type == "mps" and not torch.backends.mps.is_available():
+        raise UsageError(f"--device {name}: torch sees no MPS device here")
+    elif dev.type not in ("cpu", "cuda", "mps"):
+        raise UsageError(f"--device {name}: only cpu, cuda and mps are supported")
+    return str(dev)
 
 
 def train_stage(make_stage, out, s, budget_steps: int | None, show_progress: bool, metrics: bool = True):
@@ -323,8 +342,11 @@ def load_trained(run, stage_kind: str, what: str, hint: str, settings_cls, build
         raise CheckpointError(f"{ckpt}: a {saved.kind} checkpoint, not a {what}'s")
     s = from_json(settings_cls, {**(defaults or {}), **saved.fingerprint["settings"]}, str(ckpt))
     model = build(s)
+    state = saved.stage.get(weights) or saved.stage.get("model")
+    if state is None:
+        raise CheckpointError(f"{ckpt}: holds no model weights (entries: {sorted(saved.stage)})")
     try:
-        model.load_state_dict(saved.stage.get(weights, saved.stage["model"]))
+        model.load_state_dict(state)
     except RuntimeError as exc:
         raise CheckpointError(f"{ckpt}: weights do not fit the architecture its settings describe "
                               f"({str(exc).splitlines()[0]})") from None
@@ -352,5 +374,5 @@ def training_flops(model: ConditionalDiffusion, batch: int, size: int) -> float:
     return float(fc.get_total_flops())
 
 
-__all__ = ["ConditionalDiffusion", "DiffusionConfig", "OptimizerStage", "load_trained", "train_stage", "PREDICTIONS", "SCHEDULES", "check_size", "count_parameters",
+__all__ = ["ConditionalDiffusion", "DiffusionConfig", "OptimizerStage", "load_trained", "torch_device", "train_stage", "PREDICTIONS", "SCHEDULES", "check_size", "count_parameters",
            "diffusion_loss", "make_scheduler", "sample", "training_flops"]

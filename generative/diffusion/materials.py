@@ -274,12 +274,14 @@ def material_loss(model: ConditionalDiffusion, sched, s: MatDiffSettings, x0: to
                   g: torch.Tensor, present: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     """One Monte-Carlo estimate of eq. 4 (with the switches of ``s``)."""
     b, _, h, _ = x0.shape
+    # drawn on the CPU generator whatever the device: a run's random stream (and its checkpoint) is device-free
     t = torch.randint(0, sched.config.num_train_timesteps, (b,), generator=gen)
-    noise = torch.randn(x0.shape, generator=gen, dtype=x0.dtype)
-    noisy = sched.add_noise(x0, noise, t)
-    target = sched.get_velocity(x0, noise, t) if s.prediction == "v_prediction" else noise
-    err = model(noisy, t, local, cross_tokens(model, g, present), keyword_vector(g)) - target
-    ac = sched.alphas_cumprod[t].to(x0.dtype)
+    noise = torch.randn(x0.shape, generator=gen, dtype=x0.dtype).to(x0.device)
+    t_dev = t.to(x0.device)
+    noisy = sched.add_noise(x0, noise, t_dev)
+    target = sched.get_velocity(x0, noise, t_dev) if s.prediction == "v_prediction" else noise
+    err = model(noisy, t_dev, local, cross_tokens(model, g, present), keyword_vector(g)) - target
+    ac = sched.alphas_cumprod.to(x0.device, x0.dtype)[t_dev]
     w = loss_weight(ac / (1.0 - ac), s)
     per = err.square().mean(dim=(1, 2, 3))
     if s.multiscale:
@@ -308,18 +310,19 @@ class MatDiffStage(OptimizerStage, Stage):
 
     unit = "step"
 
-    def __init__(self, data: MaterialSet, s: MatDiffSettings, tokens: np.ndarray):
+    def __init__(self, data: MaterialSet, s: MatDiffSettings, tokens: np.ndarray, device: str = "cpu"):
         self.s = s
+        self.device = torch.device(device)
         self.name = "train material diffusion"
         self.x = to_model_space(data.features, s).astype(np.float32)
         self.kw = keyword_onehots(data.keywords)
         self.swatches = data.swatches
         self.tokens = tokens  #: (N, K, 16, 1280) exemplar tokens of every swatch
         self.res = data.features.shape[-1]
-        self.digest = _digest(data)
+        self.digest = data_digest(data)
         self.rng = np.random.default_rng(s.seed)
         self.gen = torch.Generator().manual_seed(s.seed)
-        self.model = build_model(s)
+        self.model = build_model(s).to(self.device)
         self.sched = make_material_scheduler(s, self.res)
         self.opt = torch.optim.AdamW(self.model.parameters(), lr=s.lr, weight_decay=0.0)
         self.start_ema(s.ema)
@@ -343,18 +346,21 @@ class MatDiffStage(OptimizerStage, Stage):
         if s.exemplar_local:
             ex = np.stack([np.roll(self.swatches[i, v], tuple(d), (0, 1)) for i, v, d in zip(idx, view, shifts)])
             local = exemplar_local(ex, self.res)[..., :c, :c] * torch.from_numpy(keep_ex.astype(np.float32)).view(-1, 1, 1, 1)
+            local = local.to(self.device)
         # A crop is not periodic: its convolutions pad with zeros (the interior statistics are what is learned;
         # sampling at the full size pads circularly again, so samples still tile).
         with padding_mode(self.model, "zeros" if c < self.res and s.circular else None):
-            loss = material_loss(self.model, self.sched, s, torch.from_numpy(x0), local, torch.from_numpy(g),
-                                 torch.from_numpy(present), self.gen)
+            dev = self.device
+            loss = material_loss(self.model, self.sched, s, torch.from_numpy(x0).to(dev), local,
+                                 torch.from_numpy(g).to(dev), torch.from_numpy(present).to(dev), self.gen)
             return self.backward(loss)
 
     def finish(self, run: RunState) -> MatDiffResult:
         return MatDiffResult(self.s, len(self.x), sum(p.numel() for p in self.model.parameters()), run.summary())
 
 
-def _digest(data: MaterialSet) -> str:
+def data_digest(data: MaterialSet) -> str:
+    """What a run was trained on: names, keywords and feature textures (a run is resumed or evaluated only on these)."""
     import hashlib
 
     h = hashlib.sha256()
@@ -368,11 +374,17 @@ def feature_scale(features: np.ndarray) -> float:
 
 
 def train_matdiff(data: MaterialSet, out: str | Path, s: MatDiffSettings | None = None, budget_steps: int | None = None,
-                  show_progress: bool = True) -> MatDiffResult | None:
+                  show_progress: bool = True, device: str = "cpu") -> MatDiffResult | None:
     """Train on ``data``'s materials (pass only the training split) in folder ``out`` (``checkpoint.npz``,
-    ``metrics.json``); rerun to resume. ``budget_steps`` ends this call early (a later call continues)."""
+    ``metrics.json``); rerun to resume. ``budget_steps`` ends this call early (a later call continues).
+
+    ``device`` (a torch device, e.g. ``cuda``) runs the model there; batches and the random stream stay on the CPU,
+    so a run may resume on another device (the checkpoint is the same either way)."""
     import dataclasses
 
+    from .core import torch_device
+
+    device = torch_device(device)
     s = s or MatDiffSettings()
     if len(data.names) < 2:
         raise UsageError(f"material diffusion needs at least 2 training materials, got {len(data.names)}")
@@ -389,7 +401,7 @@ def train_matdiff(data: MaterialSet, out: str | Path, s: MatDiffSettings | None 
         s = dataclasses.replace(s, train_res=res)
     n, k = data.swatches.shape[:2]
     tokens = exemplar_features(data.swatches.reshape(n * k, *data.swatches.shape[2:])).reshape(n, k, EXEMPLAR_TOKENS, -1)
-    _, result = train_stage(lambda: MatDiffStage(data, s, tokens), out, s, budget_steps, show_progress)
+    _, result = train_stage(lambda: MatDiffStage(data, s, tokens, device), out, s, budget_steps, show_progress)
     return result
 
 
@@ -523,7 +535,7 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
     return {"material": str(out), **meta["generated"], "basis": s.basis_id}
 
 
-__all__ = ["MaterialPrompt", "MatDiffResult", "MatDiffSettings", "alphas_cumprod", "build_model", "exemplar_features",
+__all__ = ["MaterialPrompt", "MatDiffResult", "MatDiffSettings", "alphas_cumprod", "build_model", "data_digest", "exemplar_features",
            "exemplar_local", "feature_scale", "from_model_space", "generate_material", "global_tokens", "keyword_vector", "load_matdiff", "loss_weight",
            "make_material_scheduler", "material_loss", "sample_materials", "split_features", "to_model_space",
            "train_matdiff"]
