@@ -338,8 +338,11 @@ def demo_matdiff(out_dir: Path, s: DemoSettings, bench_dir: Path | None = None) 
         body += (f"<p><code>photoreal bench matdiff</code>: family classifier {b['classifier_accuracy_real']:.2f} on "
                  f"held-out real materials; keyword-conditioned samples classified as their family "
                  f"{b['keyword_accuracy']:.2f}" + (
-                     f" ({c['triples']:.2f} at the chosen {c['steps']} steps, CFG {c['guidance']:g}, on fresh samples)"
+                     f" ({c['triples']:.2f} ± {c.get('triples_standard_error', 0.0):.2f} at the chosen {c['steps']} steps, "
+                     f"CFG {c['guidance']:g}, on {c.get('repeats', 1)} fresh sets of noise seeds)"
                      if (c := b.get("keyword_accuracy_chosen")) else "")
+                 + (f"; main model trained on {html.escape(str(dv.get('name', dv.get('device'))))}"
+                    if (dv := b.get("main", {}).get("device")) else "")
                  + "; exemplar ꟻLIP: " + ", ".join(
                      f"{html.escape(k)} {v:.3f}" for k, v in b["exemplar_flip"].items())
                  + f"; seam ratio at 2× size {b['seam_error']:.2f} (1 = seamless).</p>"
