@@ -71,7 +71,7 @@ class MatDiffBenchSettings:
     quality_steps: tuple[int, ...] = (3, 5, 10, 25, 50)
     quality_guidance: tuple[float, ...] = (1.0, 2.0)  #: CFG weights of the quality sweep (× quality_steps)
     speed_sizes: tuple[int, ...] = (64, 256)
-    speed_steps: tuple[int, ...] = (5, 10, 25)
+    speed_steps: tuple[int, ...] = (3, 5, 10, 25)
     tolerance: float = 0.05  #: keyword accuracy within this of the best counts as as good
     chosen_repeats: int = 4  #: fresh noise-seed sets the chosen (steps, guidance) is rescored on (the verdict's mean)
     ablations: bool = True
@@ -351,6 +351,10 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
                   model, ms, [MaterialPrompt(train.keywords[i]) for i in prior], judge.res, pick["steps"],
                   pick["guidance"], s.seed + 8)}
         sc_at = {k: judge.score(judge.decode(v)) for k, v in at.items()}
+        # few steps might trade detail for safety: memorisation and diversity of these samples too
+        result["at_chosen_nn_distance_ratio"] = {
+            k: float(np.median(nearest_distances(v["mn"], judge.train_mn)) / np.median(ref_nn)) for k, v in sc_at.items()}
+        result["at_chosen_diversity"] = {k: mean_pairwise(v["mn"]) for k, v in sc_at.items()}
         result["kid_at_chosen"] = {
             "kid_classifier": {**{k: v["kid_classifier"] for k, v in sc_at.items()},
                                **{k: result["kid_classifier"][k] for k in ("copy", "gaussian", "crop")}},
