@@ -281,8 +281,11 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
 
         # memorisation and diversity (MobileNetV2 space of the swatch mosaic)
         ref_nn = nearest_distances(judge.ref_mn, judge.train_mn)
-        nn = {k: float(np.median(nearest_distances(v["mn"], judge.train_mn)) / np.median(ref_nn))
-              for k, v in scores.items() if k != "heldout_real"}
+
+        def nn_ratio(mn: np.ndarray) -> float:  # median nearest-training distance over held-out materials'
+            return float(np.median(nearest_distances(mn, judge.train_mn)) / np.median(ref_nn))
+
+        nn = {k: nn_ratio(v["mn"]) for k, v in scores.items() if k != "heldout_real"}
         result["nn_distance_ratio"] = nn["diffusion"]
         result["nn_distance_ratio_all"] = nn
         result["nn_distance_heldout_median"] = float(np.median(ref_nn))
@@ -357,8 +360,7 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
                   pick["guidance"], s.seed + 8)}
         sc_at = {k: judge.score(judge.decode(v)) for k, v in at.items()}
         # few steps might trade detail for safety: memorisation and diversity of these samples too
-        result["at_chosen_nn_distance_ratio"] = {
-            k: float(np.median(nearest_distances(v["mn"], judge.train_mn)) / np.median(ref_nn)) for k, v in sc_at.items()}
+        result["at_chosen_nn_distance_ratio"] = {k: nn_ratio(v["mn"]) for k, v in sc_at.items()}
         result["at_chosen_diversity"] = {k: mean_pairwise(v["mn"]) for k, v in sc_at.items()}
         result["kid_at_chosen"] = {
             "kid_classifier": {**{k: v["kid_classifier"] for k, v in sc_at.items()},
