@@ -1029,8 +1029,10 @@ def build_parser() -> argparse.ArgumentParser:
     tg.add_argument("--unconditional", action="store_true", help="neither keywords nor image")
     tg.add_argument("--seed", type=int, default=0)
     tg.add_argument("--size", type=int, default=32, help="texels per side (any multiple of 4: tiles seamlessly)")
-    tg.add_argument("--steps", type=int, default=25, help="DDIM steps (default: 25)")
-    tg.add_argument("--guidance", type=float, default=2.0, help="classifier-free guidance (default: 2)")
+    tg.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the run's sampler.json, which "
+                    "`bench matdiff` writes; else 25)")
+    tg.add_argument("--guidance", type=float, default=None, help="classifier-free guidance (default: the run's "
+                    "sampler.json; else 2)")
     tg.add_argument("--out", required=True, help="material .npz")
     tg.set_defaults(func=_cmd_btf_generate)
 

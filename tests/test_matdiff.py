@@ -171,6 +171,19 @@ def test_training_resumes_exactly_and_generates_into_a_neural_btf_scene(tmp_path
     assert main(["btf", "generate", "--run", str(tmp_path / "a"), "--image", "brick", "--steps", "2",
                  "--out", str(tmp_path / "ex.npz")]) == 0
     capsys.readouterr()
+    # a run's recorded sampler (what `bench matdiff` chose) is the default: the same material as those arguments
+    assert mm.run_sampler(tmp_path / "a")["source"] == "default"
+    mm.save_sampler(tmp_path / "a", 3, 2.0, "test")
+    main(["btf", "generate", "--run", str(tmp_path / "a"), "--keywords", "rough leather", "--size", "16",
+          "--out", str(tmp_path / "rec.npz")])
+    rec = json.loads(capsys.readouterr().out)
+    assert rec["steps"] == 3 and rec["guidance"] == 2.0 and rec["sampler_from"].endswith(mm.SAMPLER_FILE)
+    np.testing.assert_array_equal(load_material(tmp_path / "rec.npz").t_rgb, mat.t_rgb)
+    (tmp_path / "a" / mm.SAMPLER_FILE).write_text('{"steps": "many", "guidance": 2}')
+    assert main(["btf", "generate", "--run", str(tmp_path / "a"), "--keywords", "wood", "--out",
+                 str(tmp_path / "bad.npz")]) == 2
+    assert mm.SAMPLER_FILE in capsys.readouterr().err and not (tmp_path / "bad.npz").exists()
+    (tmp_path / "a" / mm.SAMPLER_FILE).unlink()
 
     scene = mi.load_dict({
         "type": "scene", "integrator": {"type": "direct"},

@@ -412,6 +412,39 @@ def load_matdiff(run: str | Path) -> tuple[ConditionalDiffusion, MatDiffSettings
                         weights="ema")
 
 
+#: a run's recorded sampler (``bench matdiff`` writes it: the fewest DDIM steps within tolerance of the best keyword
+#: accuracy); ``btf generate`` uses it unless told otherwise
+SAMPLER_FILE = "sampler.json"
+DEFAULT_SAMPLER = {"steps": 25, "guidance": 2.0}
+
+
+def save_sampler(run: str | Path, steps: int, guidance: float, chosen_by: str) -> Path:
+    """Record the sampler ``chosen_by`` picked for ``run`` (written atomically beside its checkpoint)."""
+    from foundation.files import write_json
+
+    validate.integer("steps", steps, 1, 1000)
+    validate.non_negative("guidance", guidance)
+    return write_json(Path(run) / SAMPLER_FILE, {"steps": int(steps), "guidance": float(guidance),
+                                                 "chosen_by": chosen_by})
+
+
+def run_sampler(run: str | Path) -> dict:
+    """The run's recorded sampler, else the defaults (25 steps, CFG 2), with ``source`` saying which."""
+    from foundation.files import read_json
+
+    p = Path(run) / SAMPLER_FILE
+    if not p.is_file():
+        return {**DEFAULT_SAMPLER, "source": "default"}
+    d = read_json(p, "sampler record")
+    try:
+        steps, guidance = int(d["steps"]), float(d["guidance"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise UsageError(f"{p}: needs integer 'steps' and number 'guidance' ({e})") from None
+    validate.integer(f"{p}: steps", steps, 1, 1000)
+    validate.non_negative(f"{p}: guidance", guidance)
+    return {"steps": steps, "guidance": guidance, "source": str(p), "chosen_by": d.get("chosen_by", "")}
+
+
 # -- sampling -------------------------------------------------------------------------------------------------------
 
 
@@ -507,9 +540,10 @@ def read_exemplar(path: str | Path) -> np.ndarray:
 
 
 def generate_material(run: str | Path, out: str | Path, keywords: str | None = None, image: str | Path | None = None,
-                      seed: int = 0, size: int = 0, steps: int = 25, guidance: float = 2.0) -> dict:
+                      seed: int = 0, size: int = 0, steps: int | None = None, guidance: float | None = None) -> dict:
     """`photoreal btf generate`: one material from a trained model, written as a ``neural_btf`` material .npz
-    (fitted-material layout; meta names the basis it decodes through). Returns its summary."""
+    (fitted-material layout; meta names the basis it decodes through). Returns its summary. ``steps`` and
+    ``guidance`` left None come from the run's recorded sampler (:func:`run_sampler`)."""
     from foundation.files import check_output_file
     from mi_plugins.neural_basis import NeuralMaterial, save_material
 
@@ -520,6 +554,12 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
         raise UsageError(f"--out {out}: a material is an .npz file")
     validate.seed("seed", seed)
     model, s = load_matdiff(run)
+    rec = run_sampler(run)
+    source = rec["source"] if steps is None and guidance is None else "arguments"
+    steps = rec["steps"] if steps is None else steps
+    guidance = rec["guidance"] if guidance is None else guidance
+    validate.integer("steps", steps, 1, 1000)
+    validate.non_negative("guidance", guidance)
     size = int(size) or 32
     words = parse_keywords(keywords) if keywords else None
     ex = None
@@ -530,12 +570,13 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
     f = sample_materials(model, s, [MaterialPrompt(words, ex)], size, steps, guidance, seed)[0]
     t_off, t_rgb = split_features(f, s.channels)
     meta = {"basis": s.basis_id, "generated": {"run": str(run), "keywords": words, "image": str(image) if image else None,
-                                               "seed": seed, "size": size, "steps": steps, "guidance": guidance}}
+                                               "seed": seed, "size": size, "steps": steps, "guidance": guidance,
+                                               "sampler_from": source}}
     save_material(out, NeuralMaterial(t_off, t_rgb, meta))
     return {"material": str(out), **meta["generated"], "basis": s.basis_id}
 
 
 __all__ = ["MaterialPrompt", "MatDiffResult", "MatDiffSettings", "alphas_cumprod", "build_model", "data_digest", "exemplar_features",
            "exemplar_local", "feature_scale", "from_model_space", "generate_material", "global_tokens", "keyword_vector", "load_matdiff", "loss_weight",
-           "make_material_scheduler", "material_loss", "sample_materials", "split_features", "to_model_space",
-           "train_matdiff"]
+           "make_material_scheduler", "material_loss", "run_sampler", "sample_materials", "save_sampler",
+           "split_features", "to_model_space", "train_matdiff", "SAMPLER_FILE"]

@@ -199,8 +199,8 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
                                       aligned_flip, build_material_dataset, classify, copy_baseline, crop_baseline,
                                       denoising_check,
                                       gaussian_baseline, load_material_dataset, mean_pairwise, mnv2_features,
-                                      nearest_distances, sample_materials, train_classifier, train_matdiff,
-                                      load_matdiff)
+                                      nearest_distances, sample_materials, save_sampler, train_classifier,
+                                      train_matdiff, load_matdiff)
     from inverse.btf import FAMILIES
     from mi_plugins.neural_basis import load_basis
 
@@ -338,6 +338,11 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
         ok = [q for q in qs if q["accuracy"] >= best - s.tolerance]
         pick = max((q for q in ok if q["steps"] == min(o["steps"] for o in ok)), key=lambda q: q["accuracy"])
         result["chosen_steps"], result["chosen_guidance"] = pick["steps"], pick["guidance"]
+        # `btf generate` samples the run as chosen here unless told otherwise
+        result["sampler_record"] = str(save_sampler(
+            main_dir, pick["steps"], pick["guidance"],
+            f"bench matdiff {time.strftime('%Y-%m-%d')}: fewest DDIM steps within {s.tolerance} of the best held-out "
+            f"keyword accuracy ({best:.3f})"))
         # chosen on the sweep's samples, so scored again on fresh ones (other noise seeds): no selection bias
         # (``chosen_repeats`` sets of noise seeds, averaging out the sampler's noise)
         chosen = {"steps": pick["steps"], "guidance": pick["guidance"], "repeats": s.chosen_repeats}
