@@ -290,14 +290,27 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
     return Checkpoint(tree["stage_name"], tree["fingerprint"], tree["stage"], RunState.from_tree(tree["loop"]))
 
 
-def weights_only(path: str | Path, out: str | Path, keep: tuple[str, ...] = ("model", "ema")) -> Path:
+def _half(x: Any) -> Any:
+    """float32 arrays and tensors of a tree → float16 (a model loading them casts back on ``load_state_dict``)."""
+    if isinstance(x, dict):
+        return {k: _half(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_half(v) for v in x)
+    if getattr(x, "dtype", None) is not None and str(x.dtype) in ("float32", "torch.float32"):
+        return x.astype(np.float16) if isinstance(x, np.ndarray) else x.half()
+    return x
+
+
+def weights_only(path: str | Path, out: str | Path, keep: tuple[str, ...] = ("model", "ema"),
+                 half: bool = False) -> Path:
     """Copy a finished run's checkpoint keeping only the stage entries ``keep`` (weights): no optimiser or random
     state, so about a third of the size, to share or move a trained model. It loads for sampling (same kind and
-    fingerprint) and is refused by :func:`run_loop` as a run to resume."""
+    fingerprint) and is refused by :func:`run_loop` as a run to resume. ``half`` stores the weights as float16
+    (half again; samples then differ from the float32 weights' by the rounding: measure before relying on it)."""
     saved = read_checkpoint(path)
     if not saved.run.done:
         raise CheckpointError(f"{path}: the run is not finished (step {saved.run.step}); finish it before stripping")
-    stage = {k: saved.stage[k] for k in keep if k in saved.stage}
+    stage = {k: _half(saved.stage[k]) if half else saved.stage[k] for k in keep if k in saved.stage}
     if not stage:
         raise CheckpointError(f"{path}: holds none of {list(keep)} (it has {sorted(saved.stage)})")
     stage["weights_only"] = True

@@ -384,6 +384,16 @@ def test_device_names_weights_only_runs_and_the_bench_main_run_check(tmp_path):
     assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
     with pytest.raises(CheckpointError, match="weights-only"):
         mm.train_matdiff(data, slim, s, show_progress=False)
+    # float16 weights: half the size again, each weight within float16's rounding (relative 2⁻¹¹) of its float32
+    f16 = tmp_path / "f16"
+    f16.mkdir()
+    weights_only(tmp_path / "full" / "checkpoint.npz", f16 / "checkpoint.npz", keep=("ema",), half=True)
+    assert (f16 / "checkpoint.npz").stat().st_size < 0.6 * (slim / "checkpoint.npz").stat().st_size
+    c, _ = mm.load_matdiff(f16)
+    for (k, x), y in zip(a.state_dict().items(), c.state_dict().values()):
+        assert y.dtype == x.dtype, k  # the model stays float32
+        if x.is_floating_point():
+            assert torch.allclose(x, y, rtol=2.0 ** -11, atol=6e-8), k
     mm.train_matdiff(data, tmp_path / "half", s, budget_steps=1, show_progress=False)
     with pytest.raises(CheckpointError, match="not finished"):
         weights_only(tmp_path / "half" / "checkpoint.npz", tmp_path / "x.npz")
