@@ -68,10 +68,15 @@ class MorphBenchSettings:
 TARGETS = {"chamfer_reduction": 0.40, "psnr_gain_db": 3.0}
 
 
+#: benchmark cases named by one of pymeshlab's sample meshes
+PYMESHLAB_CASES = {"bunny": "bunny.obj", "cow": "cow.obj", "airplane": "airplane.obj", "bone": "bone.ply"}
+
+
 def source(case: str) -> str:
-    """A benchmark case: "village", "armadillo" (bundled), "bunny" (pymeshlab's Stanford bunny) or a mesh file."""
-    if case == "bunny":
-        return str(pymeshlab_sample("bunny.obj"))
+    """A benchmark case: "village", "armadillo" (bundled), one of pymeshlab's sample meshes ("bunny": the Stanford
+    bunny, "cow", "airplane", "bone") or a mesh file."""
+    if case in PYMESHLAB_CASES:
+        return str(pymeshlab_sample(PYMESHLAB_CASES[case]))
     return "village" if case == "village" else str(ARMADILLO if case == "armadillo" else case)
 
 
