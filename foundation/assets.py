@@ -35,6 +35,16 @@ def bundled_basis() -> Path:
     return p
 
 
+def bundled_matdiff() -> Path:
+    """The vendored material diffusion model (seed 002 §3.2; a weights-only run folder,
+    ``scenes/assets/neural/matdiff``: float16 EMA weights, its metrics, device and chosen sampler)."""
+    p = NEURAL / "matdiff"
+    if not (p / "checkpoint.npz").is_file():
+        raise UsageError(f"{p}: the bundled material diffusion model is missing (a broken checkout?); "
+                         "give --run RUN of `photoreal btf train-diffusion`")
+    return p
+
+
 def pymeshlab_sample(name: str) -> Path:
     """A real mesh shipped inside pymeshlab's wheel (``tests/sample_meshes``: bunny.obj, cow.obj, …)."""
     import pymeshlab

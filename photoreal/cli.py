@@ -567,9 +567,14 @@ def _cmd_btf_train_diffusion(a) -> int:
 def _cmd_btf_generate(a) -> int:
     from generative.diffusion import generate_material
 
-    if not a.keywords and not a.image and not a.unconditional:
-        raise _usage("give --keywords WORDS, --image PHOTO (or both), or --unconditional")
-    print(json.dumps(generate_material(a.run, a.out, a.keywords, a.image, a.seed, a.size, a.steps, a.guidance)))
+    if not a.keywords and not a.image and not a.unconditional and not a.from_prior:
+        raise _usage("give --keywords WORDS, --image PHOTO (or both), --from-prior or --unconditional")
+    if a.run is None:
+        from foundation.assets import bundled_matdiff
+
+        a.run = bundled_matdiff()
+    print(json.dumps(generate_material(a.run, a.out, a.keywords, a.image, a.seed, a.size, a.steps, a.guidance,
+                                       from_prior=a.from_prior)))
     return 0
 
 
@@ -806,6 +811,8 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bd, DiffRenderBenchSettings, "tolerance_rel", type=float,
          help="the choice: cheapest within this fraction of the sweep's best ꟻLIP")
     _opt(bd, DiffRenderBenchSettings, "input_spp", help="samples per pixel of every method's input renders")
+    _opt(bd, DiffRenderBenchSettings, "validation", nargs="*",
+         help="meshes never trained on that choose the main model's size at the main budget (none: the sweep's)")
     _opt(bd, DiffRenderBenchSettings, "gans", "--no-gans", help="skip training the GAN baselines")
     _opt(bd, DiffRenderBenchSettings, "gan_seconds", type=float, help="pix2pix / Morph-GAN budget each")
     _opt(bd, DiffRenderBenchSettings, "cyclegan_seconds", type=float)
@@ -1023,10 +1030,14 @@ def build_parser() -> argparse.ArgumentParser:
     tt.set_defaults(func=_cmd_btf_train_diffusion)
     tg = tsub.add_parser("generate", help="a new material from keywords and/or an exemplar image; loads in "
                          "neural_btf with the basis the model was trained on")
-    tg.add_argument("--run", required=True, help="run folder of `btf train-diffusion`")
+    tg.add_argument("--run", default=None, help="run folder of `btf train-diffusion` (default: the bundled model, "
+                    "scenes/assets/neural/matdiff, trained on a GPU; see its README)")
     tg.add_argument("--keywords", default=None, help="e.g. 'rough red leather' (family, colour, finish words)")
     tg.add_argument("--image", default=None, help="exemplar photo (PNG/JPG/EXR, or brick/grass/gravel)")
-    tg.add_argument("--unconditional", action="store_true", help="neither keywords nor image")
+    tg.add_argument("--from-prior", action="store_true", help="a random material: keywords drawn (by --seed) from "
+                    "the run's training materials (keyword_prior.json)")
+    tg.add_argument("--unconditional", action="store_true", help="neither keywords nor image (the null condition: "
+                    "its samples collapse to few families; --from-prior is the better random material)")
     tg.add_argument("--seed", type=int, default=0)
     tg.add_argument("--size", type=int, default=32, help="texels per side (any multiple of 4: tiles seamlessly)")
     tg.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the run's sampler.json, which "

@@ -184,6 +184,16 @@ def test_training_resumes_exactly_and_generates_into_a_neural_btf_scene(tmp_path
                  str(tmp_path / "bad.npz")]) == 2
     assert mm.SAMPLER_FILE in capsys.readouterr().err and not (tmp_path / "bad.npz").exists()
     (tmp_path / "a" / mm.SAMPLER_FILE).unlink()
+    # a random material: keywords drawn from the training materials' triples (recorded by train_matdiff)
+    main(["btf", "generate", "--run", str(tmp_path / "a"), "--from-prior", "--seed", "3", "--size", "16",
+          "--steps", "2", "--out", str(tmp_path / "prior.npz")])
+    drawn = json.loads(capsys.readouterr().out)
+    assert drawn["keywords_from_prior"] and drawn["keywords"] in data.keywords
+    assert mm.prior_keywords(tmp_path / "a", 1, 3)[0] == drawn["keywords"]
+    # 400 draws over 8 equally likely triples miss one with probability < 8·(7/8)⁴⁰⁰ ≈ 5·10⁻²³
+    assert {tuple(k) for k in mm.prior_keywords(tmp_path / "a", 400, 0)} == {tuple(k) for k in data.keywords}
+    with pytest.raises(UsageError, match="data digest"):  # a prior is recorded only for the run's own materials
+        mm.save_keyword_prior(tmp_path / "a", _toy_set(5))
 
     scene = mi.load_dict({
         "type": "scene", "integrator": {"type": "direct"},

@@ -43,7 +43,8 @@ from .face_models import (VARIANTS, CompletionSettings, SuperResSettings, at_res
                           load_completion, load_superres, normalise_albedo, upscale)
 from .face_run import FaceModelsSettings, completion_albedo, load_face_models, photo_maps_fn, train_face_models
 from .materials import (MaterialPrompt, MatDiffSettings, data_digest, from_model_space, generate_material, load_matdiff,
-                        run_sampler, sample_materials, save_sampler, split_features, to_model_space, train_matdiff)
+                        prior_keywords, run_sampler, sample_materials, save_keyword_prior, save_sampler, split_features,
+                        to_model_space, train_matdiff)
 
 __all__ = [
     "FaceDataSettings", "FaceSet", "build_face_dataset", "load_face_dataset", "scan_path", "LearnedModels",
@@ -57,7 +58,7 @@ __all__ = [
     "denoising_check", "family_gaussian_baseline", "phase_randomised_baseline", "random_roll", "crop_baseline",
     "decode_all", "gaussian_baseline", "mean_pairwise", "mnv2_features", "nearest_distances",
     "seam_ratio", "train_classifier", "MaterialPrompt", "MatDiffSettings", "data_digest", "generate_material", "load_matdiff",
-    "run_sampler", "sample_materials", "save_sampler", "split_features", "train_matdiff", "to_model_space", "from_model_space",
+    "prior_keywords", "run_sampler", "sample_materials", "save_keyword_prior", "save_sampler", "split_features", "train_matdiff", "to_model_space", "from_model_space",
     "DECOMPOSED", "DecompDataSettings", "DecompResult", "DecompSettings", "Decomposer", "condition_to_layers", "decompose",
     "from_target_space", "heldout_psnr", "intrinsic_layers", "load_decomp_data", "load_decomposer", "photographs",
     "procedural_scene", "render_decomp_data", "target_space", "train_decomposer",

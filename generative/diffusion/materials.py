@@ -369,6 +369,46 @@ def data_digest(data: MaterialSet) -> str:
     return h.hexdigest()[:16]
 
 
+#: the keyword triples of a run's training materials and their counts: p(c) of p(x) = Σ_c p(c) p(x | c)
+PRIOR_FILE = "keyword_prior.json"
+
+
+def save_keyword_prior(run: str | Path, data: MaterialSet) -> Path:
+    """Record the training materials' keyword triples in ``run`` (``train_matdiff`` does; for a run trained elsewhere,
+    pass its exact training split: the data digest must match the checkpoint's)."""
+    from foundation.files import write_json
+    from foundation.loop import read_checkpoint
+
+    ckpt = Path(run) / "checkpoint.npz"
+    if ckpt.is_file():
+        got = read_checkpoint(ckpt).fingerprint.get("data")
+        if got != data_digest(data):
+            raise UsageError(f"{ckpt}: trained on other materials (data digest {got} vs {data_digest(data)})")
+    triples, counts = np.unique(np.array([[w or "" for w in k] for k in data.keywords], dtype=object).astype(str),
+                                axis=0, return_counts=True)
+    return write_json(Path(run) / PRIOR_FILE, {"data": data_digest(data), "triples": triples.tolist(),
+                                               "counts": counts.tolist()})
+
+
+def prior_keywords(run: str | Path, n: int, seed: int) -> list[list]:
+    """``n`` keyword triples drawn (seeded) from the run's training prior (:data:`PRIOR_FILE`)."""
+    from foundation.files import read_json
+
+    p = Path(run) / PRIOR_FILE
+    if not p.is_file():
+        raise UsageError(f"{p}: this run records no keyword prior (train it with this photoreal, or write one with "
+                         "generative.diffusion.save_keyword_prior)")
+    d = read_json(p, "keyword prior")
+    try:
+        triples, w = d["triples"], np.asarray(d["counts"], np.float64)
+        if len(triples) != len(w) or not len(w) or (w <= 0).any():
+            raise ValueError("triples and positive counts of one length")
+    except (KeyError, TypeError, ValueError) as e:
+        raise UsageError(f"{p}: malformed keyword prior ({e})") from None
+    pick = np.random.default_rng(seed).choice(len(w), n, p=w / w.sum())
+    return [[w_ or None for w_ in triples[i]] for i in pick]
+
+
 def feature_scale(features: np.ndarray) -> float:
     return float(max(np.percentile(np.abs(features), 99.9), 1e-6))
 
@@ -402,6 +442,7 @@ def train_matdiff(data: MaterialSet, out: str | Path, s: MatDiffSettings | None 
     n, k = data.swatches.shape[:2]
     tokens = exemplar_features(data.swatches.reshape(n * k, *data.swatches.shape[2:])).reshape(n, k, EXEMPLAR_TOKENS, -1)
     _, result = train_stage(lambda: MatDiffStage(data, s, tokens, device), out, s, budget_steps, show_progress)
+    save_keyword_prior(out, data)
     return result
 
 
@@ -540,7 +581,8 @@ def read_exemplar(path: str | Path) -> np.ndarray:
 
 
 def generate_material(run: str | Path, out: str | Path, keywords: str | None = None, image: str | Path | None = None,
-                      seed: int = 0, size: int = 0, steps: int | None = None, guidance: float | None = None) -> dict:
+                      seed: int = 0, size: int = 0, steps: int | None = None, guidance: float | None = None,
+                      from_prior: bool = False) -> dict:
     """`photoreal btf generate`: one material from a trained model, written as a ``neural_btf`` material .npz
     (fitted-material layout; meta names the basis it decodes through). Returns its summary. ``steps`` and
     ``guidance`` left None come from the run's recorded sampler (:func:`run_sampler`)."""
@@ -561,7 +603,10 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
     validate.integer("steps", steps, 1, 1000)
     validate.non_negative("guidance", guidance)
     size = int(size) or 32
-    words = parse_keywords(keywords) if keywords else None
+    if from_prior and keywords:
+        raise UsageError("give --keywords or --from-prior, not both")
+    # a keyword triple drawn from the training materials' (the null token alone collapses to few families: README)
+    words = parse_keywords(keywords) if keywords else prior_keywords(run, 1, seed)[0] if from_prior else None
     ex = None
     if image is not None:
         ex = read_exemplar(image)
@@ -571,7 +616,7 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
     t_off, t_rgb = split_features(f, s.channels)
     meta = {"basis": s.basis_id, "generated": {"run": str(run), "keywords": words, "image": str(image) if image else None,
                                                "seed": seed, "size": size, "steps": steps, "guidance": guidance,
-                                               "sampler_from": source}}
+                                               "sampler_from": source, "keywords_from_prior": bool(from_prior)}}
     save_material(out, NeuralMaterial(t_off, t_rgb, meta))
     return {"material": str(out), **meta["generated"], "basis": s.basis_id}
 
@@ -579,4 +624,5 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
 __all__ = ["MaterialPrompt", "MatDiffResult", "MatDiffSettings", "alphas_cumprod", "build_model", "data_digest", "exemplar_features",
            "exemplar_local", "feature_scale", "from_model_space", "generate_material", "global_tokens", "keyword_vector", "load_matdiff", "loss_weight",
            "make_material_scheduler", "material_loss", "run_sampler", "sample_materials", "save_sampler",
-           "split_features", "to_model_space", "train_matdiff", "SAMPLER_FILE"]
+           "split_features", "to_model_space", "train_matdiff", "SAMPLER_FILE", "PRIOR_FILE", "prior_keywords",
+           "save_keyword_prior"]
