@@ -24,8 +24,8 @@ from foundation.scene import RenderSettings, load_scene, recompose, render_scene
 
 @dataclass
 class DemoSettings:
-    resolution: int = 256  #: image side of the renders (the face's camera renders: at most 192)
-    spp: int = 64  #: samples per pixel (the face's camera renders: at most 64)
+    resolution: int = 256  #: image side of the renders (the face's camera renders: at most 192; the photo's relit: 256)
+    spp: int = 64  #: samples per pixel (the face's camera renders and the photo's relit: at most 64)
     seed: int = 0
     face: bool = True
     face_uv_res: int = 256
@@ -200,7 +200,8 @@ def demo_face(out_dir: Path, uv_res: int = 256, seed: int = 0, bench_dir: Path |
     return {k: m[k] for k in ("albedo_psnr", "normal_err_deg", "relit_psnr", "seconds")}
 
 
-def demo_photo(out_dir: Path, uv_res: int = 256, seed: int = 0) -> dict | None:
+def demo_photo(out_dir: Path, uv_res: int = 256, seed: int = 0, relight_res: int = 256,
+               relight_spp: int = 64) -> dict | None:
     """scikit-image's astronaut photograph → relightable face (landmarks from MediaPipe, run now)."""
     import skimage.data
 
@@ -215,7 +216,8 @@ def demo_photo(out_dir: Path, uv_res: int = 256, seed: int = 0) -> dict | None:
         return None
     photo_dir = Path(out_dir) / "photo"
     source = "MediaPipe Face Mesh 0.10.14 (run now)"
-    r = to_json(photo_to_face(skimage.data.astronaut(), photo_dir, PhotoFitSettings(uv_res=uv_res, seed=seed)))
+    r = to_json(photo_to_face(skimage.data.astronaut(), photo_dir, PhotoFitSettings(
+        uv_res=uv_res, seed=seed, relight_res=relight_res, relight_spp=relight_spp)))
     figs = [_figure("photo/photo.png", "input photo (scikit-image astronaut)"),
             _figure("photo/photo_uv.png", "photo unwrapped into UV"),
             _figure("photo/visibility.png", "visibility mask"),
@@ -370,7 +372,8 @@ def run_demo(out_dir: str | Path, s: DemoSettings, bench_dir: str | Path | None 
         # the camera renders follow --resolution/--spp, capped at the face benchmark's own defaults
         results["face"] = demo_face(out_dir, uv_res=s.face_uv_res, seed=s.seed, bench_dir=bench_dir,
                                     render_res=min(s.resolution, 192), render_spp=min(s.spp, 64))
-        results["photo"] = demo_photo(out_dir, uv_res=s.face_uv_res, seed=s.seed)
+        results["photo"] = demo_photo(out_dir, uv_res=s.face_uv_res, seed=s.seed,  # relit like the other renders
+                                      relight_res=min(s.resolution, 256), relight_spp=min(s.spp, 64))
     if s.morph_iterations > 0:
         results["morph"] = demo_morph(out_dir, iterations=s.morph_iterations, seed=s.seed, bench_dir=bench_dir)
     if s.btf:

@@ -624,6 +624,7 @@ def _trace_chunk(scene: mi.Scene, bsdf: mi.BSDF, wi_np: np.ndarray, wo_np: np.nd
 
     finite = dr.isfinite(result[0]) & dr.isfinite(result[1]) & dr.isfinite(result[2])
     result = dr.select(finite, result, 0.0)  # a rare float edge case must not poison a texel
+    dr.eval(result, finite)  # once: each reduction below would otherwise trace and run the whole path tracer again
     out = mi.Color3f(*(dr.block_sum(result[c], s.spp) / s.spp for c in range(3)))
     bad = dr.count(~finite)
     dr.eval(out, bad)

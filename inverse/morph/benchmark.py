@@ -32,7 +32,7 @@ from mi_plugins.arrays import aligned
 from foundation import imageio, validate
 from foundation.assets import HDRI_DIR, envmap, hdri_path
 from foundation.errors import UsageError
-from foundation.files import atomic_dir, file_digest, write_json
+from foundation.files import Memo, array_key, atomic_dir, file_digest, write_json
 from foundation.mesh import load_mesh_any, normalise_mesh, sample_surface, vertex_normals, write_ply
 from foundation.progress import progress_bar
 from foundation.records import load_folder_record, to_json
@@ -326,6 +326,22 @@ def _smooth_field(p: np.ndarray, scale: float, rng: np.random.Generator, n: int 
     return sum(np.sin(p @ k[i] + ph[i]) for i in range(n)) / np.sqrt(n)
 
 
+#: the uniform remesh of the last few truths (seconds for the armadillo; deterministic: every benchmark of one mesh
+#: repeats it before any random draw)
+_UNIFORM = Memo(2)
+
+
+def _uniform(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(v, f))
+    ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(0.01))
+    ms.meshing_isotropic_explicit_remeshing(targetlen=pymeshlab.PercentageValue(0.8), iterations=4)
+    m = ms.current_mesh()
+    return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+
+
 def degrade(v: np.ndarray, f: np.ndarray, labels: np.ndarray, s: MorphBenchmarkSettings, size: float,
             rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, Degradation]:
     """Photogrammetry-like artifacts; returns the coarse mesh and a log of what was done."""
@@ -333,13 +349,8 @@ def degrade(v: np.ndarray, f: np.ndarray, labels: np.ndarray, s: MorphBenchmarkS
     import pymeshlab
 
     log: dict = {}
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(v, f))
-    ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(0.01))
     # Uniform density first, so that flat walls have vertices to be bumpy with.
-    ms.meshing_isotropic_explicit_remeshing(targetlen=pymeshlab.PercentageValue(0.8), iterations=4)
-    m = ms.current_mesh()
-    v2, f2 = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+    v2, f2 = (a.copy() for a in _UNIFORM.get(array_key(v, f), lambda: _uniform(v, f)))
     # Part labels follow the nearest point of a dense surface sampling (the parts' own vertices are
     # too sparse: a roof quad has four, a chimney box eight, right next to the roof).
     from scipy.spatial import cKDTree
