@@ -580,6 +580,16 @@ def read_exemplar(path: str | Path) -> np.ndarray:
     return srgb_to_linear(read_photo(str(path)).astype(np.float32) / 255.0).astype(np.float32)
 
 
+def _shown(path) -> str:
+    """A path as a material's meta records it: relative to the repository when inside it (files are shared)."""
+    from foundation.assets import ROOT
+
+    try:
+        return str(Path(path).resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
 def generate_material(run: str | Path, out: str | Path, keywords: str | None = None, image: str | Path | None = None,
                       seed: int = 0, size: int = 0, steps: int | None = None, guidance: float | None = None,
                       from_prior: bool = False) -> dict:
@@ -597,7 +607,7 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
     validate.seed("seed", seed)
     model, s = load_matdiff(run)
     rec = run_sampler(run)
-    source = rec["source"] if steps is None and guidance is None else "arguments"
+    source = _shown(rec["source"]) if steps is None and guidance is None else "arguments"
     steps = rec["steps"] if steps is None else steps
     guidance = rec["guidance"] if guidance is None else guidance
     validate.integer("steps", steps, 1, 1000)
@@ -614,7 +624,7 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
             raise UsageError(f"--image {image}: empty or non-finite pixels")
     f = sample_materials(model, s, [MaterialPrompt(words, ex)], size, steps, guidance, seed)[0]
     t_off, t_rgb = split_features(f, s.channels)
-    meta = {"basis": s.basis_id, "generated": {"run": str(run), "keywords": words, "image": str(image) if image else None,
+    meta = {"basis": s.basis_id, "generated": {"run": _shown(run), "keywords": words, "image": str(image) if image else None,
                                                "seed": seed, "size": size, "steps": steps, "guidance": guidance,
                                                "sampler_from": source, "keywords_from_prior": bool(from_prior)}}
     save_material(out, NeuralMaterial(t_off, t_rgb, meta))
