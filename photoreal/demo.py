@@ -496,9 +496,11 @@ def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None
     c = b["chosen"]
     tol = (f"{100 * c['tolerance_rel']:g} % of the best ꟻLIP" if "tolerance_rel" in c
            else f"{c.get('tolerance_flip')} ꟻLIP of the best")
-    body += (f"<p>Chosen automatically (cheapest within {tol}): <b>{c['model']}</b> "
-             f"model, <b>{c['steps']}</b> DDIM steps, mean of {c.get('draws', 1)} per view, guidance "
-             f"{c.get('guidance', b['guidance'])}, {c['seconds_per_image']:.2f} s per 128² image.</p>")
+    size = (f" The main model's size was chosen on the {c['size_from']}: widths <b>{c['main_widths']}</b>."
+            if "main_widths" in c else "")
+    body += (f"<p>Sampler chosen automatically (cheapest within {tol}): the <b>{c['model']}</b> row, "
+             f"<b>{c['steps']}</b> DDIM steps, mean of {c.get('draws', 1)} per view, guidance "
+             f"{c.get('guidance', b['guidance'])}, {c['seconds_per_image']:.2f} s per 128² image.{size}</p>")
     for key, name in (("chart", "diffrender_sweep.png"), ("views_figure", "diffrender_views.png")):
         if _copy_chart({"chart": b.get(key)}, bench_dir, out_dir / name):
             body += f"<img src='{name}' style='max-width:100%'>"

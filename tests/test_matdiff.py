@@ -179,10 +179,18 @@ def test_training_resumes_exactly_and_generates_into_a_neural_btf_scene(tmp_path
     rec = json.loads(capsys.readouterr().out)
     assert rec["steps"] == 3 and rec["guidance"] == 2.0 and rec["sampler_from"].endswith(mm.SAMPLER_FILE)
     np.testing.assert_array_equal(load_material(tmp_path / "rec.npz").t_rgb, mat.t_rgb)
-    (tmp_path / "a" / mm.SAMPLER_FILE).write_text('{"steps": "many", "guidance": 2}')
-    assert main(["btf", "generate", "--run", str(tmp_path / "a"), "--keywords", "wood", "--out",
-                 str(tmp_path / "bad.npz")]) == 2
-    assert mm.SAMPLER_FILE in capsys.readouterr().err and not (tmp_path / "bad.npz").exists()
+    main(["btf", "generate", "--run", str(tmp_path / "a"), "--keywords", "wood", "--steps", "2", "--size", "8",
+          "--out", str(tmp_path / "half.npz")])
+    assert json.loads(capsys.readouterr().out)["sampler_from"].startswith("arguments and ")
+    for bad in ('{"steps": "many", "guidance": 2}', '{"steps": 2.7, "guidance": 2}'):
+        (tmp_path / "a" / mm.SAMPLER_FILE).write_text(bad)
+        assert main(["btf", "generate", "--run", str(tmp_path / "a"), "--keywords", "wood", "--out",
+                     str(tmp_path / "bad.npz")]) == 2
+        assert mm.SAMPLER_FILE in capsys.readouterr().err and not (tmp_path / "bad.npz").exists()
+    # both given on the command line: the record is not read
+    assert main(["btf", "generate", "--run", str(tmp_path / "a"), "--keywords", "wood", "--steps", "2", "--guidance",
+                 "1", "--size", "8", "--out", str(tmp_path / "args.npz")]) == 0
+    assert json.loads(capsys.readouterr().out)["sampler_from"] == "arguments"
     (tmp_path / "a" / mm.SAMPLER_FILE).unlink()
     # a random material: keywords drawn from the training materials' triples (recorded by train_matdiff)
     main(["btf", "generate", "--run", str(tmp_path / "a"), "--from-prior", "--seed", "3", "--size", "16",
@@ -194,6 +202,16 @@ def test_training_resumes_exactly_and_generates_into_a_neural_btf_scene(tmp_path
     assert {tuple(k) for k in mm.prior_keywords(tmp_path / "a", 400, 0)} == {tuple(k) for k in data.keywords}
     with pytest.raises(UsageError, match="data digest"):  # a prior is recorded only for the run's own materials
         mm.save_keyword_prior(tmp_path / "a", _toy_set(5))
+    # the counts are the weights: a triple held by 3 of 4 materials is drawn ~3/4 of the time (2000 draws: ±0.01)
+    w = tmp_path / "w"
+    w.mkdir()
+    (w / mm.PRIOR_FILE).write_text(json.dumps({"triples": [["wood", "red", "rough"], ["metal", "", "polished"]],
+                                               "counts": [3, 1]}))
+    draws = mm.prior_keywords(w, 2000, 0)
+    assert abs(np.mean([k[0] == "wood" for k in draws]) - 0.75) < 0.05 and ["metal", None, "polished"] in draws
+    (w / mm.PRIOR_FILE).write_text(json.dumps({"triples": [["wood", "red"]], "counts": [1]}))
+    with pytest.raises(UsageError, match="malformed keyword prior"):
+        mm.prior_keywords(w, 1, 0)
 
     scene = mi.load_dict({
         "type": "scene", "integrator": {"type": "direct"},

@@ -375,7 +375,7 @@ PRIOR_FILE = "keyword_prior.json"
 
 def save_keyword_prior(run: str | Path, data: MaterialSet) -> Path:
     """Record the training materials' keyword triples in ``run`` (``train_matdiff`` does; for a run trained elsewhere,
-    pass its exact training split: the data digest must match the checkpoint's)."""
+    pass its exact training split: when the run has a checkpoint, the data digest must match it)."""
     from foundation.files import write_json
     from foundation.loop import read_checkpoint
 
@@ -403,6 +403,11 @@ def prior_keywords(run: str | Path, n: int, seed: int) -> list[list]:
         triples, w = d["triples"], np.asarray(d["counts"], np.float64)
         if len(triples) != len(w) or not len(w) or (w <= 0).any():
             raise ValueError("triples and positive counts of one length")
+        from .material_data import SLOTS
+
+        if any(not isinstance(t, list) or len(t) != len(SLOTS) or not all(isinstance(w, str) for w in t)
+               for t in triples):
+            raise ValueError(f"each triple is {len(SLOTS)} words (empty: slot not given)")
     except (KeyError, TypeError, ValueError) as e:
         raise UsageError(f"{p}: malformed keyword prior ({e})") from None
     pick = np.random.default_rng(seed).choice(len(w), n, p=w / w.sum())
@@ -478,10 +483,11 @@ def run_sampler(run: str | Path) -> dict:
         return {**DEFAULT_SAMPLER, "source": "default"}
     d = read_json(p, "sampler record")
     try:
-        steps, guidance = int(d["steps"]), float(d["guidance"])
+        steps, guidance = d["steps"], float(d["guidance"])
     except (KeyError, TypeError, ValueError) as e:
         raise UsageError(f"{p}: needs integer 'steps' and number 'guidance' ({e})") from None
     validate.integer(f"{p}: steps", steps, 1, 1000)
+    steps = int(steps)
     validate.non_negative(f"{p}: guidance", guidance)
     return {"steps": steps, "guidance": guidance, "source": str(p), "chosen_by": d.get("chosen_by", "")}
 
@@ -606,10 +612,13 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
         raise UsageError(f"--out {out}: a material is an .npz file")
     validate.seed("seed", seed)
     model, s = load_matdiff(run)
-    rec = run_sampler(run)
-    source = _shown(rec["source"]) if steps is None and guidance is None else "arguments"
-    steps = rec["steps"] if steps is None else steps
-    guidance = rec["guidance"] if guidance is None else guidance
+    source = "arguments"
+    if steps is None or guidance is None:  # a malformed record matters only when it is used
+        rec = run_sampler(run)
+        shown = rec["source"] if rec["source"] == "default" else _shown(rec["source"])
+        source = shown if steps is None and guidance is None else f"arguments and {shown}"
+        steps = rec["steps"] if steps is None else steps
+        guidance = rec["guidance"] if guidance is None else guidance
     validate.integer("steps", steps, 1, 1000)
     validate.non_negative("guidance", guidance)
     size = int(size) or 32
@@ -624,7 +633,8 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
             raise UsageError(f"--image {image}: empty or non-finite pixels")
     f = sample_materials(model, s, [MaterialPrompt(words, ex)], size, steps, guidance, seed)[0]
     t_off, t_rgb = split_features(f, s.channels)
-    meta = {"basis": s.basis_id, "generated": {"run": _shown(run), "keywords": words, "image": str(image) if image else None,
+    shown_image = None if not image else _shown(image) if Path(image).exists() else str(image)  # a file, or "brick"
+    meta = {"basis": s.basis_id, "generated": {"run": _shown(run), "keywords": words, "image": shown_image,
                                                "seed": seed, "size": size, "steps": steps, "guidance": guidance,
                                                "sampler_from": source, "keywords_from_prior": bool(from_prior)}}
     save_material(out, NeuralMaterial(t_off, t_rgb, meta))

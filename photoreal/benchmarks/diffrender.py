@@ -16,8 +16,9 @@ morphed G-buffers. Everything trained is kept in ``OUT/diffrender_work`` and reu
    unseen meshes' held-out metrics (``unseen``): generalisation is what some of these choices change.
 3. **Sweep** of DDIM steps × model size (the R and small runs, on the first ``sweep_views`` held-out
    views per case): seconds per 128² image and ꟻLIP; **chosen** = the cheapest (seconds) within
-   ``tolerance_rel`` of the best ꟻLIP. The main model is trained (``train_seconds``) at the chosen size
-   and sampled with the chosen steps.
+   ``tolerance_rel`` of the best ꟻLIP: the sampler (steps, draws, guidance). The main model is trained
+   (``train_seconds``) at both sizes and the one with the lower ꟻLIP on the ``validation`` meshes is kept
+   (``size_choice``; without validation meshes, the sweep's size).
 4. **Held-out metrics**: PSNR, 1−SSIM, ꟻLIP, MSE (mean and spread over views, and over ``seeds``
    sampling seeds for the diffusion renders) of PBR recomposition (coarse, morphed), diffusion (from the
    morphed and from the coarse G-buffers), CycleGAN, pix2pix and Morph-GAN; MobileNetV2-KID/-FID (ImageNet
@@ -418,7 +419,10 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
         tput = throughput(main_s)
     main = main_dir(work, main_s, train_views)
     trained_main = load_diffrender(main)
-    timing["main_training"] = time.perf_counter() - t
+    # the sweep chose the sampler; the size is the validation meshes' choice (which may differ from the sweep row's)
+    chosen = {**chosen, "main_widths": list(main_s.widths),
+              "size_from": f"validation {'/'.join(s.validation)} at {s.train_seconds:g} s" if s.validation else "sweep"}
+    timing["main_training_and_size_choice"] = time.perf_counter() - t
     main_metrics = read_json(main / "metrics.json", "diffusion metrics")
     t = time.perf_counter()
     cases, all_pred, all_photos, all_refs, all_clean, sample_s = {}, {}, [], {}, [], []
@@ -556,7 +560,7 @@ def sweep_chart(result: dict, path: Path) -> Path:
     c = result["chosen"]
     how = f"{c['steps']} steps" + (f", mean of {c['draws']}, guidance {c.get('guidance')}"
                                    if c.get("draws", 1) > 1 else "")
-    ax.plot([c["seconds_per_image"]], [c["flip"]], "k*", ms=13, label=f"chosen ({c['model']}, {how})")
+    ax.plot([c["seconds_per_image"]], [c["flip"]], "k*", ms=13, label=f"chosen sampler ({c['model']} row, {how})")
     sub = result["heldout"]
     for name, ls in (("pbr_coarse", "--"), ("pbr_morphed", ":")):
         ax.axhline(sub[name]["flip"], color="gray", ls=ls, lw=1, label=f"{name} (all held-out views)")
