@@ -376,18 +376,22 @@ PRIOR_FILE = "keyword_prior.json"
 def save_keyword_prior(run: str | Path, data: MaterialSet) -> Path:
     """Record the training materials' keyword triples in ``run`` (``train_matdiff`` does; for a run trained elsewhere,
     pass its exact training split: when the run has a checkpoint, the data digest must match it)."""
-    from foundation.files import write_json
     from foundation.loop import read_checkpoint
 
-    ckpt = Path(run) / "checkpoint.npz"
+    ckpt, digest = Path(run) / "checkpoint.npz", data_digest(data)
     if ckpt.is_file():
         got = read_checkpoint(ckpt).fingerprint.get("data")
-        if got != data_digest(data):
-            raise UsageError(f"{ckpt}: trained on other materials (data digest {got} vs {data_digest(data)})")
+        if got != digest:
+            raise UsageError(f"{ckpt}: trained on other materials (data digest {got} vs {digest})")
+    return _write_keyword_prior(run, data, digest)
+
+
+def _write_keyword_prior(run: str | Path, data: MaterialSet, digest: str) -> Path:
+    from foundation.files import write_json
+
     triples, counts = np.unique(np.array([[w or "" for w in k] for k in data.keywords], dtype=object).astype(str),
                                 axis=0, return_counts=True)
-    return write_json(Path(run) / PRIOR_FILE, {"data": data_digest(data), "triples": triples.tolist(),
-                                               "counts": counts.tolist()})
+    return write_json(Path(run) / PRIOR_FILE, {"data": digest, "triples": triples.tolist(), "counts": counts.tolist()})
 
 
 def prior_keywords(run: str | Path, n: int, seed: int) -> list[list]:
@@ -405,7 +409,7 @@ def prior_keywords(run: str | Path, n: int, seed: int) -> list[list]:
             raise ValueError("triples and positive counts of one length")
         from .material_data import SLOTS
 
-        if any(not isinstance(t, list) or len(t) != len(SLOTS) or not all(isinstance(w, str) for w in t)
+        if any(not isinstance(t, list) or len(t) != len(SLOTS) or not all(isinstance(word, str) for word in t)
                for t in triples):
             raise ValueError(f"each triple is {len(SLOTS)} words (empty: slot not given)")
     except (KeyError, TypeError, ValueError) as e:
@@ -446,8 +450,8 @@ def train_matdiff(data: MaterialSet, out: str | Path, s: MatDiffSettings | None 
         s = dataclasses.replace(s, train_res=res)
     n, k = data.swatches.shape[:2]
     tokens = exemplar_features(data.swatches.reshape(n * k, *data.swatches.shape[2:])).reshape(n, k, EXEMPLAR_TOKENS, -1)
-    _, result = train_stage(lambda: MatDiffStage(data, s, tokens, device), out, s, budget_steps, show_progress)
-    save_keyword_prior(out, data)
+    stage, result = train_stage(lambda: MatDiffStage(data, s, tokens, device), out, s, budget_steps, show_progress)
+    _write_keyword_prior(out, data, stage.digest)  # the loop checked this digest against the checkpoint's
     return result
 
 

@@ -417,8 +417,8 @@ def _verdict(r: dict) -> dict:
     k1, k2 = r["kid_classifier"], r["kid_mnv2"]
     return {
         "keyword_accuracy_at_least_0.7": r.get("keyword_accuracy_chosen", {}).get("triples", r["keyword_accuracy"]) >= 0.7,
-        "beats_gaussian_kid_both": k1["diffusion"] < k1["gaussian"] and k2["diffusion"] < k2["gaussian"],
-        "beats_crop_kid_both": k1["diffusion"] < k1["crop"] and k2["diffusion"] < k2["crop"],
+        "beats_gaussian_kid_both": _beats(r, "diffusion", "gaussian"),
+        "beats_crop_kid_both": _beats(r, "diffusion", "crop"),
         # the same with keywords drawn from the training prior (a sample of p(x), as the baselines are)
         "prior_keywords_beat_gaussian_kid_both": _beats(r, "diffusion_prior_keywords", "gaussian"),
         "prior_keywords_beat_crop_kid_both": _beats(r, "diffusion_prior_keywords", "crop"),
