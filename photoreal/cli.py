@@ -964,6 +964,9 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "lambda_select", type=float,
          help="λ start values tried side by side to the end of that warm-up; the one the validation photos prefer "
               "continues (a value ≤ --lambda: constant λ; one value: no choice)")
+    _opt(mr, MorphSettings, "planarity_select", type=float, nargs="*",
+         help="planarity-prior weights that join that choice as candidates at constant λ when the input has no "
+              "dominant plane (the option alone: the plane rule decides; --planarity-weight turns the choice off)")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

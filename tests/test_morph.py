@@ -204,35 +204,48 @@ def test_early_stop_ends_the_run_and_a_resumed_run_stays_ended(small_armadillo, 
 
 
 def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small_armadillo, tmp_path):
-    # Two λ schedules from the same start to the end of the warm-up (ceil(0.3 × 8 / 2) × 2 = 4 iterations); the
-    # one with the lower validation L1 there continues. One Dr.Jit thread: the winner's run equals a standalone run
-    # of its settings bit for bit, and a selection interrupted mid-way resumes to the same result.
-    from inverse.morph.run import candidate_settings, selection_point
+    # Two λ schedules and, the armadillo having no dominant plane, one planarity weight at constant λ, from the same
+    # start to the end of the warm-up (ceil(0.3 × 8 / 2) × 2 = 4 iterations); the one with the lower validation L1
+    # there continues. One Dr.Jit thread: the winner's run equals a standalone run of its settings bit for bit, and
+    # a selection interrupted mid-way resumes to the same result.
+    from inverse.morph.run import Candidate, candidate_settings, selection_candidates, selection_point
 
     s = MorphSettings(iterations=8, checkpoint_every=2, resolution=32, min_vertices=None, check_every=2,
-                      validation_fraction=0.5, early_stop=False, lambda_select=(2.0, 25.0))
+                      validation_fraction=0.5, early_stop=False, lambda_select=(2.0, 25.0), planarity_select=(0.1,))
     assert selection_point(s) == 4
     r = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
     sel = r.lambda_selection
-    assert sel.at_iteration == 4 and sel.candidates == [2.0, 25.0] and all(v > 0 for v in sel.validation_l1)
-    assert sel.chosen == sel.candidates[int(np.argmin(sel.validation_l1))]
-    loser = [c for c in sel.candidates if c != sel.chosen][0]
-    alone = run_morph(small_armadillo, tmp_path / "alone", candidate_settings(s, sel.chosen), show_progress=False)
+    assert sel.at_iteration == 4 and sel.candidates == [2.0, 25.0, 2.0] and sel.planarity == [None, None, 0.1]
+    assert all(v > 0 for v in sel.validation_l1) and len(set(sel.validation_l1)) == 3
+    best = int(np.argmin(sel.validation_l1))
+    assert sel.winner == sel.candidate_list()[best]
+    alone = run_morph(small_armadillo, tmp_path / "alone", candidate_settings(s, sel.winner), show_progress=False)
     assert r.chamfer_morphed == alone.chamfer_morphed and r.iterations == 8 and r.settings == s
     assert r.seconds > alone.seconds and sel.trial_seconds > 0
+    assert r.planarity.weight == (0.1 if sel.chosen_planarity == 0.1 else 0.0)
     v_sel, _ = load_mesh_any(tmp_path / "a" / "morphed.ply")
     v_alone, _ = load_mesh_any(tmp_path / "alone" / "morphed.ply")
     np.testing.assert_array_equal(v_sel, v_alone)
-    # the candidate not chosen stopped at the selection point
+    # the candidates not chosen stopped at the selection point, each in its own folder
     from foundation.loop import read_checkpoint
-    assert read_checkpoint(tmp_path / "a" / "lambda_select" / f"start_{loser:g}" / "checkpoint.npz").run.step == 4
+    for c in sel.candidate_list():
+        if c != sel.winner:
+            assert read_checkpoint(tmp_path / "a" / "lambda_select" / c.folder / "checkpoint.npz").run.step == 4
+    assert {c.folder for c in sel.candidate_list()} == {"start_2", "start_25", "start_2_planarity_0.1"}
     saved = json.loads((tmp_path / "a" / "metrics.json").read_text())
     assert saved["lambda_selection"]["chosen"] == sel.chosen
+    assert saved["lambda_selection"]["chosen_planarity"] == sel.chosen_planarity
     # interrupted inside the trials, then inside the winner's run: the same result
-    assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=3) is None
-    assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=3) is None
+    for _ in range(3):
+        assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=3) is None
     resumed = run_morph(small_armadillo, tmp_path / "b", s, show_progress=False)
-    assert resumed.lambda_selection.chosen == sel.chosen and resumed.chamfer_morphed == r.chamfer_morphed
+    assert replace(resumed.lambda_selection, trial_seconds=sel.trial_seconds) == sel  # all but the clock
+    assert resumed.chamfer_morphed == r.chamfer_morphed
+    # the planarity candidates join only where the plane rule leaves the prior off and no weight is given
+    assert selection_candidates(s, prior_on=True) == [Candidate(2.0), Candidate(25.0)]
+    assert selection_candidates(replace(s, planarity_weight=0.0), prior_on=False) == [Candidate(2.0), Candidate(25.0)]
+    assert selection_point(replace(s, lambda_select=(), planarity_select=(0.1, 0.3))) == 4  # λ, λ + 0.1, λ + 0.3
+    assert selection_point(replace(s, lambda_select=())) is None  # one λ, one weight: the original one-candidate case
     # an explicit λ start, one candidate, or a cap inside the warm-up: no choice to make
     assert selection_point(replace(s, lambda_start=25.0)) is None
     assert selection_point(MorphSettings(iterations=20)) is None  # 0.3 × 20 rounds up to the first check, 25
@@ -242,9 +255,13 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
         MorphSettings(lambda_select=(2.0, 2.0))
     with pytest.raises(UsageError, match="lambda_select"):
         MorphSettings(lambda_select=(2.0, -1.0))
+    with pytest.raises(UsageError, match="planarity_select"):
+        MorphSettings(planarity_select=(0.0,))
     # a decision made for other candidates is not reused silently
     with pytest.raises(UsageError, match="decision.json: made for candidates"):
         run_morph(small_armadillo, tmp_path / "a", replace(s, lambda_select=(2.0, 10.0)), show_progress=False)
+    with pytest.raises(UsageError, match="decision.json: made for candidates"):
+        run_morph(small_armadillo, tmp_path / "a", replace(s, planarity_select=(0.3,)), show_progress=False)
 
 
 def test_validation_split_spreads_over_the_orbit():

@@ -170,6 +170,7 @@ def suite_row(name: str, m: MorphResult) -> dict:
            "s_per_iteration": (m.seconds - (m.lambda_selection.trial_seconds if m.lambda_selection else 0.0))
            / max(m.iterations, 1), "validation_seconds": m.validation_seconds,
            "lambda_selection": asdict(m.lambda_selection) if m.lambda_selection else None,
+           "planarity_weight": m.planarity.weight if m.planarity else None,
            "trace": [{"iteration": t.iteration, "seconds": t.seconds, "validation_l1": t.validation_l1,
                       "chamfer": t.chamfer} for t in m.trace]}
     row["checks"] = {
