@@ -570,9 +570,8 @@ def selection_candidates(s: MorphSettings, prior_on: bool) -> list[Candidate]:
     return out
 
 
-def candidate_settings(s: MorphSettings, c: Candidate | float) -> MorphSettings:
+def candidate_settings(s: MorphSettings, c: Candidate) -> MorphSettings:
     """One candidate's own run: its λ start (≤ λ: constant λ) and planarity weight, no selection of its own."""
-    c = c if isinstance(c, Candidate) else Candidate(float(c))
     return replace(s, lambda_start=float(c.lambda_start) if c.lambda_start > s.lambda_ else None, lambda_select=(),
                    planarity_select=(), planarity_weight=s.planarity_weight if c.planarity is None else c.planarity)
 
