@@ -665,3 +665,36 @@ def test_remesh_repeats_return_copies_of_the_same_result():
     again = me.remesh(v.copy(), f.copy(), c.copy(), 300)
     assert all(np.array_equal(a, b) for a, b in zip(again, direct)) and len(me._REMESHED) == 1
     assert len(me.remesh(v, f, c, 600)[0]) > len(again[0]) and len(me._REMESHED) == 2
+
+
+def test_start_remesh_is_stored_in_the_benchmark_and_every_later_run_reads_it(small_armadillo, tmp_path):
+    import shutil
+
+    from foundation.mesh import read_ply_colours, write_ply
+    from inverse.morph import start_mesh
+    from inverse.morph.run import stored_remesh_path
+
+    folder = tmp_path / "bench"
+    shutil.copytree(small_armadillo.path, folder)
+    for old in folder.glob("start_remesh_*"):  # other tests of the module may have run on the fixture
+        old.unlink()
+    b = load_morph_benchmark(folder)
+    s = MorphSettings()
+    path = stored_remesh_path(b, 1500)
+    assert not path.exists()
+    first = start_mesh(b, replace(s, target_vertices=1500))[1]
+    assert path.is_file() and 1000 < len(first[0]) < 2000
+    assert all(np.array_equal(a, x) for a, x in zip(first, read_ply_colours(path)))  # the writer reads it back too
+    # A start another process stored (here: moved by 1 %) wins over what this process's remesh would make.
+    write_ply(path, first[0] * 1.01, first[1], first[2])
+    assert np.array_equal(start_mesh(b, replace(s, target_vertices=1500))[1][0], (first[0] * 1.01).astype(np.float32))
+    # A damaged file is replaced by a fresh remesh; another target is another file.
+    path.write_bytes(path.read_bytes()[:200])
+    again = start_mesh(b, replace(s, target_vertices=1500))[1]
+    assert all(np.array_equal(a, x) for a, x in zip(first, again)) and read_ply_colours(path)[0].shape == first[0].shape
+    assert len(start_mesh(b, replace(s, target_vertices=800))[1][0]) < len(first[0])
+    assert stored_remesh_path(b, 800).is_file()
+    # No remesh asked for: the coarse input itself, nothing stored.
+    n_files = len(list(folder.glob("start_remesh_*")))
+    plain = start_mesh(b, replace(s, remesh_input=False, min_vertices=None))
+    assert np.array_equal(plain[0][0], plain[1][0]) and len(list(folder.glob("start_remesh_*"))) == n_files

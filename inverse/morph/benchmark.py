@@ -617,7 +617,8 @@ def truth_start_benchmark(bench: str | Path, out: str | Path) -> Path:
         colours = cc[cKDTree(cv).query(gv)[1]]
     with atomic_dir(out, MARKER) as tmp:
         for item in src.iterdir():
-            if item.name not in (MARKER, "coarse.ply") and item.is_file():
+            # not the stored start remeshes of the coarse input (run.stored_remesh): this copy has another input
+            if item.name not in (MARKER, "coarse.ply") and item.is_file() and not item.name.startswith("start_remesh_"):
                 shutil.copy2(item, tmp / item.name)
         write_ply(tmp / "coarse.ply", gv, gf, colours)
         write_json(tmp / "truth_start.json", {"from": str(src.name), "colours": origin})

@@ -263,8 +263,53 @@ def start_mesh(bench: MorphBenchmark, s: MorphSettings) -> tuple[tuple, tuple]:
     v_in, f_in, c_in = read_ply_colours(bench.coarse)
     target = s.target_vertices or (s.min_vertices if s.min_vertices and len(v_in) < s.min_vertices else None)
     if s.remesh_input or target:
-        return (v_in, f_in, c_in), remesh(v_in, f_in, c_in, target)
+        return (v_in, f_in, c_in), stored_remesh(bench, (v_in, f_in, c_in), target)
     return (v_in, f_in, c_in), (v_in, f_in, c_in)
+
+
+def stored_remesh_path(bench: MorphBenchmark, target: int | None) -> Path:
+    """Where :func:`stored_remesh` keeps the start: named by the target and the coarse input's content."""
+    return bench.path / f"start_remesh_{target or 'same'}_{file_digest(bench.coarse, 12)}.ply"
+
+
+def stored_remesh(bench: MorphBenchmark, mesh: tuple, target: int | None) -> tuple:
+    """The isotropic remesh of the benchmark's coarse input (``mesh``), made once and kept in the benchmark folder.
+
+    pymeshlab's remesh of byte-identical input has differed between processes (README, "run-to-run
+    differences"), so the first run on a benchmark stores its start and every later one — λ candidates,
+    resumes, suite workers, later invocations — reads that file. The first writer wins (a hard link, which fails
+    when the name exists), and the writer too reads the file back: float32 on disk, the same values for all. A
+    damaged file is replaced; a read-only benchmark folder remeshes in every process, as before.
+    """
+    import os
+    import tempfile
+
+    from foundation.mesh import MeshError
+
+    path = stored_remesh_path(bench, target)
+    try:
+        return read_ply_colours(path)
+    except MeshError:
+        pass  # absent or damaged
+    v, f, c = remesh(*mesh, target)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".ply", dir=path.parent)
+        os.close(fd)
+        try:
+            write_ply(tmp, v, f, c)
+            if path.exists():  # damaged (it did not read): replace it
+                os.replace(tmp, path)
+            else:
+                try:
+                    os.link(tmp, path)
+                except FileExistsError:  # another process stored its start first: use that one
+                    pass
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    except OSError:
+        return v, f, c
+    return read_ply_colours(path)
 
 
 def decide_planarity(v: np.ndarray, f: np.ndarray, s: MorphSettings) -> PlanarityDecision:

@@ -14,7 +14,7 @@ from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
 from inverse.morph import (KINDS, SUITE, MorphBenchmarkSettings, MorphResult, MorphSettings, load_morph_benchmark,
-                           make_morph_benchmark, run_morph, silhouette_margins, suite_mesh,
+                           make_morph_benchmark, run_morph, silhouette_margins, start_mesh, suite_mesh,
                            truth_start_benchmark)
 
 
@@ -198,8 +198,10 @@ def _suite_bench(name: str, work: Path, bs: MorphBenchmarkSettings, tag: str = "
 def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
     """Every suite mesh morphed with the same defaults (the pool runs them side by side)."""
     benches = {n: _suite_bench(n, work, MorphBenchmarkSettings(seed=s.seed)) for n in s.suite}
-    items = [_item(n, benches[n], work / f"suite_{n}", MorphSettings(iterations=s.iterations, seed=s.seed))
-             for n in s.suite]
+    settings = MorphSettings(iterations=s.iterations, seed=s.seed)
+    for b in benches.values():  # the start remeshes made here, once, before the workers read them (stored_remesh)
+        start_mesh(load_morph_benchmark(b), settings)
+    items = [_item(n, benches[n], work / f"suite_{n}", settings) for n in s.suite]
     report = run_items(items, pool, desc="bench morph suite", show_progress=show_progress)
     report.raise_if_failed()
     rows = {r.key: suite_row(r.key, r.value) for r in report.results}
