@@ -952,6 +952,9 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "planarity_weight", type=float,
          help="edge-preserving planarity prior (0: image loss only; default auto: on for scenes whose "
               "largest plane holds ≥ 20%% of the area, e.g. a ground plane)")
+    _opt(mr, MorphSettings, "colour_prior_weight", type=float,
+         help="colour prior: a piecewise-smooth albedo, so that the geometry, not the vertex colour, explains "
+              "shading (0: off; default auto: 0.1 where the input's own colours are smooth, off for textured ones)")
     mr.add_argument("--no-repair", action="store_true",
                     help="keep folds: skip the final unfolding of triangles flipped w.r.t. the start (reported)")
     _opt(mr, MorphSettings, "validation_views",

@@ -698,3 +698,61 @@ def test_start_remesh_is_stored_in_the_benchmark_and_every_later_run_reads_it(sm
     n_files = len(list(folder.glob("start_remesh_*")))
     plain = start_mesh(b, replace(s, remesh_input=False, min_vertices=None))
     assert np.array_equal(plain[0][0], plain[1][0]) and len(list(folder.glob("start_remesh_*"))) == n_files
+
+
+def test_colour_prior_closed_form_and_gradient():
+    """Mean over edges of sqrt(|Δc|² + ε²): constant colours give ε; a triangle with one vertex 0.3 apart in one
+    channel gives (2·sqrt(0.09 + ε²) + ε)/3 (closed form); the gradient matches central differences (rtol 1e-3)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from inverse.morph.prior import colour_prior, unique_edges
+
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    e = unique_edges(f)
+    assert e.tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [2, 3]]
+    em = mi.UInt32(e.astype(np.uint32).ravel())
+
+    def prior(c, grad=False):
+        x = mi.Float(np.ascontiguousarray(c, np.float32).ravel())
+        dr.enable_grad(x)
+        val = colour_prior(x, em)
+        if grad:
+            dr.backward(val)
+            return float(val[0]), np.array(dr.grad(x)).reshape(-1, 3)
+        return float(val[0])
+
+    eps = 1e-3
+    assert prior(np.full((4, 3), 0.4)) == pytest.approx(eps, rel=1e-4)
+    tri = np.array([[0, 1, 2]])
+    c = np.full((3, 3), 0.5)
+    c[2, 1] = 0.8
+    x = mi.Float(np.ascontiguousarray(c, np.float32).ravel())
+    assert float(colour_prior(x, mi.UInt32(unique_edges(tri).astype(np.uint32).ravel()))[0]) == pytest.approx(
+        (2 * np.sqrt(0.09 + eps ** 2) + eps) / 3, rel=1e-5)
+    rng = np.random.default_rng(3)
+    c = rng.random((4, 3))
+    _, g = prior(c, grad=True)
+    h = 1e-3
+    for i, k in [(0, 0), (1, 2), (2, 1), (3, 0)]:
+        cp, cm = c.copy(), c.copy()
+        cp[i, k] += h
+        cm[i, k] -= h
+        fd = (np.float64(prior(cp)) - prior(cm)) / (2 * h)
+        assert g[i, k] == pytest.approx(fd, rel=1e-3, abs=1e-5)
+
+
+def test_colour_prior_is_on_for_smooth_input_colours_and_off_for_textured_ones():
+    from inverse.morph.run import decide_colour_prior
+
+    v, f = _sphere(1.0, 40)
+    smooth = (0.5 + 0.05 * np.sin(v)).astype(np.float32)  # a smooth albedo: small steps between neighbours
+    textured = np.random.default_rng(0).random((len(v), 3)).astype(np.float32)  # an albedo step at every edge
+    s = MorphSettings()
+    on, off = decide_colour_prior(smooth, f, s), decide_colour_prior(textured, f, s)
+    assert on.auto and on.weight == s.colour_prior_auto_weight and on.input_colour_step < s.colour_prior_auto_threshold
+    assert off.auto and off.weight == 0.0 and off.input_colour_step > 0.3
+    fixed = decide_colour_prior(textured, f, replace(s, colour_prior_weight=0.05))
+    assert (fixed.weight, fixed.auto, fixed.input_colour_step) == (0.05, False, None)
+    with pytest.raises(UsageError, match="colour_prior_weight"):
+        MorphSettings(colour_prior_weight=-1.0)

@@ -106,3 +106,18 @@ def planarity_prior(p: mi.Point3f, faces: mi.UInt32, pairs: mi.UInt32, sigma: fl
     na, nb = take(n, dr.gather(mi.UInt32, pairs, j)), take(n, dr.gather(mi.UInt32, pairs, j + 1))
     d = 1.0 - dr.dot(na, nb)
     return dr.mean(d / (d + sigma))
+
+
+def unique_edges(f: np.ndarray) -> np.ndarray:
+    """The mesh's edges as (i, j) vertex pairs, i < j, each once."""
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def colour_prior(c: mi.Float, edges: mi.UInt32, eps: float = 1e-3) -> mi.Float:
+    """Mean over edges of the Charbonnier norm sqrt(|c_i − c_j|² + ε²) of the colour step: a piecewise-smooth albedo
+    (the Retinex assumption), so that shading is not explained away by colour."""
+    j = dr.arange(mi.UInt32, dr.width(edges) // 2) * 2
+    ca = dr.gather(mi.Vector3f, c, dr.gather(mi.UInt32, edges, j))
+    cb = dr.gather(mi.Vector3f, c, dr.gather(mi.UInt32, edges, j + 1))
+    return dr.mean(dr.sqrt(dr.squared_norm(ca - cb) + eps * eps))

@@ -89,6 +89,8 @@ def _summary(m: MorphResult) -> dict:
                repaired_vertices=m.repair.repaired_vertices if m.repair else None,
                repair_max_move=m.repair.repair_max_move if m.repair else None,
                planarity_weight=m.planarity.weight if m.planarity else None,
+               colour_prior_weight=m.colour_prior.weight if m.colour_prior else None,
+               input_colour_step=m.colour_prior.input_colour_step if m.colour_prior else None,
                dominant_plane_fraction=m.planarity.dominant_plane_fraction if m.planarity else None)
     return out
 
@@ -108,7 +110,7 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, pool: PoolSettings,
     ours = run_morph(bench, work / f"{case}_speed_ours", base, show_progress=show_progress)
     tutorial = run_morph(bench, work / f"{case}_speed_tutorial",
                          replace(base, spp=s.baseline_spp, lambda_=25.0, lr=0.05 * 10 / 2, lr_final=1.0,
-                                 repair_flips=False, planarity_weight=0.0),
+                                 repair_flips=False, planarity_weight=0.0, colour_prior_weight=0.0),
                          show_progress=show_progress)
 
     def item(key: str, settings: MorphSettings, **kw) -> Item:
@@ -125,6 +127,8 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, pool: PoolSettings,
                  "large_steps_lambda25": replace(short, lambda_=25.0)}
     if main.planarity and main.planarity.weight:  # the prior's ablation, where the auto rule switched it on
         stab_runs["no_planarity_prior"] = replace(short, planarity_weight=0.0)
+    if main.colour_prior and main.colour_prior.weight:  # the colour prior's ablation, where the rule switched it on
+        stab_runs["no_colour_prior"] = replace(short, colour_prior_weight=0.0)
     items += [item(f"stab_{k}", v) for k, v in stab_runs.items()]
     # four neighbouring views only: border regions unseen
     items.append(item("stab_few_views_4", short, train=bench.meta.train[:4]))
