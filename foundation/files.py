@@ -83,22 +83,27 @@ def check_output_file(path: str | os.PathLike, what: str = "output") -> Path:
 MANIFEST = ".photoreal-manifest.json"  #: what an :func:`atomic_dir` output holds (written by it, last)
 
 
-def _foreign_entries(p: Path) -> list[str]:
-    """Entries of a previous :func:`atomic_dir` output that it did not write (added later by a user or a run)."""
+def _foreign_entries(p: Path, derived: tuple[str, ...] = ()) -> list[str]:
+    """Entries of a previous :func:`atomic_dir` output that it did not write (added later by a user or a run);
+    names matching a ``derived`` pattern (caches computed from the folder's own files) do not count."""
+    import fnmatch
+
     try:
         own = set(json.loads((p / MANIFEST).read_text()))
     except (OSError, ValueError, TypeError):
         return ["(no readable manifest: made by an older photoreal or by hand)"]
-    return sorted(e.name for e in p.iterdir() if e.name not in own)
+    return sorted(e.name for e in p.iterdir()
+                  if e.name not in own and not any(fnmatch.fnmatchcase(e.name, d) for d in derived))
 
 
 def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: str = "output folder",
-                     replace: bool = False) -> Path:
+                     replace: bool = False, derived: tuple[str, ...] = ()) -> Path:
     """A folder output can go to ``path``: absent, empty, or a previous output (holding ``marker``).
 
     Never anything else: replacing a folder the program did not write would destroy the user's files. With
     ``replace`` (the folder will be swapped for a new one, :func:`atomic_dir`), a previous output must also hold
-    nothing it did not write itself — a morph run or notes saved inside a benchmark would go with it.
+    nothing it did not write itself — a morph run or notes saved inside a benchmark would go with it — except
+    files matching a ``derived`` pattern: caches made from the folder's own contents, stale once it is remade.
     """
     p = Path(path)
     if str(path) == "":
@@ -109,7 +114,7 @@ def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: s
         if any(p.iterdir()) and (marker is None or not (p / marker).is_file()):
             hint = f" (no {marker}: not a previous output of this command)" if marker else ""
             raise UsageError(f"{what} {p}: folder exists and is not empty{hint}; choose another path or empty it")
-        foreign = _foreign_entries(p) if replace and any(p.iterdir()) else []
+        foreign = _foreign_entries(p, derived) if replace and any(p.iterdir()) else []
         if foreign:
             shown = ", ".join(foreign[:4]) + (", …" if len(foreign) > 4 else "")
             raise UsageError(f"{what} {p}: a previous output, but it also holds what this command did not write "
@@ -147,13 +152,14 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None) -> Iterato
 
 
 @contextlib.contextmanager
-def atomic_dir(target: str | os.PathLike, marker: str | None = None) -> Iterator[Path]:
+def atomic_dir(target: str | os.PathLike, marker: str | None = None,
+               derived: tuple[str, ...] = ()) -> Iterator[Path]:
     """Yield a hidden sibling folder; on success it replaces ``target``, on any error it is removed.
 
     ``target`` must be absent, empty or a previous output holding ``marker`` (see
-    :func:`check_output_dir`); the work should write ``marker`` last.
+    :func:`check_output_dir`, also for ``derived``); the work should write ``marker`` last.
     """
-    target = check_output_dir(target, marker, replace=True)
+    target = check_output_dir(target, marker, replace=True, derived=derived)
     tmp = target.with_name(f".{target.name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -166,7 +172,7 @@ def atomic_dir(target: str | os.PathLike, marker: str | None = None) -> Iterator
     os.chmod(tmp / MANIFEST, file_mode())
     old = None
     if target.exists():
-        check_output_dir(target, marker, replace=True)  # still only a previous output (or empty) after the work
+        check_output_dir(target, marker, replace=True, derived=derived)  # still only a previous output after the work
         old = target.with_name(f".{target.name}.old")
         shutil.rmtree(old, ignore_errors=True)
         target.rename(old)

@@ -954,7 +954,8 @@ def build_parser() -> argparse.ArgumentParser:
               "largest plane holds ≥ 20%% of the area, e.g. a ground plane)")
     _opt(mr, MorphSettings, "colour_prior_weight", type=float,
          help="colour prior: a piecewise-smooth albedo, so that the geometry, not the vertex colour, explains "
-              "shading (0: off; default auto: 0.1 where the input's own colours are smooth, off for textured ones)")
+              "shading (0: off; default auto: 0.1 where the input's own colours are smooth, off for textured ones, "
+              "and with --lambda-select the validation photos confirm it against the winner without it)")
     mr.add_argument("--no-repair", action="store_true",
                     help="keep folds: skip the final unfolding of triangles flipped w.r.t. the start (reported)")
     _opt(mr, MorphSettings, "validation_views",

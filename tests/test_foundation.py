@@ -215,6 +215,17 @@ def test_atomic_writes_leave_nothing_on_error_and_folders_only_replace_their_own
         with atomic_dir(tmp_path / "out", marker="done.json"):
             pass
     assert (tmp_path / "out" / "notes.txt").read_text() == "mine"
+    # a cache a later run derived from the folder (a pattern the command names) goes with it; a user's file does not
+    (tmp_path / "out" / "notes.txt").unlink()
+    (tmp_path / "out" / "cache_1.ply").write_text("derived")
+    with pytest.raises(UsageError, match=r"did not write \(cache_1.ply\)"):
+        check_output_dir(tmp_path / "out", "done.json", replace=True)
+    with atomic_dir(tmp_path / "out", marker="done.json", derived=("cache_*.ply",)) as d:
+        (d / "done.json").write_text("{}")
+    assert not (tmp_path / "out" / "cache_1.ply").exists()
+    (tmp_path / "out" / "cache_1.ply.txt").write_text("mine")
+    with pytest.raises(UsageError, match=r"did not write \(cache_1.ply.txt\)"):
+        check_output_dir(tmp_path / "out", "done.json", replace=True, derived=("cache_*.ply",))
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep")
     with pytest.raises(UsageError, match="folder exists and is not empty .*no done.json"):

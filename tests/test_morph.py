@@ -219,7 +219,15 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     assert all(v > 0 for v in sel.validation_l1) and len(set(sel.validation_l1)) == 3
     best = int(np.argmin(sel.validation_l1))
     assert sel.winner == sel.candidate_list()[best]
-    alone = run_morph(small_armadillo, tmp_path / "alone", candidate_settings(s, sel.winner), show_progress=False)
+    # The armadillo's input colours are smooth, so the colour rule switched the prior on: the winner also ran
+    # without it to the same point, and the lower validation L1 continued.
+    col = r.colour_selection
+    assert col is not None and col.candidate == sel.winner.folder and col.at_iteration == 4
+    assert col.validation_l1_with == sel.validation_l1[best] and col.validation_l1_without > 0
+    assert col.kept == (col.validation_l1_with <= col.validation_l1_without) and col.trial_seconds > 0
+    final = sel.winner if col.kept else replace(sel.winner, colour=0.0)
+    assert r.colour_prior.weight == (s.colour_prior_auto_weight if col.kept else 0.0)
+    alone = run_morph(small_armadillo, tmp_path / "alone", candidate_settings(s, final), show_progress=False)
     assert r.chamfer_morphed == alone.chamfer_morphed and r.iterations == 8 and r.settings == s
     assert r.seconds > alone.seconds and sel.trial_seconds > 0
     assert r.planarity.weight == (0.1 if sel.chosen_planarity == 0.1 else 0.0)
@@ -228,10 +236,11 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     np.testing.assert_array_equal(v_sel, v_alone)
     # the candidates not chosen stopped at the selection point, each in its own folder
     from foundation.loop import read_checkpoint
-    for c in sel.candidate_list():
-        if c != sel.winner:
+    for c in sel.candidate_list() + [replace(sel.winner, colour=0.0)]:
+        if c != final:
             assert read_checkpoint(tmp_path / "a" / "lambda_select" / c.folder / "checkpoint.npz").run.step == 4
     assert {c.folder for c in sel.candidate_list()} == {"start_2", "start_25", "start_2_planarity_0.1"}
+    assert replace(sel.winner, colour=0.0).folder == sel.winner.folder + "_colour_0"
     saved = json.loads((tmp_path / "a" / "metrics.json").read_text())
     assert saved["lambda_selection"]["chosen"] == sel.chosen
     assert saved["lambda_selection"]["chosen_planarity"] == sel.chosen_planarity
@@ -240,7 +249,11 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
         assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=3) is None
     resumed = run_morph(small_armadillo, tmp_path / "b", s, show_progress=False)
     assert replace(resumed.lambda_selection, trial_seconds=sel.trial_seconds) == sel  # all but the clock
+    assert replace(resumed.colour_selection, trial_seconds=col.trial_seconds) == col
     assert resumed.chamfer_morphed == r.chamfer_morphed
+    # a given colour weight: no colour choice
+    assert run_morph(small_armadillo, tmp_path / "c", replace(s, iterations=6, colour_prior_weight=0.1),
+                     show_progress=False).colour_selection is None
     # the planarity candidates join only where the plane rule leaves the prior off and no weight is given
     assert selection_candidates(s, prior_on=True) == [Candidate(2.0), Candidate(25.0)]
     assert selection_candidates(replace(s, planarity_weight=0.0), prior_on=False) == [Candidate(2.0), Candidate(25.0)]
@@ -262,6 +275,11 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
         run_morph(small_armadillo, tmp_path / "a", replace(s, lambda_select=(2.0, 10.0)), show_progress=False)
     with pytest.raises(UsageError, match="decision.json: made for candidates"):
         run_morph(small_armadillo, tmp_path / "a", replace(s, planarity_select=(0.3,)), show_progress=False)
+    (tmp_path / "a" / "metrics.json").unlink()
+    cpath = tmp_path / "a" / "lambda_select" / "colour_decision.json"
+    cpath.write_text(cpath.read_text().replace(sel.winner.folder, "start_7"))
+    with pytest.raises(UsageError, match="colour_decision.json: made for start_7"):
+        run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
 
 
 def test_validation_split_spreads_over_the_orbit():
@@ -756,3 +774,15 @@ def test_colour_prior_is_on_for_smooth_input_colours_and_off_for_textured_ones()
     assert (fixed.weight, fixed.auto, fixed.input_colour_step) == (0.05, False, None)
     with pytest.raises(UsageError, match="colour_prior_weight"):
         MorphSettings(colour_prior_weight=-1.0)
+
+
+def test_a_resumed_suite_keeps_its_benchmarks_and_their_stored_starts(tmp_path):
+    from photoreal.benchmarks.morph import _suite_bench
+
+    bs = MorphBenchmarkSettings(n_views=4, resolution=16, spp=2, coarse_vertices=300)
+    made = _suite_bench("table", tmp_path, bs)
+    kept = made / "start_remesh_10000_0123456789ab.ply"  # what a first run stores there
+    kept.write_bytes(b"start")
+    assert _suite_bench("table", tmp_path, bs) == made and kept.is_file()  # same file, same settings: kept
+    assert _suite_bench("table", tmp_path, replace(bs, resolution=24)) == made and not kept.exists()  # remade
+    assert load_morph_benchmark(made).meta.settings.resolution == 24

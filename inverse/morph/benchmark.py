@@ -38,6 +38,8 @@ from foundation.progress import progress_bar
 from foundation.records import load_folder_record, to_json
 
 MARKER = "morph_benchmark.json"  #: written last: a folder holding it is a complete benchmark
+#: start remeshes of the coarse input that runs store in the benchmark (``run.stored_remesh``): caches, remade with it
+STORED_STARTS = "start_remesh_*.ply"
 FORMAT = "photoreal-morph-benchmark/1"
 
 
@@ -450,7 +452,7 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
     if str(source) != "village":
         load_mesh_any(source)  # a missing, unreadable or degenerate mesh is named before the folder is touched
     t0 = time.perf_counter()
-    with atomic_dir(out, MARKER) as tmp:
+    with atomic_dir(out, MARKER, derived=(STORED_STARTS,)) as tmp:
         if str(source) == "village":
             parts = village_parts(s.n_houses, s.seed)
             textures = {m: material_texture(m) for m in {p.material for p in parts}}
@@ -618,7 +620,7 @@ def truth_start_benchmark(bench: str | Path, out: str | Path) -> Path:
     with atomic_dir(out, MARKER) as tmp:
         for item in src.iterdir():
             # not the stored start remeshes of the coarse input (run.stored_remesh): this copy has another input
-            if item.name not in (MARKER, "coarse.ply") and item.is_file() and not item.name.startswith("start_remesh_"):
+            if item.name not in (MARKER, "coarse.ply") and item.is_file() and not item.match(STORED_STARTS):
                 shutil.copy2(item, tmp / item.name)
         write_ply(tmp / "coarse.ply", gv, gf, colours)
         write_json(tmp / "truth_start.json", {"from": str(src.name), "colours": origin})

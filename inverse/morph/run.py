@@ -139,6 +139,9 @@ class MorphSettings:
     #: that shading to the geometry. None = auto: ``colour_prior_auto_weight`` where the input's own colours are
     #: smooth (mean colour step per edge below ``colour_prior_auto_threshold``), else 0 — textured inputs (the
     #: village's 0.030) hold real albedo steps. Airplane (25 → 2): −27 % Chamfer without, −38 / −43 % at 0.03 / 0.1.
+    #: Where the rule switches it on and the λ selection runs, the winner also runs without it to the selection
+    #: point and the validation photos decide (:class:`ColourSelection`; josie: −24 % with, −27 % without, and its
+    #: validation L1 prefers without). A given weight skips both.
     colour_prior_weight: float | None = None
     colour_prior_auto_weight: float = 0.1
     colour_prior_auto_threshold: float = 0.015  #: the suite's smooth-albedo inputs: 0.004–0.006; the village 0.030
@@ -230,10 +233,12 @@ class Candidate:
 
     lambda_start: float
     planarity: float | None = None
+    colour: float | None = None  #: the colour prior's weight (None: the rule's)
 
     @property
     def folder(self) -> str:
-        return f"start_{self.lambda_start:g}" + ("" if self.planarity is None else f"_planarity_{self.planarity:g}")
+        return (f"start_{self.lambda_start:g}" + ("" if self.planarity is None else f"_planarity_{self.planarity:g}")
+                + ("" if self.colour is None else f"_colour_{self.colour:g}"))
 
 
 @dataclass
@@ -260,6 +265,19 @@ class LambdaSelection:
 
 
 @dataclass
+class ColourSelection:
+    """Where the colour rule switched the prior on, the λ selection's winner also ran without it from the same
+    start to the selection point; the lower validation L1 there continued."""
+
+    candidate: str  #: folder of the λ selection's winner (with the prior)
+    at_iteration: int
+    validation_l1_with: float | None
+    validation_l1_without: float | None
+    kept: bool  #: the prior stayed on
+    trial_seconds: float  #: time of the run not continued, to the selection point (included in ``seconds``)
+
+
+@dataclass
 class MorphResult(MorphEvaluation):
     """``metrics.json`` of a morph run."""
 
@@ -280,6 +298,7 @@ class MorphResult(MorphEvaluation):
     validation_seconds: float = 0.0  #: time spent rendering the validation views (not in ``seconds``)
     trace_chamfer_input: float | None = None  #: the coarse input's Chamfer with the trace's estimator
     lambda_selection: LambdaSelection | None = None  #: when ``settings.lambda_select`` chose the λ schedule
+    colour_selection: ColourSelection | None = None  #: when the validation photos decided the colour prior
 
 
 def start_mesh(bench: MorphBenchmark, s: MorphSettings) -> tuple[tuple, tuple]:
@@ -655,7 +674,8 @@ def selection_candidates(s: MorphSettings, prior_on: bool) -> list[Candidate]:
 def candidate_settings(s: MorphSettings, c: Candidate) -> MorphSettings:
     """One candidate's own run: its λ start (≤ λ: constant λ) and planarity weight, no selection of its own."""
     return replace(s, lambda_start=float(c.lambda_start) if c.lambda_start > s.lambda_ else None, lambda_select=(),
-                   planarity_select=(), planarity_weight=s.planarity_weight if c.planarity is None else c.planarity)
+                   planarity_select=(), planarity_weight=s.planarity_weight if c.planarity is None else c.planarity,
+                   colour_prior_weight=s.colour_prior_weight if c.colour is None else c.colour)
 
 
 def _trial_dir(out: Path, c: Candidate) -> Path:
@@ -672,6 +692,39 @@ def _trial_status(ckpt: Path) -> tuple[int, bool, float | None, float]:
     trace = saved.stage.get("trace") or []
     last = trace[-1] if trace else {}
     return int(saved.run.step), bool(saved.run.done), last.get("validation_l1"), float(last.get("seconds") or 0.0)
+
+
+def _seconds_at(ckpt: Path, at: int) -> float:
+    """Seconds a run had taken at its trace point ``at`` (its last point if it stopped sooner)."""
+    from foundation.loop import read_checkpoint
+
+    trace = read_checkpoint(ckpt).stage.get("trace") or []
+    upto = [t for t in trace if t.get("iteration", 0) <= at]
+    return float((upto or trace or [{}])[-1].get("seconds") or 0.0)
+
+
+def _advance(bench: MorphBenchmark, folder: Path, s: MorphSettings, at: int, show_progress: bool,
+             budget: int | None) -> int | None:
+    """Run a trial to iteration ``at`` (resumable); the budget left, or None when it ran out first."""
+    step, done, _, _ = _trial_status(folder / "checkpoint.npz")
+    todo = 0 if done else at - step
+    if todo <= 0:
+        return budget
+    if budget is not None and budget <= 0:
+        return None
+    n = todo if budget is None else min(todo, budget)
+    run_morph(bench, folder, s, show_progress, budget_iterations=n)
+    if budget is None:
+        return None
+    return budget - n if n == todo else None
+
+
+def colour_rule_on(bench: MorphBenchmark, s: MorphSettings) -> bool:
+    """Whether the rule (not a given weight) switches the colour prior on for this benchmark's input."""
+    if s.colour_prior_weight is not None:
+        return False
+    v, f, c = read_ply_colours(bench.coarse)
+    return decide_colour_prior(c, f, s).weight > 0
 
 
 def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progress: bool,
@@ -697,18 +750,10 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
                              f"not {[c.folder for c in cands]} at {at}; delete {out / 'lambda_select'} to start over")
     else:
         for c in cands:
-            step, done, _, _ = _trial_status(_trial_dir(out, c) / "checkpoint.npz")
-            todo = 0 if done else at - step
-            if todo <= 0:
-                continue
-            if budget is not None and budget <= 0:
+            left = _advance(bench, _trial_dir(out, c), candidate_settings(s, c), at, show_progress, budget)
+            if budget is not None and left is None:
                 return None
-            n = todo if budget is None else min(todo, budget)
-            run_morph(bench, _trial_dir(out, c), candidate_settings(s, c), show_progress, budget_iterations=n)
-            if budget is not None:
-                budget -= n
-                if n < todo:
-                    return None
+            budget = left
         status = {c: _trial_status(_trial_dir(out, c) / "checkpoint.npz") for c in cands}
         scores = [status[c][2] for c in cands]
         # no validation photos after all (too few training views): the first candidate
@@ -717,17 +762,41 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
                               float(sum(status[c][3] for c in cands if c != chosen)),
                               planarity=[c.planarity for c in cands], chosen_planarity=chosen.planarity)
         write_json(decision_path, to_json(sel))
+    winner, extra, colour = sel.winner, 0.0, None
+    if colour_rule_on(bench, s):  # then the winner without the colour prior, to the same point: the photos decide
+        colour_path = out / "lambda_select" / "colour_decision.json"
+        twin = replace(winner, colour=0.0)
+        if colour_path.is_file():
+            colour = from_json(ColourSelection, read_json(colour_path, "colour-prior selection"), str(colour_path))
+            if colour.candidate != winner.folder or colour.at_iteration != at:
+                raise UsageError(f"{colour_path}: made for {colour.candidate} at iteration {colour.at_iteration}, "
+                                 f"not {winner.folder} at {at}; delete {out / 'lambda_select'} to start over")
+        else:
+            left = _advance(bench, _trial_dir(out, twin), candidate_settings(s, twin), at, show_progress, budget)
+            if budget is not None and left is None:
+                return None
+            budget = left
+            with_l1 = sel.validation_l1[sel.candidate_list().index(winner)]
+            _, _, without_l1, _ = _trial_status(_trial_dir(out, twin) / "checkpoint.npz")
+            kept = without_l1 is None or with_l1 is None or with_l1 <= without_l1
+            lost = _trial_dir(out, twin if kept else winner) / "checkpoint.npz"
+            colour = ColourSelection(winner.folder, at, with_l1, without_l1, kept, _seconds_at(lost, at))
+            write_json(colour_path, to_json(colour))
+        extra = colour.trial_seconds
+        if not colour.kept:
+            winner = twin
     if budget is not None and budget <= 0:
         return None
-    win = _trial_dir(out, sel.winner)
-    r = run_morph(bench, win, candidate_settings(s, sel.winner), show_progress, budget_iterations=budget)
+    win = _trial_dir(out, winner)
+    r = run_morph(bench, win, candidate_settings(s, winner), show_progress, budget_iterations=budget)
     if r is None:
         return None
     for f in sorted(win.iterdir()):
         if f.is_file() and f.name not in ("checkpoint.npz", "metrics.json") and not f.name.startswith("."):
             with atomic_path(out / f.name) as tmp:
                 shutil.copyfile(f, tmp)
-    r = replace(r, settings=s, lambda_selection=sel, seconds=r.seconds + sel.trial_seconds)
+    r = replace(r, settings=s, lambda_selection=sel, colour_selection=colour,
+                seconds=r.seconds + sel.trial_seconds + extra)
     write_json(out / "metrics.json", to_json(r))
     return r
 

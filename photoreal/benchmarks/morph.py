@@ -170,10 +170,12 @@ def suite_row(name: str, m: MorphResult) -> dict:
            "normal_consistency": {"input": m.normal_consistency_input, "morphed": m.normal_consistency_morphed},
            "pleats": asdict(m.pleats) if m.pleats else None,
            "iterations": m.iterations, "stopped_early": m.stopped_early, "trace_chamfer_input": m.trace_chamfer_input,
-           # per iteration of the run that finished (the candidate not chosen is in ``seconds``, not in this)
-           "s_per_iteration": (m.seconds - (m.lambda_selection.trial_seconds if m.lambda_selection else 0.0))
+           # per iteration of the run that finished (the candidates not chosen are in ``seconds``, not in this)
+           "s_per_iteration": (m.seconds - (m.lambda_selection.trial_seconds if m.lambda_selection else 0.0)
+                               - (m.colour_selection.trial_seconds if m.colour_selection else 0.0))
            / max(m.iterations, 1), "validation_seconds": m.validation_seconds,
            "lambda_selection": asdict(m.lambda_selection) if m.lambda_selection else None,
+           "colour_selection": asdict(m.colour_selection) if m.colour_selection else None,
            "planarity_weight": m.planarity.weight if m.planarity else None,
            "trace": [{"iteration": t.iteration, "seconds": t.seconds, "validation_l1": t.validation_l1,
                       "chamfer": t.chamfer} for t in m.trace]}
@@ -195,8 +197,20 @@ def _item(key: str, bench_dir: Path, out: Path, settings: MorphSettings, **kw) -
 
 
 def _suite_bench(name: str, work: Path, bs: MorphBenchmarkSettings, tag: str = "") -> Path:
+    """The benchmark of one suite mesh; a complete one made earlier from the same file and settings (a resumed
+    bench) is kept as it is, with the start remeshes its runs stored (:func:`inverse.morph.run.stored_remesh`)."""
+    from foundation.errors import UsageError
+    from foundation.files import file_digest
+
     src = source(name) if name in ("village", "armadillo") else str(suite_mesh(name, work / "meshes"))
-    return make_morph_benchmark(src, work / f"bench_{name}{tag}", bs, show_progress=False)
+    out = work / f"bench_{name}{tag}"
+    try:
+        meta = load_morph_benchmark(out).meta
+        if meta.settings == bs and meta.source_sha256 == (None if src == "village" else file_digest(src, 64)):
+            return out
+    except UsageError:
+        pass  # none yet, or damaged: made anew
+    return make_morph_benchmark(src, out, bs, show_progress=False)
 
 
 def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
