@@ -235,6 +235,18 @@ def demo_photo(out_dir: Path, uv_res: int = 256, seed: int = 0, relight_res: int
     return {k: r[k] for k in ("landmark_reprojection_px", "rerender_psnr_visible_face", "seconds")}
 
 
+def _colour_why(mr) -> str:
+    """Why the morph ran with its colour-prior weight, in words."""
+    c = mr.colour_selection
+    if c is not None:
+        return (f"the input's colours are smooth; at iteration {c.at_iteration} the validation photos preferred "
+                f"{'the prior' if c.kept else 'no prior'}: L1 {c.validation_l1_with:.4f} with, "
+                f"{c.validation_l1_without:.4f} without")
+    if mr.colour_prior and mr.colour_prior.auto:
+        return f"auto: mean colour step per edge of the input {mr.colour_prior.input_colour_step:.4f}, on below 0.015"
+    return "given"
+
+
 def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: Path | None = None) -> dict:
     """Armadillo morph benchmark: degraded input vs morphed vs photo, metrics; bench tables if present."""
     import shutil
@@ -261,7 +273,8 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
             f"3 views per step, input remeshed to {m['vertices']} vertices; folds left at the end are unfolded "
             f"locally and counted (inverted_before_repair). Planarity prior weight {mr.planarity.weight:g} "
             f"(auto: the input's largest plane holds {mr.planarity.dominant_plane_fraction or 0:.0%} of its area; "
-            f"on from 20%, as on the village).</p><div>{figs}</div>" + _table(rows, ["metric", "value"]))
+            f"on from 20%, as on the village). Colour prior weight {mr.colour_prior.weight:g} "
+            f"({_colour_why(mr)}).</p><div>{figs}</div>" + _table(rows, ["metric", "value"]))
     mb = _bench_json(bench_dir, "morph.json")
     if mb is not None:
         body += "<h3>Benchmark (<code>photoreal bench morph</code>)</h3>"

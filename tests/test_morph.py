@@ -786,3 +786,16 @@ def test_a_resumed_suite_keeps_its_benchmarks_and_their_stored_starts(tmp_path):
     assert _suite_bench("table", tmp_path, bs) == made and kept.is_file()  # same file, same settings: kept
     assert _suite_bench("table", tmp_path, replace(bs, resolution=24)) == made and not kept.exists()  # remade
     assert load_morph_benchmark(made).meta.settings.resolution == 24
+
+
+def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
+    from photoreal.demo import _colour_why
+    from inverse.morph.run import ColourPriorDecision, ColourSelection
+    from types import SimpleNamespace
+
+    chosen = SimpleNamespace(colour_selection=ColourSelection("start_2", 200, 0.0120, 0.0118, False, 10.0),
+                             colour_prior=ColourPriorDecision(0.0, False, None))
+    assert "preferred no prior: L1 0.0120 with, 0.0118 without" in _colour_why(chosen)
+    rule = SimpleNamespace(colour_selection=None, colour_prior=ColourPriorDecision(0.0, True, 0.0296))
+    assert "0.0296" in _colour_why(rule)
+    assert _colour_why(SimpleNamespace(colour_selection=None, colour_prior=ColourPriorDecision(0.1, False, None))) == "given"
