@@ -798,4 +798,5 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
     assert "preferred no prior: L1 0.0120 with, 0.0118 without" in _colour_why(chosen)
     rule = SimpleNamespace(colour_selection=None, colour_prior=ColourPriorDecision(0.0, True, 0.0296))
     assert "0.0296" in _colour_why(rule)
-    assert _colour_why(SimpleNamespace(colour_selection=None, colour_prior=ColourPriorDecision(0.1, False, None))) == "given"
+    given = SimpleNamespace(colour_selection=None, colour_prior=ColourPriorDecision(0.1, False, None))
+    assert _colour_why(given) == "given"

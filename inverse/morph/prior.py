@@ -115,8 +115,8 @@ def unique_edges(f: np.ndarray) -> np.ndarray:
 
 
 def colour_prior(c: mi.Float, edges: mi.UInt32, eps: float = 1e-3) -> mi.Float:
-    """Mean over edges of the Charbonnier norm sqrt(|c_i − c_j|² + ε²) of the colour step: a piecewise-smooth albedo
-    (the Retinex assumption), so that shading is not explained away by colour."""
+    """Mean over edges of the Charbonnier norm sqrt(|c_i − c_j|² + ε²) of the colour step: a piecewise-smooth
+    albedo (the Retinex assumption), so that shading is not explained away by colour."""
     j = dr.arange(mi.UInt32, dr.width(edges) // 2) * 2
     ca = dr.gather(mi.Vector3f, c, dr.gather(mi.UInt32, edges, j))
     cb = dr.gather(mi.Vector3f, c, dr.gather(mi.UInt32, edges, j + 1))

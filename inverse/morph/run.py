@@ -138,7 +138,8 @@ class MorphSettings:
     #: the photos show, and the photos then pull weakly on the geometry; a piecewise-smooth albedo (Retinex) leaves
     #: that shading to the geometry. None = auto: ``colour_prior_auto_weight`` where the input's own colours are
     #: smooth (mean colour step per edge below ``colour_prior_auto_threshold``), else 0 — textured inputs (the
-    #: village's 0.030) hold real albedo steps. Airplane (25 → 2): −27 % Chamfer without, −38 / −43 % at 0.03 / 0.1.
+    #: village's 0.030) hold real albedo steps. Airplane (25 → 2): −27 % Chamfer without, −38 / −43 % at 0.03 /
+    #: 0.1.
     #: Where the rule switches it on and the λ selection runs, the winner also runs without it to the selection
     #: point and the validation photos decide (:class:`ColourSelection`; josie: −24 % with, −27 % without, and its
     #: validation L1 prefers without). A given weight skips both.
@@ -607,7 +608,8 @@ class MorphStage(DrJitStage):
                 t.chamfer = quick(v, self.faces)
         return MorphResult(**vars(ev), seconds=seconds, iterations=run.step, vertices=int(len(v_out)),
                            method=s.parameterisation, settings=s, training=run.summary(),
-                           planarity=self.planarity, colour_prior=self.colour_prior, repair=repair, pleats=pleat_report, trace=self.trace,
+                           planarity=self.planarity, colour_prior=self.colour_prior, repair=repair,
+                           pleats=pleat_report, trace=self.trace,
                            stopped_early=run.stopped,
                            validation_views=list(self.val_ids), validation_seconds=self.validation_seconds,
                            trace_chamfer_input=trace_in)
@@ -705,7 +707,8 @@ def _seconds_at(ckpt: Path, at: int) -> float:
 
 def _advance(bench: MorphBenchmark, folder: Path, s: MorphSettings, at: int, show_progress: bool,
              budget: int | None) -> int | None:
-    """Run a trial to iteration ``at`` (resumable); the budget left, or None when it ran out first."""
+    """Run a trial to iteration ``at`` (resumable); the budget left, or None when it ran out first (without a
+    budget, ``budget`` is None and so is the answer: callers test ``budget is not None`` first)."""
     step, done, _, _ = _trial_status(folder / "checkpoint.npz")
     todo = 0 if done else at - step
     if todo <= 0:
