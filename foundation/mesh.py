@@ -69,6 +69,12 @@ def sample_surface(v: np.ndarray, f: np.ndarray, n: int,
     return w[:, 0:1] * v[fi[:, 0]] + w[:, 1:2] * v[fi[:, 1]] + w[:, 2:3] * v[fi[:, 2]], fid, w
 
 
+def unique_edges(f: np.ndarray) -> np.ndarray:
+    """The mesh's edges as (i, j) vertex pairs, i < j, each once (sorted)."""
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
 def graph_laplacian(n: int, faces: np.ndarray):
     """Combinatorial Laplacian D − A of the mesh's edge graph (binary adjacency), scipy CSR."""
     import scipy.sparse as sp

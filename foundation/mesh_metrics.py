@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .files import Memo, array_key
-from .mesh import edge_lengths, face_normals, sample_surface
+from .mesh import edge_lengths, face_normals, sample_surface, unique_edges
 
 
 #: sample counts (queries per direction, reference samples) of :func:`chamfer` and :func:`truth_surface` where a
@@ -112,8 +112,7 @@ def vertex_neighbours_mean(x: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Mean of ``x`` over each vertex's 1-ring (edge neighbours, each counted once)."""
     import scipy.sparse as sp
 
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    e = np.unique(np.sort(e, axis=1), axis=0)
+    e = unique_edges(f)
     n = len(x)
     a = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
     deg = np.asarray(a.sum(axis=1)).ravel()

@@ -724,7 +724,8 @@ def test_colour_prior_closed_form_and_gradient():
     import drjit as dr
     import mitsuba as mi
 
-    from inverse.morph.prior import colour_prior, unique_edges
+    from foundation.mesh import unique_edges
+    from inverse.morph.prior import colour_prior
 
     f = np.array([[0, 1, 2], [0, 2, 3]])
     e = unique_edges(f)

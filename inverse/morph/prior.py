@@ -108,12 +108,6 @@ def planarity_prior(p: mi.Point3f, faces: mi.UInt32, pairs: mi.UInt32, sigma: fl
     return dr.mean(d / (d + sigma))
 
 
-def unique_edges(f: np.ndarray) -> np.ndarray:
-    """The mesh's edges as (i, j) vertex pairs, i < j, each once."""
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    return np.unique(np.sort(e, axis=1), axis=0)
-
-
 def colour_prior(c: mi.Float, edges: mi.UInt32, eps: float = 1e-3) -> mi.Float:
     """Mean over edges of the Charbonnier norm sqrt(|c_i − c_j|² + ε²) of the colour step: a piecewise-smooth
     albedo (the Retinex assumption), so that shading is not explained away by colour."""

@@ -50,7 +50,7 @@ from foundation.errors import UsageError
 from foundation.files import file_digest
 from foundation.loop import (DrJitStage, LoopSettings, RunState, StepResult, TrainingSummary, rng_state, run_loop,
                              set_rng_state)
-from foundation.mesh import face_normals, load_mesh_any, read_ply_colours, write_ply
+from foundation.mesh import face_normals, load_mesh_any, read_ply_colours, unique_edges, write_ply
 from foundation.mesh_metrics import chamfer
 from foundation.records import from_json, to_json
 from foundation.optim_state import load_optimizer_state, optimizer_state
@@ -58,7 +58,7 @@ from foundation.scene import mitsuba_log_level
 
 from .benchmark import MorphBenchmark
 from .evaluate import MorphEvaluation, evaluate_morph
-from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior, unique_edges
+from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import PleatReport, RepairReport, remesh, repair_flips, undo_flips, unfold_pleats
 from .scene import MODES, morph_scene, photo_tensors, render_views
 
@@ -706,20 +706,17 @@ def _seconds_at(ckpt: Path, at: int) -> float:
 
 
 def _advance(bench: MorphBenchmark, folder: Path, s: MorphSettings, at: int, show_progress: bool,
-             budget: int | None) -> int | None:
-    """Run a trial to iteration ``at`` (resumable); the budget left, or None when it ran out first (without a
-    budget, ``budget`` is None and so is the answer: callers test ``budget is not None`` first)."""
+             budget: int | None) -> tuple[bool, int | None]:
+    """Run a trial to iteration ``at`` (resumable): whether it got there, and the budget left (None: no budget)."""
     step, done, _, _ = _trial_status(folder / "checkpoint.npz")
     todo = 0 if done else at - step
     if todo <= 0:
-        return budget
+        return True, budget
     if budget is not None and budget <= 0:
-        return None
+        return False, budget
     n = todo if budget is None else min(todo, budget)
     run_morph(bench, folder, s, show_progress, budget_iterations=n)
-    if budget is None:
-        return None
-    return budget - n if n == todo else None
+    return n == todo, None if budget is None else budget - n
 
 
 def colour_rule_on(bench: MorphBenchmark, s: MorphSettings) -> bool:
@@ -753,10 +750,9 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
                              f"not {[c.folder for c in cands]} at {at}; delete {out / 'lambda_select'} to start over")
     else:
         for c in cands:
-            left = _advance(bench, _trial_dir(out, c), candidate_settings(s, c), at, show_progress, budget)
-            if budget is not None and left is None:
+            reached, budget = _advance(bench, _trial_dir(out, c), candidate_settings(s, c), at, show_progress, budget)
+            if not reached:
                 return None
-            budget = left
         status = {c: _trial_status(_trial_dir(out, c) / "checkpoint.npz") for c in cands}
         scores = [status[c][2] for c in cands]
         # no validation photos after all (too few training views): the first candidate
@@ -775,10 +771,10 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
                 raise UsageError(f"{colour_path}: made for {colour.candidate} at iteration {colour.at_iteration}, "
                                  f"not {winner.folder} at {at}; delete {out / 'lambda_select'} to start over")
         else:
-            left = _advance(bench, _trial_dir(out, twin), candidate_settings(s, twin), at, show_progress, budget)
-            if budget is not None and left is None:
+            reached, budget = _advance(bench, _trial_dir(out, twin), candidate_settings(s, twin), at, show_progress,
+                                       budget)
+            if not reached:
                 return None
-            budget = left
             with_l1 = sel.validation_l1[sel.candidate_list().index(winner)]
             _, _, without_l1, _ = _trial_status(_trial_dir(out, twin) / "checkpoint.npz")
             kept = without_l1 is None or with_l1 is None or with_l1 <= without_l1
