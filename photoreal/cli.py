@@ -673,7 +673,8 @@ def _add_diffrender_parser(sub) -> None:
                                           "(seed 000)")
     gs = g.add_subparsers(dest="dr_cmd", required=True)
     t = gs.add_parser("train", help="train on morph benchmarks (morphed G-buffers → photos); resumes from OUT")
-    t.add_argument("benchmarks", nargs="+", help="folders made by `photoreal morph make-benchmark`")
+    t.add_argument("benchmarks", nargs="+", help="folders made by `photoreal morph make-benchmark` (with --spp 1024, "
+                   "as the bench: the photos are the targets, and their Monte-Carlo noise would be learned as well)")
     t.add_argument("--morph", nargs="+", default=None, help="their morph run folders, in order (default BENCHMARK/morph)")
     t.add_argument("--out", required=True, help="training folder (checkpoint.npz, metrics.json)")
     _opt(t, DiffRenderSettings, "steps")
@@ -811,6 +812,8 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bd, DiffRenderBenchSettings, "tolerance_rel", type=float,
          help="the choice: cheapest within this fraction of the sweep's best ꟻLIP")
     _opt(bd, DiffRenderBenchSettings, "input_spp", help="samples per pixel of every method's input renders")
+    _opt(bd, DiffRenderBenchSettings, "photo_spp", help="samples per pixel of the benchmarks' photos (the targets)")
+    _opt(bd, DiffRenderBenchSettings, "reference_spp", help="samples per pixel of the noise-free references")
     _opt(bd, DiffRenderBenchSettings, "validation", nargs="*",
          help="meshes never trained on that choose the main model's size at the main budget (none: the sweep's)")
     _opt(bd, DiffRenderBenchSettings, "gans", "--no-gans", help="skip training the GAN baselines")

@@ -487,9 +487,9 @@ def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None
                 for k, v in dist["photos_clean"].items()]
         body += ("<h4>MobileNetV2-KID against the photos and against the same views without Monte-Carlo noise</h4>"
                  "<p>_clean = distances to the held-out views path traced again at the references' samples per "
-                 "pixel (another seed); ± = jackknife over images. The features respond to the photos' 64-spp "
-                 "noise as to texture: truth_clean (the true scene, clean) against the photos is the oracle of "
-                 "what the first columns can tell.</p>"
+                 "pixel (another seed); ± = jackknife over images. The features respond to the photos' "
+                 f"Monte-Carlo noise ({s.get('photo_spp', 64)} spp) as to texture: truth_clean (the true scene, "
+                 "clean) against the photos is the oracle of what the first columns can tell.</p>"
                  + _table(rows, ["set", "kid_photos", "kid_std_photos", "kid_spatial_photos", "kid_clean",
                                  "kid_std_clean", "kid_spatial_clean", "kid_spatial_std_clean"]))
     for c, u in b.get("unseen", {}).items():

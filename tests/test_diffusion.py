@@ -487,6 +487,8 @@ def test_bench_choice_is_the_cheapest_within_a_fraction_of_the_best():
         DiffRenderBenchSettings(mean_draws=(8, 0))
     with pytest.raises(UsageError, match="validation"):  # the size must not be chosen on the test mesh
         DiffRenderBenchSettings(validation=("bunny",))
+    with pytest.raises(UsageError, match="photo_spp"):
+        DiffRenderBenchSettings(photo_spp=0)
 
 
 def test_bench_distribution_distances_rank_a_blurred_set_behind_the_same_photos():

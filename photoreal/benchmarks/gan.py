@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from foundation import validate
+from foundation.errors import UsageError
 from foundation.files import read_json
 from foundation.metrics import ImageMetrics, region_metrics
 from foundation.progress import progress_bar
@@ -51,9 +52,13 @@ class GanBenchSettings:
     morph_iterations: int = 100
     crop: int = 64
     batch: int = 4
+    #: samples per pixel of the benchmarks' photos (:class:`MorphBenchmarkSettings` spp); a work folder's benchmarks
+    #: must have been made with it
+    photo_spp: int = 64
     seed: int = 0
 
     def __post_init__(self):
+        validate.integer("photo_spp", self.photo_spp, 1, 1 << 16)
         for name in ("seconds_per_model", "cyclegan_seconds", "joint_seconds", "finetune_seconds"):
             validate.positive(name, getattr(self, name))
         validate.integer("morph_iterations", self.morph_iterations, 1)
@@ -65,8 +70,13 @@ class GanBenchSettings:
 def _prepare(case: str, work: Path, s: GanBenchSettings, show_progress: bool):
     bdir, mdir = work / case / "benchmark", work / case / "morph"
     if not (bdir / "morph_benchmark.json").is_file():
-        make_morph_benchmark(source(case), bdir, MorphBenchmarkSettings(seed=s.seed), show_progress=show_progress)
+        make_morph_benchmark(source(case), bdir, MorphBenchmarkSettings(spp=s.photo_spp, seed=s.seed),
+                             show_progress=show_progress)
     bench = load_morph_benchmark(bdir)
+    made = bench.meta.settings.spp
+    if made != s.photo_spp:  # everything trained in this folder saw those photos: reuse would mix two benchmarks
+        raise UsageError(f"{bdir}: its photos were rendered at {made} spp, this bench asks for {s.photo_spp} "
+                         "(photo_spp); use another output folder or remove this one")
     if not (mdir / "metrics.json").is_file():
         # constant λ (no selection): the morphed meshes the GAN and diffusion-renderer figures were measured on
         run_morph(bench, mdir, MorphSettings(iterations=s.morph_iterations, seed=s.seed, lambda_select=()),
