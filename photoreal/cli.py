@@ -974,6 +974,9 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "planarity_select", type=float, nargs="*",
          help="planarity-prior weights that join that choice as candidates at constant λ when the input has no "
               "dominant plane (the option alone: the plane rule decides; --planarity-weight turns the choice off)")
+    _opt(mr, MorphSettings, "prior_margin", type=float,
+         help="a prior those choices ask the photos about (planarity candidate, colour prior) is kept only where its "
+              "validation L1 is this fraction below the best run without it (0: the lower L1 wins)")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

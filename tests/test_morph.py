@@ -208,7 +208,8 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     # start to the end of the warm-up (ceil(0.3 × 8 / 2) × 2 = 4 iterations); the one with the lower validation L1
     # there continues. One Dr.Jit thread: the winner's run equals a standalone run of its settings bit for bit, and
     # a selection interrupted mid-way resumes to the same result.
-    from inverse.morph.run import Candidate, candidate_settings, selection_candidates, selection_point
+    from inverse.morph.run import (Candidate, candidate_settings, choose_with_margin, selection_candidates,
+                                   selection_point)
 
     s = MorphSettings(iterations=8, checkpoint_every=2, resolution=32, min_vertices=None, check_every=2,
                       validation_fraction=0.5, early_stop=False, lambda_select=(2.0, 25.0), planarity_select=(0.1,))
@@ -217,14 +218,15 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     sel = r.lambda_selection
     assert sel.at_iteration == 4 and sel.candidates == [2.0, 25.0, 2.0] and sel.planarity == [None, None, 0.1]
     assert all(v > 0 for v in sel.validation_l1) and len(set(sel.validation_l1)) == 3
-    best = int(np.argmin(sel.validation_l1))
-    assert sel.winner == sel.candidate_list()[best]
+    best = choose_with_margin(sel.validation_l1, [False, False, True], s.prior_margin)
+    assert sel.winner == sel.candidate_list()[best] and sel.margin == s.prior_margin == 0.015
     # The armadillo's input colours are smooth, so the colour rule switched the prior on: the winner also ran
     # without it to the same point, and the lower validation L1 continued.
     col = r.colour_selection
     assert col is not None and col.candidate == sel.winner.folder and col.at_iteration == 4
     assert col.validation_l1_with == sel.validation_l1[best] and col.validation_l1_without > 0
-    assert col.kept == (col.validation_l1_with <= col.validation_l1_without) and col.trial_seconds > 0
+    assert col.kept == (col.validation_l1_with < (1 - s.prior_margin) * col.validation_l1_without)
+    assert col.trial_seconds > 0 and col.margin == s.prior_margin
     final = sel.winner if col.kept else replace(sel.winner, colour=0.0)
     assert r.colour_prior.weight == (s.colour_prior_auto_weight if col.kept else 0.0)
     alone = run_morph(small_armadillo, tmp_path / "alone", candidate_settings(s, final), show_progress=False)
@@ -275,11 +277,33 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
         run_morph(small_armadillo, tmp_path / "a", replace(s, lambda_select=(2.0, 10.0)), show_progress=False)
     with pytest.raises(UsageError, match="decision.json: made for candidates"):
         run_morph(small_armadillo, tmp_path / "a", replace(s, planarity_select=(0.3,)), show_progress=False)
+    with pytest.raises(UsageError, match="decision.json: made for .* with prior_margin 0.015, .* with 0"):
+        run_morph(small_armadillo, tmp_path / "a", replace(s, prior_margin=0.0), show_progress=False)
     (tmp_path / "a" / "metrics.json").unlink()
     cpath = tmp_path / "a" / "lambda_select" / "colour_decision.json"
     cpath.write_text(cpath.read_text().replace(sel.winner.folder, "start_7"))
     with pytest.raises(UsageError, match="colour_decision.json: made for start_7"):
         run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
+
+
+def test_a_prior_continues_only_where_the_photos_prefer_it_by_the_margin():
+    """:func:`choose_with_margin` on hand-made scores. The cow's suite candidates at iteration 200 (λ 2, 25 → 2,
+    λ 2 + planarity 0.1): 0.009968, 0.010472, 0.009888 — the prior 0.8 % ahead, inside the 1.5 % margin, so the plain
+    λ 2 continues; josie's 0.012643, 0.013031, 0.012211 (3.4 % ahead) keeps it. The colour choice is the same rule on
+    (without, with)."""
+    from inverse.morph.run import choose_with_margin
+
+    prior = [False, False, True]
+    assert choose_with_margin([0.009968, 0.010472, 0.009888], prior, 0.015) == 0
+    assert choose_with_margin([0.009968, 0.010472, 0.009888], prior, 0.0) == 2  # no margin: the lowest
+    assert choose_with_margin([0.012643, 0.013031, 0.012211], prior, 0.015) == 2
+    assert choose_with_margin([0.013, 0.012, 0.0119], prior, 0.015) == 1  # the best plain candidate, not the first
+    assert choose_with_margin([0.013, 0.012, 0.0119], [False, False, False], 0.5) == 2  # no prior: no margin
+    assert choose_with_margin([0.01, None, 0.001], prior, 0.015) == 0  # no validation photos: the first
+    assert choose_with_margin([0.006209, 0.006094], [False, True], 0.015) == 1  # airplane: colour 1.85 % ahead, kept
+    assert choose_with_margin([0.013056, 0.012916], [False, True], 0.015) == 0  # bunny: 1.08 %, dropped
+    with pytest.raises(UsageError, match="prior_margin"):
+        MorphSettings(prior_margin=-0.1)
 
 
 def test_validation_split_spreads_over_the_orbit():
