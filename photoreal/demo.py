@@ -239,9 +239,9 @@ def _colour_why(mr) -> str:
     """Why the morph ran with its colour-prior weight, in words."""
     c = mr.colour_selection
     if c is not None:
-        return (f"the input's colours are smooth; at iteration {c.at_iteration} the validation photos preferred "
-                f"{'the prior' if c.kept else 'no prior'}: L1 {c.validation_l1_with:.4f} with, "
-                f"{c.validation_l1_without:.4f} without")
+        return (f"the input's colours are smooth; at iteration {c.at_iteration} the validation photos "
+                f"{'kept' if c.kept else 'dropped'} the prior: L1 {c.validation_l1_with:.4f} with, "
+                f"{c.validation_l1_without:.4f} without (kept only {c.margin:.1%} or more below)")
     if mr.colour_prior and mr.colour_prior.auto:
         return f"auto: mean colour step per edge of the input {mr.colour_prior.input_colour_step:.4f}, on below 0.015"
     return "given"

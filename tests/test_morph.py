@@ -818,9 +818,10 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
     from inverse.morph.run import ColourPriorDecision, ColourSelection
     from types import SimpleNamespace
 
-    chosen = SimpleNamespace(colour_selection=ColourSelection("start_2", 200, 0.0120, 0.0118, False, 10.0),
+    chosen = SimpleNamespace(colour_selection=ColourSelection("start_2", 200, 0.0120, 0.0118, False, 10.0,
+                                                              margin=0.015),
                              colour_prior=ColourPriorDecision(0.0, False, None))
-    assert "preferred no prior: L1 0.0120 with, 0.0118 without" in _colour_why(chosen)
+    assert "dropped the prior: L1 0.0120 with, 0.0118 without (kept only 1.5% or more below)" in _colour_why(chosen)
     rule = SimpleNamespace(colour_selection=None, colour_prior=ColourPriorDecision(0.0, True, 0.0296))
     assert "0.0296" in _colour_why(rule)
     given = SimpleNamespace(colour_selection=None, colour_prior=ColourPriorDecision(0.1, False, None))
