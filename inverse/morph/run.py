@@ -128,9 +128,10 @@ class MorphSettings:
     lambda_select: tuple[float, ...] = (2.0, 25.0)
     #: the planarity prior decided from the photos too: where the automatic rule leaves it off (no dominant plane),
     #: each of these weights is one more candidate of the selection above (at constant λ), kept only when the
-    #: validation photos prefer it by ``prior_margin``. On organic shapes the prior can flatten real curvature (the armadillo) or remove
-    #: bumps whose shading the vertex colours absorb (josie, bunny, bone, cow); at iteration 200 of the suite's
-    #: candidates the validation L1 ranked them as their Chamfer did on all six meshes with the choice (README).
+    #: validation photos prefer it by ``prior_margin``. On organic shapes the prior can flatten real curvature (the
+    #: armadillo) or remove bumps whose shading the vertex colours absorb (josie, bunny, bone, cow); at iteration
+    #: 200 of the suite's candidates the validation L1 ranked them as their Chamfer did on all six meshes with the
+    #: choice (README).
     #: () = the rule alone.
     planarity_select: tuple[float, ...] = (0.1,)
     #: weight of the colour prior (mean over edges of the colour step, :func:`~.prior.colour_prior`): under one fixed
@@ -141,16 +142,16 @@ class MorphSettings:
     #: village's 0.030) hold real albedo steps. Airplane (25 → 2): −27 % Chamfer without, −38 / −43 % at 0.03 /
     #: 0.1.
     #: Where the rule switches it on and the λ selection runs, the winner also runs without it to the selection
-    #: point and the validation photos decide (by ``prior_margin``) (:class:`ColourSelection`; josie: −24 % with, −27 % without, and its
-    #: validation L1 prefers without). A given weight skips both.
+    #: point and the validation photos decide by ``prior_margin`` (:class:`ColourSelection`; josie: −24 % with,
+    #: −27 % without, and its validation L1 prefers without). A given weight skips both.
     colour_prior_weight: float | None = None
     colour_prior_auto_weight: float = 0.1
+    colour_prior_auto_threshold: float = 0.015  #: the suite's smooth-albedo inputs: 0.004–0.006; the village 0.030
     #: a prior the photos are asked about (a planarity candidate, the colour prior) is kept only where its validation
     #: L1 at the selection point is below (1 − ``prior_margin``) × the best run without it: model no more than the
     #: photos ask for. The comparison's own noise, measured: the cow's planarity-vs-plain difference at iteration 200
     #: over render/view seeds 0, 1, 2 was −0.80 %, −0.37 %, +0.65 % (SD 0.77 %); 0.015 ≈ 2 SD. 0 = the lower L1 wins.
     prior_margin: float = 0.015
-    colour_prior_auto_threshold: float = 0.015  #: the suite's smooth-albedo inputs: 0.004–0.006; the village 0.030
     seed: int = 0
 
     def __post_init__(self):
