@@ -253,6 +253,15 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     assert replace(resumed.lambda_selection, trial_seconds=sel.trial_seconds) == sel  # all but the clock
     assert replace(resumed.colour_selection, trial_seconds=col.trial_seconds) == col
     assert resumed.chamfer_morphed == r.chamfer_morphed
+    # decision files removed after the run: remade from the trials' figures at the selection point, not from the
+    # winner's later ones (its folder ran on to the end)
+    for f in ("decision.json", "colour_decision.json"):
+        (tmp_path / "b" / "lambda_select" / f).unlink()
+    (tmp_path / "b" / "metrics.json").unlink()
+    remade = run_morph(small_armadillo, tmp_path / "b", s, show_progress=False)
+    assert remade.lambda_selection.validation_l1 == sel.validation_l1 and remade.lambda_selection.winner == sel.winner
+    assert replace(remade.colour_selection, trial_seconds=col.trial_seconds) == col
+    assert remade.chamfer_morphed == r.chamfer_morphed
     # a given colour weight: no colour choice
     assert run_morph(small_armadillo, tmp_path / "c", replace(s, iterations=6, colour_prior_weight=0.1),
                      show_progress=False).colour_selection is None

@@ -712,15 +712,18 @@ def _trial_dir(out: Path, c: Candidate) -> Path:
     return out / "lambda_select" / c.folder
 
 
-def _trial_status(ckpt: Path) -> tuple[int, bool, float | None, float]:
-    """(step, finished, last validation L1, seconds so far) of a candidate's checkpoint."""
+def _trial_status(ckpt: Path, at: int | None = None) -> tuple[int, bool, float | None, float]:
+    """(step, finished, validation L1, seconds) of a candidate's checkpoint at its last trace point, or at its last
+    point up to iteration ``at`` (the winner's folder runs on past the selection point; a decision remade later must
+    read the figures it was made from)."""
     from foundation.loop import read_checkpoint
 
     if not ckpt.is_file():
         return 0, False, None, 0.0
     saved = read_checkpoint(ckpt)
     trace = saved.stage.get("trace") or []
-    last = trace[-1] if trace else {}
+    upto = [t for t in trace if at is None or t.get("iteration", 0) <= at] or trace
+    last = upto[-1] if upto else {}
     return int(saved.run.step), bool(saved.run.done), last.get("validation_l1"), float(last.get("seconds") or 0.0)
 
 
@@ -782,7 +785,7 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
             reached, budget = _advance(bench, _trial_dir(out, c), candidate_settings(s, c), at, show_progress, budget)
             if not reached:
                 return None
-        status = {c: _trial_status(_trial_dir(out, c) / "checkpoint.npz") for c in cands}
+        status = {c: _trial_status(_trial_dir(out, c) / "checkpoint.npz", at) for c in cands}
         scores = [status[c][2] for c in cands]
         # planarity candidates carry a prior the λ candidates do not (those take the rule's weight, off here)
         chosen = cands[choose_with_margin(scores, [c.planarity is not None for c in cands], s.prior_margin)]
@@ -807,7 +810,7 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
             if not reached:
                 return None
             with_l1 = sel.validation_l1[sel.candidate_list().index(winner)]
-            _, _, without_l1, _ = _trial_status(_trial_dir(out, twin) / "checkpoint.npz")
+            _, _, without_l1, _ = _trial_status(_trial_dir(out, twin) / "checkpoint.npz", at)
             # no scores (no validation photos): the rule's choice stands
             kept = without_l1 is None or with_l1 is None or \
                 choose_with_margin([without_l1, with_l1], [False, True], s.prior_margin) == 1
