@@ -727,15 +727,6 @@ def _trial_status(ckpt: Path, at: int | None = None) -> tuple[int, bool, float |
     return int(saved.run.step), bool(saved.run.done), last.get("validation_l1"), float(last.get("seconds") or 0.0)
 
 
-def _seconds_at(ckpt: Path, at: int) -> float:
-    """Seconds a run had taken at its trace point ``at`` (its last point if it stopped sooner)."""
-    from foundation.loop import read_checkpoint
-
-    trace = read_checkpoint(ckpt).stage.get("trace") or []
-    upto = [t for t in trace if t.get("iteration", 0) <= at]
-    return float((upto or trace or [{}])[-1].get("seconds") or 0.0)
-
-
 def _advance(bench: MorphBenchmark, folder: Path, s: MorphSettings, at: int, show_progress: bool,
              budget: int | None) -> tuple[bool, int | None]:
     """Run a trial to iteration ``at`` (resumable): whether it got there, and the budget left (None: no budget)."""
@@ -815,7 +806,7 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
             kept = without_l1 is None or with_l1 is None or \
                 choose_with_margin([without_l1, with_l1], [False, True], s.prior_margin) == 1
             lost = _trial_dir(out, twin if kept else winner) / "checkpoint.npz"
-            colour = ColourSelection(winner.folder, at, with_l1, without_l1, kept, _seconds_at(lost, at),
+            colour = ColourSelection(winner.folder, at, with_l1, without_l1, kept, _trial_status(lost, at)[3],
                                      margin=s.prior_margin)
             write_json(colour_path, to_json(colour))
         extra = colour.trial_seconds

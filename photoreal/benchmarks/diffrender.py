@@ -144,6 +144,11 @@ class DiffRenderBenchSettings:
         validate.seed("seed", self.seed)
         DiffRenderSettings(widths=self.small_widths)  # validates the widths
 
+    def gan_settings(self) -> GanBenchSettings:
+        """The GAN bench's settings that make (or reuse) this bench's benchmarks and morphs in its work folder."""
+        return GanBenchSettings(cases=self.cases, morph_iterations=self.morph_iterations, photo_spp=self.photo_spp,
+                                seed=self.seed)
+
 
 def _gemm_flops_per_s(n: int = 2048, reps: int = 5) -> float:
     a, b = torch.randn(n, n), torch.randn(n, n)
@@ -329,7 +334,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     s = s or DiffRenderBenchSettings()
     work = Path(out_dir) / "diffrender_work"
     t0 = time.perf_counter()
-    gb = GanBenchSettings(cases=s.cases, morph_iterations=s.morph_iterations, photo_spp=s.photo_spp, seed=s.seed)
+    gb = s.gan_settings()
     prepared = {c: _prepare(c, work, gb, show_progress)[:2] for c in (*s.cases, *s.unseen, *s.validation)}
     views = {c: load_intrinsic_views(b, m, GBufferSettings(spp=s.input_spp), show_progress=show_progress)
              for c, (b, m) in prepared.items()}
@@ -597,7 +602,7 @@ def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 
                          "`photoreal bench diffrender`, which reuses every finished training run")
     s = DiffRenderBenchSettings(**result["settings"])
     work = Path(out_dir) / "diffrender_work"
-    gb = GanBenchSettings(cases=s.cases, morph_iterations=s.morph_iterations, photo_spp=s.photo_spp, seed=s.seed)
+    gb = s.gan_settings()
     trained = load_diffrender(work / result["main_run"])
     rows = []
     for c in (*s.cases, *s.unseen):
