@@ -8,6 +8,12 @@
   tensors in and out, with Dr.Jit's ``dr.backward`` reaching the module's
   inputs (and its parameters' ``.grad`` through torch autograd).
 
+Devices: ``dr.wrap`` hands torch's CPU tensors to Dr.Jit's LLVM backend and CUDA tensors to its CUDA backend
+(DLPack, no copy). Under a ``cuda_ad_*`` variant, CPU tensors would arrive as LLVM arrays that no Mitsuba
+array of the variant can be combined with (found on an H100, 2026-11-27), so the wrappers move tensors to the
+variant's device on the way in and back to the caller's (or the torch module's) device on the way out; ``.to``
+is differentiable, so gradients follow. Under ``llvm_ad_*`` with CPU modules nothing moves.
+
 Notes measured on this machine (NOTES-mitsuba): the crossing is exact
 (gradients equal torch's own autograd), costs < 1 ms for an MSE, and a
 reduction comes back as a 0-d tensor.
@@ -20,6 +26,21 @@ from typing import Callable
 import drjit as dr
 import mitsuba as mi
 import torch
+
+
+def variant_device() -> torch.device:
+    """The torch device whose tensors share memory with the current Mitsuba variant's arrays."""
+    return torch.device("cuda" if dr.backend_v(mi.Float) == dr.JitBackend.CUDA else "cpu")
+
+
+def module_device(module, default: torch.device) -> torch.device:
+    """Where a torch module's parameters (or buffers) live; ``default`` for a parameterless callable."""
+    if isinstance(module, torch.nn.Module):
+        for t in module.parameters():
+            return t.device
+        for t in module.buffers():
+            return t.device
+    return default
 
 
 def torch_to_drjit_loss(fn: Callable[..., mi.Float]) -> Callable[..., torch.Tensor]:
@@ -37,23 +58,27 @@ def torch_to_drjit_loss(fn: Callable[..., mi.Float]) -> Callable[..., torch.Tens
         for t in tensors:
             if t.dtype != torch.float32:
                 raise TypeError(f"torch_to_drjit_loss: expected float32 tensors, got {t.dtype}")
-        out = wrapped(*tensors)
+        dev = variant_device()
+        out = wrapped(*[t.to(dev) for t in tensors])
+        out = out.to(tensors[0].device) if tensors else out
         return out.reshape(()) if out.numel() == 1 else out
 
     return call
 
 
 def drjit_to_torch(module: Callable[[torch.Tensor], torch.Tensor]) -> Callable[[mi.TensorXf], mi.TensorXf]:
-    """Wrap a torch callable so that Dr.Jit code can call it on ``mi.TensorXf`` and differentiate through it."""
+    """Wrap a torch callable so that Dr.Jit code can call it on ``mi.TensorXf`` and differentiate through it
+    (the tensor visits the module's device and comes back)."""
 
     @dr.wrap(source="drjit", target="torch")
     def wrapped(x):
-        return module(x)
+        return module(x.to(module_device(module, x.device))).to(x.device)
 
     return wrapped
 
 
-def drjit_images_to_torch(fn: Callable[..., torch.Tensor]) -> Callable[..., mi.Float]:
+def drjit_images_to_torch(fn: Callable[..., torch.Tensor],
+                          device: torch.device | str | None = None) -> Callable[..., mi.Float]:
     """Let Dr.Jit images flow through a torch image function (e.g. a GAN generator and its loss).
 
     ``fn`` receives each Dr.Jit ``(H, W, C)`` image as a torch ``(1, C, H, W)``
@@ -62,12 +87,14 @@ def drjit_images_to_torch(fn: Callable[..., torch.Tensor]) -> Callable[..., mi.F
     on anything built from it propagates into the Dr.Jit images (hence into a
     Mitsuba render and the scene parameters behind it) *and*, through torch
     autograd, into the ``.grad`` of every torch parameter ``fn`` used — one
-    loss, both optimisers (joint geometry + GAN training, thesis §6).
+    loss, both optimisers (joint geometry + GAN training, thesis §6). ``device``: where ``fn``'s modules live
+    (None: the variant's device).
     """
 
     @dr.wrap(source="drjit", target="torch")
     def wrapped(*images):
-        return fn(*[im.permute(2, 0, 1).unsqueeze(0) for im in images]).reshape(())
+        dev = images[0].device if device is None else torch.device(device)
+        return fn(*[im.to(dev).permute(2, 0, 1).unsqueeze(0) for im in images]).reshape(()).to(images[0].device)
 
     def call(*images: mi.TensorXf) -> mi.Float:
         for im in images:

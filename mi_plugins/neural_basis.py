@@ -224,27 +224,40 @@ def evaluate_tensor(cfg: BasisConfig, m_off, m_rgb, t_off, t_rgb, res: int, u, v
 
 
 class CoopNet:
-    """An MLP of the basis packed for cooperative-vector evaluation (inside Mitsuba kernels)."""
+    """An MLP of the basis packed for cooperative-vector evaluation (inside Mitsuba kernels).
 
-    def __init__(self, layers: list[tuple[np.ndarray, np.ndarray]], training: bool = False) -> None:
+    ``half``: weights, inputs and products in float16. Dr.Jit 1.5 packs cooperative-vector matrices into the
+    CUDA/OptiX layouts for half precision only (float32 is refused: "conversion to optimal layout is currently
+    limited to half precision data", seen on an H100 under ``cuda_ad_rgb``), so None means half on CUDA and
+    float32 on LLVM (the precision of the training code path, :func:`evaluate_tensor`).
+    """
+
+    def __init__(self, layers: list[tuple[np.ndarray, np.ndarray]], training: bool = False,
+                 half: bool | None = None) -> None:
         import drjit.nn as nn
 
+        self.half = dr.backend_v(mi.Float) == dr.JitBackend.CUDA if half is None else bool(half)
+        tensor = dr.float16_array_t(mi.TensorXf) if self.half else mi.TensorXf
+        dtype = np.float16 if self.half else np.float32
         mods = []
         for k, (w, _) in enumerate(layers):
             mods.append(nn.Linear(w.shape[1], w.shape[0]))
             if k < len(layers) - 1:
                 mods.append(nn.ReLU())
-        net = nn.Sequential(*mods).alloc(mi.TensorXf, layers[0][0].shape[1])
+        net = nn.Sequential(*mods).alloc(tensor, layers[0][0].shape[1])
         for k, (w, b) in enumerate(layers):
-            net[f"layers.{2 * k}.weights"] = mi.TensorXf(aligned(w))
-            net[f"layers.{2 * k}.bias"] = mi.TensorXf(aligned(b))
+            net[f"layers.{2 * k}.weights"] = tensor(aligned(w, dtype))
+            net[f"layers.{2 * k}.bias"] = tensor(aligned(b, dtype))
         self.net = nn.pack(net, layout="training" if training else "inference")
         self.n_out = layers[-1][0].shape[0]
 
     def __call__(self, inputs: list) -> list:
         import drjit.nn as nn
 
-        return list(self.net(nn.CoopVec(*inputs)))
+        if not self.half:
+            return list(self.net(nn.CoopVec(*inputs)))
+        f16 = dr.float16_array_t(mi.Float)
+        return [mi.Float(y) for y in self.net(nn.CoopVec(*[f16(x) for x in inputs]))]
 
 
 # -- files --------------------------------------------------------------------------------------

@@ -18,6 +18,11 @@ import torch
 dr.set_thread_count(1)
 torch.set_num_threads(1)
 
+#: the variant computes on a GPU (``cuda_ad_*``): its reductions use atomics (not bit-reproducible run to run)
+#: and its cooperative vectors run in half precision (mi_plugins.neural_basis.CoopNet); tests that compare
+#: two runs exactly, or float32 against float32 to 1e-4, use the tolerances measured there instead
+CUDA = dr.backend_v(mi.Float) == dr.JitBackend.CUDA
+
 # Chamfer / facing estimates with the morph trace's sample counts (20k queries, 200k reference samples) instead of
 # the benches' 100k / 1M: the tests compare results far above that estimator's floor, and the full counts cost
 # ~1.5 s per call (the estimator itself is tested with explicit counts)

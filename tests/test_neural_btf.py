@@ -15,7 +15,7 @@ import mitsuba as mi
 from inverse.btf import fit as bf
 from foundation.errors import CheckpointError
 from mi_plugins import neural_basis as nb
-from tests.conftest import local_si, random_dirs
+from tests.conftest import CUDA, local_si, random_dirs
 
 
 def _files(tmp_path, res=16, seed=0, scale=0.5, config=None):
@@ -50,8 +50,34 @@ def test_plugin_eval_equals_training_code_path(tmp_path, ctx):
                              mat.res, np.zeros(n, np.int64), uv, wi, wo, False)
     want = np.maximum(np.stack([p.numpy() for p in pred], 1), 0)
     assert want.max() > 0.05  # a non-trivial network
-    # f32 matvec vs f32 matmul: same maths, different summation order at worst
-    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    if CUDA:  # half-precision cooperative vectors there (CoopNet): the float16 bound of the test below
+        np.testing.assert_allclose(got, want, rtol=1e-2, atol=5e-3 * want.max())
+    else:  # f32 matvec vs f32 matmul: same maths, different summation order at worst
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+
+
+def test_half_precision_cooperative_vectors_stay_within_float16_rounding():
+    """CoopNet in float16 (what CUDA packs) against the float32 network, evaluated here on LLVM: a 14-32-32-3
+    MLP of unit-variance weights, inputs in [−1, 1]. float16 rounds to 2⁻¹¹ ≈ 4.9e-4 relative; over two hidden
+    layers of 32 products the error measured 1.6e-3 at outputs up to 1.34: the bound is 5e-3 × max|y|."""
+    rng = np.random.default_rng(0)
+    dims = [14, 32, 32, 3]
+    layers = [(rng.normal(size=(o, i)).astype(np.float32) / np.sqrt(i), rng.normal(size=o).astype(np.float32) * 0.1)
+              for i, o in zip(dims[:-1], dims[1:])]
+    x = [mi.Float(rng.uniform(-1, 1, 5000).astype(np.float32)) for _ in range(dims[0])]
+    h = np.array([v.numpy() for v in x])
+    for k, (w, b) in enumerate(layers):  # oracle: the same MLP in float64 numpy
+        h = w @ h + b[:, None]
+        h = np.maximum(h, 0) if k < len(layers) - 1 else h
+    half = nb.CoopNet(layers, training=True, half=True)
+    assert half.half
+    if not CUDA:  # CUDA packs float16 only
+        full = nb.CoopNet(layers, training=True, half=False)
+        y32 = np.array([y.numpy() for y in full(x)])
+        assert not full.half and np.abs(y32 - h).max() < 1e-5 * np.abs(h).max()
+    y16 = np.array([y.numpy() for y in half(x)])
+    err = np.abs(y16 - h).max()
+    assert 1e-5 * np.abs(h).max() < err < 5e-3 * np.abs(h).max()  # really half, and within its rounding
 
 
 def test_below_horizon_and_disabled_lobe_are_zero(tmp_path, ctx):
@@ -116,7 +142,9 @@ def test_gradients_wrt_feature_textures_match_finite_differences(tmp_path, ctx):
         dr.disable_grad(params[key])
         base = params[key].numpy().copy()
         for idx in [(1, 2, 0), (5, 3, 4), (7, 7, 7)]:
-            eps = 1e-2
+            # CUDA evaluates in float16 (CoopNet): each of the 2000 terms is rounded to ~5e-4 relative, ~2e-3 on
+            # the sum, i.e. 10 % of a ±1e-2 difference (seen: −2.65 vs FD −2.40); a 10× wider step shrinks it
+            eps = 1e-1 if CUDA else 1e-2
             vals = []
             for sgn in (1, -1):
                 t = base.copy()
@@ -128,7 +156,8 @@ def test_gradients_wrt_feature_textures_match_finite_differences(tmp_path, ctx):
             params.update()
             fd = (vals[0] - vals[1]) / (2 * eps)
             # f32 sums of 2000 terms: FD noise ~1e-3 relative; ReLU kinks inside ±eps are rare
-            assert abs(g[idx] - fd) <= 0.03 * abs(fd) + 2e-2, (key, idx, g[idx], fd)
+            tol = 0.05 * abs(fd) + 5e-2 if CUDA else 0.03 * abs(fd) + 2e-2
+            assert abs(g[idx] - fd) <= tol, (key, idx, g[idx], fd)
 
 
 def test_gaussian_periodic_closed_forms():
@@ -186,9 +215,16 @@ def test_basis_learns_a_closed_form_btf_and_resume_is_exact(tmp_path):
     bf.train_basis(mats[:1], s=half, slices=tr, checkpoint=ck, progress=False)   # "killed" at 40
     resumed, h_res = bf.train_basis(mats[:1], s=short, slices=tr, checkpoint=ck, progress=False)
     assert h_res[0]["iteration"] == 0 and h_res[-1]["iteration"] == 41  # history continued, not restarted
-    assert h_res[-1]["l1"] == h_full[-1]["l1"]
-    for k, a in full.arrays().items():
-        np.testing.assert_array_equal(resumed.arrays()[k], a, err_msg=k)
+    if CUDA:  # atomics reorder float sums there: after 42 Adam steps two runs' L1 differed by 1.1e-6 of 0.041 and
+        # their weights (typically ±0.2) by up to 2.6e-4 in one H100 session and 1.0e-3 in another (Adam amplifies
+        # the reordering chaotically): 5e-3, 2.5 % of a typical weight, is the bound there
+        assert abs(h_res[-1]["l1"] - h_full[-1]["l1"]) < 1e-3 * h_full[-1]["l1"]
+        for k, a in full.arrays().items():
+            np.testing.assert_allclose(resumed.arrays()[k], a, rtol=0, atol=5e-3, err_msg=k)
+    else:
+        assert h_res[-1]["l1"] == h_full[-1]["l1"]
+        for k, a in full.arrays().items():
+            np.testing.assert_array_equal(resumed.arrays()[k], a, err_msg=k)
     other = bf.OptimSettings(**{**short.__dict__, "seed": 1})
     with pytest.raises(CheckpointError, match=r"other settings or data \(settings.seed: 0 → 1\)"):
         bf.train_basis(mats[:1], s=other, slices=tr, checkpoint=ck, progress=False)

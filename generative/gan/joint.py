@@ -21,7 +21,7 @@ import mitsuba as mi
 from mi_plugins.arrays import aligned
 
 from foundation import validate
-from foundation.bridge import drjit_images_to_torch
+from foundation.bridge import drjit_images_to_torch, module_device
 from foundation.errors import UsageError
 from foundation.files import file_digest
 from foundation.loop import (LoopSettings, RunState, Stage, StepResult, TrainingSummary, all_finite, rng_state,
@@ -129,7 +129,7 @@ class JointStage(Stage):
         self.photos = {i: mi.TensorXf(aligned(data.photos[i], None)) for i in data.train}
         self.coarse = {i: mi.TensorXf(aligned(data.rendered[i], None)) for i in data.train}
         self.stash: dict = {}
-        self.gen = drjit_images_to_torch(self._generator_terms)
+        self.gen = drjit_images_to_torch(self._generator_terms, device=module_device(self.model.G, "cpu"))
         self.train, _ = split_validation(data.train, s.gan.val_every)  # the views two-stage G trains on
         self.curve: list[JointCurvePoint] = []
 

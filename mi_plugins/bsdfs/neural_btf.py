@@ -45,7 +45,9 @@ traced from the camera (``path``, ``prb``; not light tracing).
 Sampling is cosine-weighted on the upper hemisphere, ``pdf`` = cosθ/π, reflection only, front side
 only. Gradients flow into ``t_off`` and ``t_rgb`` (fit a material through full renders); the MLP
 weights are constants of the kernel (cooperative vectors, the only network form that traces inside
-a symbolic render on Dr.Jit 1.5).
+a symbolic render on Dr.Jit 1.5). Under ``cuda_ad_*`` variants they run in float16 (Dr.Jit packs
+CUDA/OptiX cooperative vectors for half precision only): values within 1 % (+0.5 % of the largest) of
+the float32 training path, texture gradients within 5 % of central differences (tests, H100).
 
 Speed (LLVM, measured by ``photoreal bench btf``): traced symbolically inside Mitsuba's megakernel,
 the MLPs run ~15× slower than in a kernel of their own. Render scenes holding ``neural_btf`` in
