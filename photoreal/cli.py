@@ -735,7 +735,7 @@ def build_parser() -> argparse.ArgumentParser:
     from foundation.scene import RenderSettings
     from inverse.btf import BTFRenderSettings, OptimSettings, fit_settings, render_dataset, split_slices
     from inverse.face import FaceBenchmarkSettings, FaceFitSettings, PhotoFitSettings, RenderRefineSettings
-    from inverse.morph import FRAMINGS, MorphBenchmarkSettings, MorphSettings
+    from inverse.morph import MorphBenchmarkSettings, MorphSettings
     from mi_plugins.neural_basis import BasisConfig
 
     from .benchmarks.face import FaceBenchSettings
@@ -932,10 +932,7 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mm, MorphBenchmarkSettings, "elevation_deg", "--elevation", type=float, nargs=2, metavar=("LOW", "HIGH"),
          help="camera elevation range in degrees (default: 25 45 for the village, -15 65 for an object)")
     _opt(mm, MorphBenchmarkSettings, "framing_margin",
-         help="objects: free border around the object in every view, fraction of the half-image")
-    _opt(mm, MorphBenchmarkSettings, "framing", choices=FRAMINGS,
-         help="objects: 'view' brings each camera as close as the margin allows; 'sphere' keeps one orbit radius "
-              "that frames the bounding sphere")
+         help="objects: free border around the bounding sphere, fraction of the half-image")
     mm.set_defaults(func=_cmd_morph_make_benchmark)
     mr = msub.add_parser("run", help="morph benchmarks' coarse meshes (resumes from their checkpoints)")
     mr.add_argument("benchmark", nargs="+", help="benchmark folder(s), or a folder of them")

@@ -16,7 +16,7 @@ module             what
 Other features use only the names below.
 """
 
-from .benchmark import (ARTIFACT_REGIONS, FRAMINGS, Camera, MorphBenchmark, MorphBenchmarkMeta, MorphBenchmarkSettings,
+from .benchmark import (ARTIFACT_REGIONS, Camera, MorphBenchmark, MorphBenchmarkMeta, MorphBenchmarkSettings,
                         artifact_masks, load_morph_benchmark, make_morph_benchmark, sensor_dict, silhouette_margins,
                         truth_scene, truth_start_benchmark)
 from .evaluate import MorphEvaluation, evaluate_morph
@@ -29,7 +29,7 @@ from .suite import SUITE, KINDS, suite_mesh
 from .scene import MODES, morph_scene, photo_at, render_views
 
 __all__ = [
-    "ARTIFACT_REGIONS", "FRAMINGS", "Camera", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
+    "ARTIFACT_REGIONS", "Camera", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
     "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "PlanarityDecision",
     "RepairReport", "artifact_masks", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "remesh",

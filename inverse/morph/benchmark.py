@@ -32,7 +32,7 @@ from mi_plugins.arrays import aligned
 from foundation import imageio, validate
 from foundation.assets import HDRI_DIR, envmap, hdri_path
 from foundation.errors import UsageError
-from foundation.files import Memo, array_key, atomic_dir, file_digest, read_json, write_json
+from foundation.files import Memo, array_key, atomic_dir, file_digest, write_json
 from foundation.mesh import load_mesh_any, normalise_mesh, sample_surface, vertex_normals, write_ply
 from foundation.progress import progress_bar
 from foundation.records import load_folder_record, to_json
@@ -41,7 +41,6 @@ MARKER = "morph_benchmark.json"  #: written last: a folder holding it is a compl
 #: start remeshes of the coarse input that runs store in the benchmark (``run.stored_remesh``): caches, remade with it
 STORED_STARTS = "start_remesh_*.ply"
 FORMAT = "photoreal-morph-benchmark/1"
-FRAMINGS = ("view", "sphere")
 
 
 @dataclass
@@ -55,13 +54,9 @@ class MorphBenchmarkSettings:
     #: camera elevation range; None = the drone's (25°, 45°) for the village, (−15°, 65°) for an object: its sides,
     #: a little of its underside and its top
     elevation_deg: tuple[float, float] | None = None
-    #: objects: the free border around the object in every view (fraction of the image half-width), so every view
-    #: holds the whole silhouette; the village is a scene and keeps its drone framing
+    #: objects: the camera distance frames the object's bounding sphere with this margin (fraction of the image
+    #: half-width), so every view holds the whole silhouette; the village is a scene and keeps its drone framing
     framing_margin: float = 0.1
-    #: objects: "view" moves each camera along its direction until the ground truth's vertices fill (1 − margin) of
-    #: the image (the object's pixels: a flat head scan filled 43 % of the width under "sphere"); "sphere" keeps
-    #: one orbit radius that frames the bounding sphere from any direction (benchmarks made before 2026-11-27)
-    framing: str = "view"
     coarse_vertices: int = 3000  #: decimation target of the degraded mesh
     bump_amplitude: float = 0.012  #: × scene size, on flat regions
     wobble_amplitude: float = 0.008  #: × scene size, on sharp edges
@@ -83,7 +78,6 @@ class MorphBenchmarkSettings:
         for name in ("bump_amplitude", "wobble_amplitude", "misregistration", "colour_blur"):
             validate.non_negative(name, getattr(self, name))
         validate.in_range("framing_margin", self.framing_margin, 0.0, 0.9)
-        validate.one_of("framing", self.framing, FRAMINGS)
         el = self.elevation_deg
         if el is not None:
             self.elevation_deg = el = tuple(float(x) for x in el)
@@ -316,39 +310,6 @@ def framing_distance(v: np.ndarray, centre: np.ndarray, fov: float, margin: floa
     return r * np.sqrt(1.0 + t * t) / t  # d with r/d = sin(atan(t))
 
 
-def framed_per_view(cams: list[Camera], v: np.ndarray, fov: float, margin: float) -> list[Camera]:
-    """Each camera, its direction kept, moved to the nearest place from which every vertex of ``v`` projects
-    inside (1 − margin) of the image half-width (square images: both axes), the object centred in the frame.
-
-    The camera slides along its direction w (distance d from the orbit's target c) and across it (offset s_a, s_b
-    along the look-at frame's image axes a, b). A vertex q (relative to c) lies at depth d − q·w and image offset
-    q·a − s_a; it is inside when |q·a − s_a| ≤ t·(d − q·w), t = (1 − margin)·tan(fov/2). Both bounds on s_a hold
-    for some s_a iff 2·t·d ≥ max(q·a + t·q·w) − min(q·a − t·q·w); the tightest d is the larger of the two axes'
-    and s_a the midpoint of the bounds, (max(q·a + t·q·w) + min(q·a − t·q·w))/2, whatever d is. Triangles project
-    inside the convex hull of their vertices, so the silhouette is inside too. The near plane is kept clear by a
-    floor of the object's extent along w plus 5 % of its radius."""
-    t = (1.0 - margin) * np.tan(np.radians(fov / 2))
-    out = []
-    for cam in cams:
-        c = np.asarray(cam.target, float)
-        w = np.asarray(cam.eye, float) - c
-        w /= np.linalg.norm(w)
-        a = np.cross([0.0, 1.0, 0.0], -w)  # Mitsuba's look_at: left = up × direction, up' = direction × left
-        a /= np.linalg.norm(a)
-        b = np.cross(-w, a)
-        q = np.asarray(v, float) - c
-        qw = q @ w
-        d, shift = 0.0, np.zeros(3)
-        for axis in (a, b):
-            qa = q @ axis
-            hi, lo = float(np.max(qa + t * qw)), float(np.min(qa - t * qw))
-            d = max(d, (hi - lo) / (2 * t))
-            shift += 0.5 * (hi + lo) * axis
-        d = max(d, float(qw.max()) + 0.05 * float(np.linalg.norm(q, axis=1).max()))
-        out.append(Camera(tuple(map(float, c + shift + d * w)), tuple(map(float, c + shift))))
-    return out
-
-
 def sensor_dict(cam: Camera, res: int, fov: float, sample_border: bool = False) -> dict:
     """Perspective camera; ``sample_border`` for shape optimisation (geometry entering the frame)."""
     return {"type": "perspective", "fov": fov,
@@ -551,8 +512,6 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
             radius = framing_distance(gt_v, centre, fov, s.framing_margin)
             jitter = 0.0  # the bounding sphere is centred exactly: the framing guarantee holds in every view
         cams = drone_orbit(s.n_views, centre, radius, s.elevations(kind), s.seed, jitter=jitter)
-        if kind != "village" and s.framing == "view":
-            cams = framed_per_view(cams, gt_v, fov, s.framing_margin)
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": s.photo_max_depth},
                               "env": env, **shapes})
         photos = {}
@@ -612,8 +571,6 @@ def load_morph_benchmark(path: str | Path) -> MorphBenchmark:
     mp = path / MARKER
     meta = load_folder_record(path, MARKER, MorphBenchmarkMeta, FORMAT, "morph benchmark",
                               "photoreal morph make-benchmark")
-    if "framing" not in read_json(mp, "morph benchmark description").get("settings", {}):
-        meta.settings.framing = "sphere"  # made before per-view framing: its cameras frame the bounding sphere
     if meta.hdri == "hdri.exr":  # a user's HDRI, copied into the benchmark
         meta.hdri = str(path / "hdri.exr")
         if not Path(meta.hdri).is_file():
