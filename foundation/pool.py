@@ -27,6 +27,7 @@ import concurrent.futures as cf
 import importlib
 import multiprocessing as mp
 import os
+import threading
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -170,7 +171,23 @@ def execute(item: Item, threads: int, where: str = "", started: str | None = Non
                           seconds=time.perf_counter() - t0, where=where or f"pid {os.getpid()}")
 
 
-def _pool_init(threads: int) -> None:
+def _exit_with_parent(parent: int, period: float = 0.5) -> None:
+    """End this worker once its driver process is gone (killed, crashed): the pool's workers are not its
+    children's children, so nothing else stops them, and an orphan would finish its item and write into folders a
+    rerun may already own (seen 2026-11-27: a killed ``photoreal bench morph`` left its two workers writing a suite's
+    trial folders and ``metrics.json`` into the work folder of the next run for half an hour)."""
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(period)
+        os._exit(1)  # no cleanup: the item's outputs are written atomically, a half-done one is simply absent
+
+    threading.Thread(target=watch, name="photoreal-parent-watch", daemon=True).start()
+
+
+def _pool_init(threads: int, parent: int | None = None) -> None:
+    if parent is not None:
+        _exit_with_parent(parent)
     _prepare(threads)
 
 
@@ -285,7 +302,7 @@ def _run_pool(items: list[Item], s: PoolSettings):
         while queue:
             round_no += 1
             with cf.ProcessPoolExecutor(max_workers=min(s.workers, len(queue)), mp_context=ctx,
-                                        initializer=_pool_init, initargs=(s.threads,)) as ex:
+                                        initializer=_pool_init, initargs=(s.threads, os.getpid())) as ex:
                 started = {it.key: str(Path(marks) / f"{round_no}-{k}") for k, it in enumerate(queue)}
                 futures = {ex.submit(execute, it, s.threads, "", started[it.key]): it for it in queue}
                 queue, before = [], len(futures)
@@ -311,7 +328,7 @@ def _run_pool(items: list[Item], s: PoolSettings):
         while True:
             attempts[it.key] += 1
             with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_pool_init,
-                                        initargs=(s.threads,)) as ex:
+                                        initargs=(s.threads, os.getpid())) as ex:
                 try:
                     r = ex.submit(execute, it, s.threads).result()
                 except cf.process.BrokenProcessPool:

@@ -27,6 +27,24 @@ def _renders(out: Path, names=("material_test", "josie", "armadillo", "neural_ma
     return items
 
 
+def _sleeper(pid_file: str, done_file: str, seconds: float) -> None:
+    """An item that says which process runs it, then works for a while and marks that it finished."""
+    import os
+    import time
+
+    Path(pid_file).write_text(str(os.getpid()))
+    time.sleep(seconds)
+    Path(done_file).write_text("done")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    return "State:\tZ" not in state  # a zombie has ended; only its exit status waits for a reaper
+
+
 def _same(a: Path, b: Path) -> bool:
     files = sorted(p.name for p in a.glob("*.exr"))
     assert files == sorted(p.name for p in b.glob("*.exr")) and files
@@ -112,3 +130,37 @@ def test_cli_renders_many_scenes_and_names_a_bad_one(tmp_path, capsys):
     assert code == 2 and "nope.xml: scene file not found" in capsys.readouterr().err
     assert main(["render", *scenes, "-o", str(tmp_path / "x.exr")]) == 2
     assert "-o names one output" in capsys.readouterr().err
+
+
+def test_a_worker_ends_when_its_driver_is_killed(tmp_path):
+    """A killed driver must not leave workers finishing items into folders a rerun may own (seen 2026-11-27)."""
+    import subprocess
+    import sys
+    import time
+
+    pid_file, done_file = tmp_path / "pid", tmp_path / "done"
+    code = ("from foundation.pool import Item, PoolSettings, run_items\n"
+            f"run_items([Item('slow', 'tests.test_pool:_sleeper', ({str(pid_file)!r}, {str(done_file)!r}, 30.0))], "
+            "PoolSettings(workers=1, threads=1), show_progress=False)\n")
+    driver = subprocess.Popen([sys.executable, "-c", code], cwd=Path(__file__).resolve().parent.parent)
+    try:
+        t0 = time.time()
+        while not pid_file.exists() and time.time() - t0 < 120 and driver.poll() is None:
+            time.sleep(0.1)
+        assert pid_file.exists(), "the worker never started its item"
+        worker = int(pid_file.read_text())
+        assert _alive(worker)
+    finally:
+        driver.kill()  # SIGKILL: no cleanup in the driver at all
+        driver.wait()
+    t0 = time.time()
+    while _alive(worker) and time.time() - t0 < 10:
+        time.sleep(0.1)
+    gone = not _alive(worker)
+    if not gone:
+        import os
+        import signal
+
+        os.kill(worker, signal.SIGKILL)
+    assert gone, "the worker outlived its driver by 10 s"
+    assert not done_file.exists()
