@@ -33,7 +33,7 @@ def variant_device() -> torch.device:
     return torch.device("cuda" if dr.backend_v(mi.Float) == dr.JitBackend.CUDA else "cpu")
 
 
-def module_device(module, default: torch.device) -> torch.device:
+def module_device(module, default: torch.device | str) -> torch.device | str:
     """Where a torch module's parameters (or buffers) live; ``default`` for a parameterless callable."""
     if isinstance(module, torch.nn.Module):
         for t in module.parameters():
