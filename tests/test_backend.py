@@ -6,6 +6,7 @@ import numpy as np
 
 import pytest
 
+from conftest import CUDA
 from mi_plugins import backend as bk
 
 
@@ -126,7 +127,7 @@ def test_venv_interpreter_finds_llvm_even_when_mitsuba_is_imported_first():
     assert out.stdout.strip() == "5.5"
 
 
-@pytest.mark.skipif(__import__("conftest").CUDA, reason="an LLVM-backend property: CUDA copies host arrays to the GPU")
+@pytest.mark.skipif(CUDA, reason="an LLVM-backend property: CUDA copies host arrays to the GPU")
 def test_unaligned_host_arrays_compile_kernels_of_their_own_and_aligned_copies_do_not():
     # Dr.Jit maps a numpy array zero-copy and compiles unaligned inputs with unaligned loads, i.e. as
     # a different kernel (mi_plugins/arrays.py). The oracle is Dr.Jit's own kernel history: the same
