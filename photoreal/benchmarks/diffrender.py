@@ -37,6 +37,7 @@ morphed G-buffers. Everything trained is kept in ``OUT/diffrender_work`` and reu
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -50,8 +51,9 @@ import mitsuba as mi
 from foundation import validate
 from foundation.errors import UsageError
 from foundation.features import fid, image_features, kid, kid_std, perceptual_distance, spatial_features
-from foundation.files import read_json
+from foundation.files import cached_arrays, file_digest, read_json
 from foundation.metrics import image_metrics
+from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import json_digest
 from foundation.scene import recompose
 from foundation.threads import torch_threads
@@ -87,7 +89,9 @@ class DiffRenderBenchSettings:
     sweep_views: int = 4  #: held-out views per case in the sweep
     #: the sweep also tries the mean of this many one-step samples per view (SampleSettings.draws): the posterior
     #: mean without the noise the model passes through from x_T; 1 = no such rows
-    mean_draws: tuple[int, ...] = (8, 32)
+    #: mean of 32 was dropped on 2026-11-27: within 1 % of the mean of 8 in every sweep (0.0692 vs 0.0696, 0.0723 vs
+    #: 0.0726) at 4–6× its cost, so never chosen, and 2 minutes of the bench's 60
+    mean_draws: tuple[int, ...] = (8,)
     #: guidance weights the mean-of-draws rows are tried with (the step rows use ``guidance``); 1 = no CFG, one pass
     sweep_guidance: tuple[float, ...] = (1.0, 1.5)
     #: chosen = cheapest within this fraction of the sweep's best ꟻLIP. An absolute 0.003 until 2026-11-26: 4.5 % of
@@ -111,6 +115,11 @@ class DiffRenderBenchSettings:
     reference_spp: int = 1024
     #: samples per pixel of every method's input: the G-buffers (PBR and diffusion) and the GANs' renders alike
     input_spp: int = 32
+    #: training runs (both main sizes, the ablations, the GANs, the decomposition network) and renders (benchmarks,
+    #: morphs, references) run this many at a time, each with one thread (foundation.pool): on 2 cores two one-thread
+    #: trainings make 1.2× the steps of one two-thread training (0.71 s vs 0.43 s per step of the default UNet,
+    #: measured 2026-11-27), and the bench fits its 60 minutes. 0: one after another in this process, all threads
+    workers: int = 2
     seed: int = 0
 
     def __post_init__(self):
@@ -142,6 +151,7 @@ class DiffRenderBenchSettings:
         validate.integer("photo_spp", self.photo_spp, 1, 1 << 16)
         validate.integer("input_spp", self.input_spp, 1)
         validate.seed("seed", self.seed)
+        validate.integer("workers", self.workers, 0, 64)
         DiffRenderSettings(widths=self.small_widths)  # validates the widths
 
     def gan_settings(self) -> GanBenchSettings:
@@ -229,14 +239,18 @@ def _sample(trained: tuple, layers: dict, steps: int, guidance: float, seeds: in
     return np.stack(imgs), float(np.mean(secs))
 
 
+def _decomp_settings(s: DiffRenderBenchSettings) -> tuple[DecompDataSettings, DecompSettings]:
+    return DecompDataSettings(count=s.decomp_scenes, seed=s.seed), DecompSettings(max_seconds=s.decomp_seconds,
+                                                                                   seed=s.seed)
+
+
 def _decomposition(s: DiffRenderBenchSettings, work: Path, views: dict[str, IntrinsicViews],
                    show_progress: bool) -> tuple[dict, list[IntrinsicViews]]:
     """Train/evaluate the decomposition network; the (decomposed layers → photo) pairs it makes from the train
     photos of every case and from scikit-image photographs."""
-    dds = DecompDataSettings(count=s.decomp_scenes, seed=s.seed)
+    dds, dset = _decomp_settings(s)
     data = load_decomp_data(work / "decomp_data.npz", dds, show_progress)
-    train_decomposer(data, dds, work / "decomposer", DecompSettings(max_seconds=s.decomp_seconds, seed=s.seed),
-                     show_progress=show_progress)
+    train_decomposer(data, dds, work / "decomposer", dset, show_progress=show_progress)
     metrics = read_json(work / "decomposer" / "metrics.json", "decomposition metrics")
     model = load_decomposer(work / "decomposer")
     extra = []
@@ -288,6 +302,24 @@ def references(bench, morph_dir: Path, ids: list[int], spp: int, show_progress: 
             "truth_clean": truth_renders(bench, ids, spp, REFERENCE_SEEDS["truth_clean"])}
 
 
+def cached_references(bench, morph_dir: Path, ids: list[int], spp: int, photos_clean: bool,
+                      show_progress: bool = False) -> dict:
+    """:func:`references` (and, with ``photos_clean``, the held-out views path traced again with
+    ``REFERENCE_SEEDS["photos_clean"]``), cached in ``morph_dir`` under the benchmark, the morphed mesh, the views,
+    the sample count and the seeds."""
+    key = json.dumps({"benchmark": file_digest(Path(bench.path) / "morph_benchmark.json"),
+                      "morphed": file_digest(Path(morph_dir) / "morphed.ply"), "ids": [int(i) for i in ids],
+                      "spp": int(spp), "seeds": REFERENCE_SEEDS, "photos_clean": bool(photos_clean)}, sort_keys=True)
+
+    def render() -> dict:
+        out = references(bench, morph_dir, ids, spp, show_progress)
+        if photos_clean:
+            out["photos_clean"] = truth_renders(bench, ids, spp, REFERENCE_SEEDS["photos_clean"])
+        return out
+
+    return cached_arrays(Path(morph_dir) / "diffrender_references.npz", key, render)
+
+
 def set_features(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """An image set's MobileNetV2 features for :func:`distribution`: per image and per last-map position."""
     return image_features(images), spatial_features(images)
@@ -329,35 +361,123 @@ def _choose(sweep: list[dict], tol_rel: float) -> dict:
     return {**pick, "best_flip": best, "tolerance_rel": tol_rel}
 
 
+# -- pool items: module-level functions the pool's workers import by name; each reads what it needs from the work
+# folder, where the first batch caches the benchmarks, morphs and input renders
+
+
+def _case_views(work: str, gb: GanBenchSettings, cases: tuple[str, ...], input_spp: int) -> list[IntrinsicViews]:
+    out = []
+    for c in cases:
+        bench, mdir, _ = _prepare(c, Path(work), gb, False)
+        out.append(load_intrinsic_views(bench, mdir, GBufferSettings(spp=input_spp), show_progress=False))
+    return out
+
+
+def item_prepare(case: str, work: str, gb: GanBenchSettings, input_spp: int, gan_renders: bool) -> str:
+    """A case's benchmark and morph, and the input renders the methods read (G-buffers; the GANs' renders)."""
+    bench, mdir, _ = _prepare(case, Path(work), gb, False)
+    load_intrinsic_views(bench, mdir, GBufferSettings(spp=input_spp), show_progress=False)
+    if gan_renders:
+        load_paired_views(bench, mdir, GanDataSettings(spp=input_spp), show_progress=False)
+    return case
+
+
+def item_decomposer(work: str, dds: DecompDataSettings, ds: DecompSettings) -> int:
+    """The decomposition network's procedural data and its training run; returns its steps."""
+    data = load_decomp_data(Path(work) / "decomp_data.npz", dds, False)
+    train_decomposer(data, dds, Path(work) / "decomposer", ds, show_progress=False)
+    return int(read_json(Path(work) / "decomposer" / "metrics.json", "decomposition metrics")["training"]["steps"])
+
+
+def item_diffrender(work: str, gb: GanBenchSettings, cases: tuple[str, ...], input_spp: int, out: str,
+                    ds: DiffRenderSettings, extra: list[IntrinsicViews]) -> int:
+    """One diffusion-renderer training run on the cases' train views (+ ``extra`` pairs); returns its steps."""
+    train_diffrender(_case_views(work, gb, cases, input_spp) + list(extra), out, ds, show_progress=False)
+    return int(read_json(Path(out) / "metrics.json", "diffusion metrics")["training"]["steps"])
+
+
+def item_gan(case: str, work: str, gb: GanBenchSettings, input_spp: int, gs: GanTrainSettings) -> str:
+    """One GAN baseline on one case (its held-out predictions are saved with the run)."""
+    bench, mdir, _ = _prepare(case, Path(work), gb, False)
+    data = load_paired_views(bench, mdir, GanDataSettings(spp=input_spp), show_progress=False)
+    train_gan(data, Path(work) / case / gs.model, gs, show_progress=False)
+    return case
+
+
+def item_references(case: str, work: str, gb: GanBenchSettings, ids: list[int], spp: int, photos_clean: bool) -> str:
+    bench, mdir, _ = _prepare(case, Path(work), gb, False)
+    cached_references(bench, mdir, ids, spp, photos_clean)
+    return case
+
+
+def _run_batch(items: list[Item], s: DiffRenderBenchSettings, desc: str, show_progress: bool) -> float:
+    """Run ``items`` ``s.workers`` at a time with one thread each (0: here, one after another); seconds."""
+    report = run_items(items, PoolSettings(workers=s.workers, threads=1 if s.workers else 0, retries=0), desc,
+                       show_progress)
+    report.raise_if_failed()
+    return report.seconds
+
+
+def _gan_settings(s: DiffRenderBenchSettings, name: str) -> GanTrainSettings:
+    return GanTrainSettings(model=name, max_seconds=s.cyclegan_seconds if name == "cyclegan" else s.gan_seconds,
+                            residual=name != "cyclegan", seed=s.seed)
+
+
 def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Path = "out/bench",
                      show_progress: bool = True) -> dict:
     s = s or DiffRenderBenchSettings()
     work = Path(out_dir) / "diffrender_work"
+    work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     gb = s.gan_settings()
-    prepared = {c: _prepare(c, work, gb, show_progress)[:2] for c in (*s.cases, *s.unseen, *s.validation)}
+    every = (*s.cases, *s.unseen, *s.validation)
+    timing = {}
+    dds, dset = _decomp_settings(s)
+    # 1. benchmarks, morphs and input renders of every mesh, and the decomposition network (longest first)
+    first = [Item("decomposition", f"{__name__}:item_decomposer", (str(work), dds, dset))]
+    first += [Item(f"prepare {c}", f"{__name__}:item_prepare", (c, str(work), gb, s.input_spp, s.gans and c in s.cases))
+              for c in every]
+    timing["prepare_and_decomposer"] = _run_batch(first, s, "benchmarks, morphs, decomposer", show_progress)
+    prepared = {c: _prepare(c, work, gb, show_progress)[:2] for c in every}
     views = {c: load_intrinsic_views(b, m, GBufferSettings(spp=s.input_spp), show_progress=show_progress)
              for c, (b, m) in prepared.items()}
     train_views = [views[c] for c in s.cases]
-    timing = {}
 
     t = time.perf_counter()
     decomposition, extra = _decomposition(s, work, {c: views[c] for c in s.cases}, show_progress)
-    timing["decomposition"] = time.perf_counter() - t
+    timing["decomposition_apply"] = time.perf_counter() - t
 
-    # 2. equal-time ablations
+    # 2. every training run and reference render, two at a time: both main sizes (the size is chosen at the main
+    # budget on the validation meshes), the equal-time ablations, the GAN baselines, the references
     base = DiffRenderSettings(max_seconds=s.ablation_seconds, seed=s.seed)
     runs = {"R": (base, False), "AIS": (replace(base, global_source="AIS"), False),
             "none": (replace(base, global_source="none"), False), "R+decomposed": (base, True),
             "direct": (replace(base, residual=False), False), "small": (replace(base, widths=s.small_widths), False),
             "every_pixel": (replace(base, known_background=False), False),
             "coarse+morphed": (replace(base, sources=("coarse", "morphed")), False)}
-    t = time.perf_counter()
     dirs = {name: run_dir(work / "ablation", name, ds, train_views + (extra if use_extra else []))
             for name, (ds, use_extra) in runs.items()}
-    for name, (ds, use_extra) in runs.items():
-        train_diffrender(train_views + (extra if use_extra else []), dirs[name], ds, show_progress=show_progress)
-    timing["ablation_training"] = time.perf_counter() - t
+    # without validation meshes the size is the sweep's, known only after it: trained then
+    sizes = list(dict.fromkeys([tuple(base.widths), tuple(s.small_widths)])) if s.validation else []
+    main_runs = {w: DiffRenderSettings(max_seconds=s.train_seconds, widths=w, seed=s.seed) for w in sizes}
+    main_dirs = {w: main_dir(work, ms_, train_views) for w, ms_ in main_runs.items()}
+
+    def train_item(key: str, out: Path, ds: DiffRenderSettings, use_extra: bool) -> Item:
+        return Item(key, f"{__name__}:item_diffrender",
+                    (str(work), gb, s.cases, s.input_spp, str(out), ds, extra if use_extra else []))
+
+    batch = [train_item(f"main {'-'.join(map(str, w))}", main_dirs[w], ms_, False) for w, ms_ in main_runs.items()]
+    if s.gans:
+        batch += [Item(f"cyclegan {c}", f"{__name__}:item_gan", (c, str(work), gb, s.input_spp,
+                                                                  _gan_settings(s, "cyclegan"))) for c in s.cases]
+    batch += [train_item(f"ablation {name}", dirs[name], ds, use_extra) for name, (ds, use_extra) in runs.items()]
+    if s.reference_spp:
+        batch += [Item(f"references {c}", f"{__name__}:item_references",
+                       (c, str(work), gb, list(views[c].test), s.reference_spp, c in s.cases)) for c in (*s.cases, *s.unseen)]
+    if s.gans:
+        batch += [Item(f"{name} {c}", f"{__name__}:item_gan", (c, str(work), gb, s.input_spp, _gan_settings(s, name)))
+                  for name in ("pix2pix", "morph_gan") for c in s.cases]
+    timing["training_and_references"] = _run_batch(batch, s, "trainings and references", show_progress)
     ids = {c: list(views[c].test) for c in s.cases}
     photos = np.concatenate([views[c].photos[ids[c]] for c in s.cases])
     morphed = {k: np.concatenate([views[c].layers["morphed"][k][ids[c]] for c in s.cases]) for k in views[s.cases[0]].layers["morphed"]}
@@ -403,14 +523,15 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     steps, draws = int(chosen["steps"]), int(chosen.get("draws", 1))
     guidance = float(chosen.get("guidance", s.guidance))
     t = time.perf_counter()
-    sizes = [tuple(chosen["widths"])]
-    if s.validation:
-        sizes = list(dict.fromkeys([tuple(loaded[name][1].widths) for name in ("R", "small")]))
+    if not s.validation:
+        w = tuple(chosen["widths"])
+        main_runs = {w: DiffRenderSettings(max_seconds=s.train_seconds, widths=w, seed=s.seed)}
+        main_dirs = {w: main_dir(work, main_runs[w], train_views)}
+        timing["main_training"] = _run_batch([train_item("main", main_dirs[w], main_runs[w], False)], s,
+                                             "main model", show_progress)
     size_choice = []
-    for w in sizes:
-        ms_ = DiffRenderSettings(max_seconds=s.train_seconds, widths=w, seed=s.seed)
-        d = main_dir(work, ms_, train_views)
-        train_diffrender(train_views, d, ms_, show_progress=show_progress)
+    for w, ms_ in main_runs.items():
+        d = main_dirs[w]
         row = {"widths": list(w), "run": str(d.relative_to(work)),
                "train_steps": read_json(d / "metrics.json", "diffusion metrics")["training"]["steps"]}
         if s.validation:  # every view of a mesh never trained on (train and held-out photos alike)
@@ -433,7 +554,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     # the sweep chose the sampler; the size is the validation meshes' choice (which may differ from the sweep row's)
     chosen = {**chosen, "main_widths": list(main_s.widths),
               "size_from": f"validation {'/'.join(s.validation)} at {s.train_seconds:g} s" if s.validation else "sweep"}
-    timing["main_training_and_size_choice"] = time.perf_counter() - t
+    timing["size_choice"] = time.perf_counter() - t
     main_metrics = read_json(main / "metrics.json", "diffusion metrics")
     t = time.perf_counter()
     cases, all_pred, all_photos, all_refs, all_clean, sample_s = {}, {}, [], {}, [], []
@@ -448,15 +569,12 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
         preds["diffusion_coarse"], _ = _sample(trained_main, _test_layers(v, "coarse", tid), steps, guidance, 1,
                                                show_progress, draws)
         if s.gans and c in s.cases:
-            bench, mdir = prepared[c]
-            data = load_paired_views(bench, mdir, GanDataSettings(spp=s.input_spp), show_progress=show_progress)
-            for name in ("cyclegan", "pix2pix", "morph_gan"):
-                gs = GanTrainSettings(model=name, max_seconds=s.cyclegan_seconds if name == "cyclegan" else s.gan_seconds,
-                                      residual=name != "cyclegan", seed=s.seed)
-                train_gan(data, work / c / name, gs, show_progress=show_progress)
+            for name in ("cyclegan", "pix2pix", "morph_gan"):  # trained in the batch above
                 preds[name] = load_heldout_predictions(work / c / name, tid)
         first = {k: (p[0] if p.ndim == 5 else p) for k, p in preds.items()}
-        refs = references(*prepared[c], tid, s.reference_spp, show_progress) if s.reference_spp else {}
+        refs = (cached_references(*prepared[c], tid, s.reference_spp, c in s.cases, show_progress)
+                if s.reference_spp else {})
+        clean = refs.pop("photos_clean", None)
         paired = {k: _paired(p, ph) for k, p in preds.items()}
         base = np.array(paired["pbr_morphed"]["flip_per_view"])
         cases[c] = {"heldout": paired,
@@ -473,8 +591,8 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
             for k, p in refs.items():
                 all_refs.setdefault(k, []).append(p)
             all_photos.append(ph)
-            if s.reference_spp:  # the held-out photos again, without their Monte-Carlo noise (another render seed)
-                all_clean.append(truth_renders(prepared[c][0], tid, s.reference_spp, REFERENCE_SEEDS["photos_clean"]))
+            if clean is not None:  # the held-out photos again, without their Monte-Carlo noise (another render seed)
+                all_clean.append(clean)
     timing["evaluation"] = time.perf_counter() - t
     photos = np.concatenate(all_photos)
     # distribution distances to the held-out photos (the issue's), and to the same views path traced without the
