@@ -630,8 +630,8 @@ def _cmd_gan(a) -> int:
 def _cmd_diffrender(a) -> int:
     from foundation.files import check_output_dir, check_output_file, write_json
     from foundation.records import to_json
-    from generative.diffusion import (DiffRenderSettings, SampleSettings, load_intrinsic_views, render_benchmark,
-                                      render_scene_file, train_diffrender)
+    from generative.diffusion import (TRUTH, DiffRenderSettings, SampleSettings, load_intrinsic_views, render_benchmark,
+                                      render_scene_file, train_diffrender, with_truth_layers)
     from inverse.morph import load_morph_benchmark
 
     if a.json:
@@ -643,6 +643,8 @@ def _cmd_diffrender(a) -> int:
         s = _settings(DiffRenderSettings, a)
         benches = [load_morph_benchmark(b) for b in a.benchmarks]  # all validated before any rendering
         cases = [load_intrinsic_views(b, m) for b, m in zip(benches, morphs)]
+        if TRUTH in s.sources:  # the benchmarks' ground truth through the same integrator, at the same spp
+            cases = [with_truth_layers(v, b, m) for v, b, m in zip(cases, benches, morphs)]
         r = train_diffrender(cases, a.out, s)
         m = to_json(r)
         if a.json:
@@ -691,9 +693,9 @@ def _add_diffrender_parser(sub) -> None:
          help="generate the photo itself (the seed) instead of its residual over R = A·I + S")
     _opt(t, DiffRenderSettings, "known_background", "--every-pixel",
          help="learn the residual on every pixel instead of holding it at 0 where the G-buffer sees no surface")
-    _opt(t, DiffRenderSettings, "sources", choices=["coarse", "morphed"],
-         help="whose G-buffers are training inputs (the coarse mesh's too: worse on held-out and unseen meshes, "
-              "measured)")
+    _opt(t, DiffRenderSettings, "sources", choices=["coarse", "morphed", "truth"],
+         help="whose G-buffers are training inputs: the morphed mesh's, the coarse mesh's (worse on held-out and "
+              "unseen meshes, measured), the benchmark's ground truth's (exact intrinsics, the seed's pairs)")
     _opt(t, DiffRenderSettings, "threads", help="torch threads (0: all cores)")
     _opt(t, DiffRenderSettings, "seed")
     t.add_argument("--json", default=None)

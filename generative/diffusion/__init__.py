@@ -23,7 +23,7 @@ from .core import (ConditionalDiffusion, DiffusionConfig, count_parameters, diff
 from .decomposition import (DecompDataSettings, DecompResult, DecompSettings, Decomposer, decompose, heldout_psnr,
                         load_decomp_data, load_decomposer, photographs, procedural_scene, render_decomp_data,
                         train_decomposer)
-from .renderer import (DECOMPOSED, GLOBAL_SOURCES, condition_to_layers, from_target_space, intrinsic_layers, target_space, LAYERS, DiffRenderOutput, DiffRenderResult, DiffRenderSettings, GBufferSettings, IntrinsicViews,
+from .renderer import (DECOMPOSED, GLOBAL_SOURCES, TRAIN_SOURCES, TRUTH, truth_gbuffers, with_truth_layers, condition_to_layers, from_target_space, intrinsic_layers, target_space, LAYERS, DiffRenderOutput, DiffRenderResult, DiffRenderSettings, GBufferSettings, IntrinsicViews,
                        SampleSettings, global_condition, load_diffrender, load_intrinsic_views, local_condition,
                        model_to_photo, photo_to_model, render_benchmark, render_gbuffers, render_scene_file,
                        render_views, train_diffrender)
@@ -65,7 +65,7 @@ __all__ = [
     "ConditionalDiffusion", "DiffRenderOutput", "DiffRenderResult", "DiffRenderSettings", "DiffusionConfig", "GBufferSettings",
     "GLOBAL_SOURCES", "IntrinsicViews", "LAYERS", "SampleSettings", "count_parameters", "diffusion_loss",
     "global_condition", "load_diffrender", "load_intrinsic_views", "local_condition", "make_scheduler",
-    "model_to_photo", "photo_to_model", "render_benchmark", "render_gbuffers", "render_scene_file", "render_views", "sample",
+    "model_to_photo", "photo_to_model", "render_benchmark", "render_gbuffers", "TRAIN_SOURCES", "TRUTH", "truth_gbuffers", "with_truth_layers", "render_scene_file", "render_views", "sample",
     "train_diffrender",
     "training_flops",
 ]

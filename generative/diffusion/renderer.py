@@ -47,13 +47,18 @@ from foundation.files import cached_arrays, file_digest
 from foundation.loop import RunState, Stage, StepResult, TrainingSummary
 from foundation.progress import progress_bar
 from foundation.scene import recompose, split_intrinsics
-from inverse.morph import MorphBenchmark, morph_scene, sensor_dict
+from inverse.morph import MorphBenchmark, morph_scene, sensor_dict, truth_scene
 
 from .core import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, check_size, diffusion_loss, load_trained,
                    make_scheduler, sample, train_stage)
 
 LAYERS = ("albedo", "irradiance", "specular", "normal")
 SOURCES = ("coarse", "morphed")
+#: the benchmark's ground truth itself (its own materials and textures) through the same integrator: the seed's
+#: pairs (exact intrinsics → photo, §3.1), which a synthetic training benchmark has and a user's data does not;
+#: loaded only on request (:func:`with_truth_layers`), never an input at test time
+TRUTH = "truth"
+TRAIN_SOURCES = (*SOURCES, TRUTH)
 DECOMPOSED = "decomposed"  #: the source name of pairs made by the decomposition network from photos
 GLOBAL_SOURCES = ("R", "AIS", "none")
 TOKEN_GRID = 4  #: the encoder's last feature map is 4×4 at its 128² input: 16 tokens per encoded image
@@ -119,9 +124,14 @@ def render_gbuffers(mesh_ply: Path, bench: MorphBenchmark, ids: list[int], s: GB
 
     View ``i`` is rendered with seed ``seed + i``. At the photos' spp, seed 0 correlates the G-buffers' Monte-Carlo
     noise with the photos' (they use the benchmark's seed + i too): keep the spp apart, or the seed."""
+    scene = morph_scene(Path(mesh_ply), "lit", bench.meta.hdri, integrator={"type": "intrinsic", "max_depth": s.max_depth})
+    return _scene_layers(scene, bench, ids, s, desc, show_progress, seed, str(mesh_ply))
+
+
+def _scene_layers(scene, bench: MorphBenchmark, ids: list[int], s: GBufferSettings, desc: str, show_progress: bool,
+                  seed: int, what: str) -> dict[str, np.ndarray]:
     meta = bench.meta
     res = meta.resolution
-    scene = morph_scene(Path(mesh_ply), "lit", meta.hdri, integrator={"type": "intrinsic", "max_depth": s.max_depth})
     out = {k: np.empty((len(ids), res, res, 3), np.float32) for k in LAYERS}
     with progress_bar(total=len(ids), desc=desc, unit="view", disable=not show_progress) as bar:
         for k, i in enumerate(ids):
@@ -134,8 +144,33 @@ def render_gbuffers(mesh_ply: Path, bench: MorphBenchmark, ids: list[int], s: GB
     del scene
     for name, a in out.items():
         if not np.isfinite(a).all():
-            raise FloatingPointError(f"{mesh_ply}: the {name} G-buffer has {int((~np.isfinite(a)).sum())} NaN/Inf values")
+            raise FloatingPointError(f"{what}: the {name} G-buffer has {int((~np.isfinite(a)).sum())} NaN/Inf values")
     return out
+
+
+def truth_gbuffers(bench: MorphBenchmark, ids: list[int], s: GBufferSettings, desc: str = "G-buffers truth",
+                   show_progress: bool = True, seed: int = 0) -> dict[str, np.ndarray]:
+    """:func:`render_gbuffers` of the benchmark's ground-truth scene (its own shapes, materials and textures)."""
+    scene = truth_scene(bench, integrator={"type": "intrinsic", "max_depth": s.max_depth})
+    return _scene_layers(scene, bench, ids, s, desc, show_progress, seed, f"{bench.path} (ground truth)")
+
+
+def with_truth_layers(v: "IntrinsicViews", bench: MorphBenchmark, morph_dir: str | Path,
+                      s: GBufferSettings | None = None, show_progress: bool = True) -> "IntrinsicViews":
+    """``v`` with the ground truth's G-buffers of its *train* views as a further source (:data:`TRUTH`; zeros at the
+    held-out views, which no training reads); cached in ``morph_dir`` by the benchmark's digest."""
+    s = s or GBufferSettings()
+    ids = [int(i) for i in v.train]
+    key = json.dumps({"benchmark": file_digest(Path(bench.path) / "morph_benchmark.json"), "ids": ids, **asdict(s)},
+                     sort_keys=True)
+    flat = cached_arrays(Path(morph_dir) / "diffrender_truth_gbuffers.npz", key,
+                         lambda: truth_gbuffers(bench, ids, s, show_progress=show_progress))
+    full = {}
+    for name in LAYERS:
+        a = np.zeros_like(v.layers["morphed"][name])
+        a[ids] = flat[name]
+        full[name] = a
+    return IntrinsicViews(v.photos, {**v.layers, TRUTH: full}, list(v.train), list(v.test), v.case)
 
 
 def load_intrinsic_views(bench: MorphBenchmark, morph_dir: str | Path, s: GBufferSettings | None = None,
@@ -283,8 +318,8 @@ class DiffRenderSettings:
         validate.positive("lr", self.lr)
         validate.one_of("global_source", self.global_source, GLOBAL_SOURCES)
         validate.in_range("p_uncond", self.p_uncond, 0.0, 1.0)
-        if not self.sources or any(x not in SOURCES for x in self.sources):
-            raise UsageError(f"sources must be a non-empty subset of {SOURCES}, got {self.sources}")
+        if not self.sources or any(x not in TRAIN_SOURCES for x in self.sources):
+            raise UsageError(f"sources must be a non-empty subset of {TRAIN_SOURCES}, got {self.sources}")
         validate.integer("checkpoint_every", self.checkpoint_every, 1)
         validate.integer("threads", self.threads, 0)
         validate.positive("residual_scale", self.residual_scale)
@@ -352,6 +387,10 @@ class _Pairs:
         self.x, self.c, self.g, self.w = [], [], [], []
         for v in cases:
             ids = list(v.train)
+            missing = [x for x in s.sources if x not in v.layers]
+            if DECOMPOSED not in v.layers and missing:
+                raise UsageError(f"{v.case or 'a training case'}: no {'/'.join(missing)} G-buffers among its sources "
+                                 f"({', '.join(v.layers)}); the ground truth's come from with_truth_layers")
             for src in [k for k in v.layers if k in s.sources or k == DECOMPOSED]:
                 L = {k: a[ids] for k, a in v.layers[src].items()}
                 self.x.append(target_space(v.photos[ids], L, s))
@@ -584,7 +623,7 @@ def render_scene_file(run: str | Path, scene_path: str | Path, out_dir: str | Pa
                             list(range(n)))
 
 
-__all__ = ["DECOMPOSED", "condition_to_layers", "coverage", "known_mask", "intrinsic_layers", "DiffRenderOutput", "from_target_space", "target_space", "DiffRenderResult", "DiffRenderSettings", "GBufferSettings", "GLOBAL_SOURCES", "IntrinsicViews", "LAYERS",
+__all__ = ["DECOMPOSED", "TRUTH", "TRAIN_SOURCES", "truth_gbuffers", "with_truth_layers", "condition_to_layers", "coverage", "known_mask", "intrinsic_layers", "DiffRenderOutput", "from_target_space", "target_space", "DiffRenderResult", "DiffRenderSettings", "GBufferSettings", "GLOBAL_SOURCES", "IntrinsicViews", "LAYERS",
            "SampleSettings", "global_condition", "load_diffrender", "load_intrinsic_views", "local_condition",
            "model_to_photo", "photo_to_model", "render_benchmark", "render_gbuffers", "render_scene_file", "render_views",
            "train_diffrender"]
