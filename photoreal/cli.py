@@ -821,6 +821,8 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bd, DiffRenderBenchSettings, "gans", "--no-gans", help="skip training the GAN baselines")
     _opt(bd, DiffRenderBenchSettings, "gan_seconds", type=float, help="pix2pix / Morph-GAN budget each")
     _opt(bd, DiffRenderBenchSettings, "cyclegan_seconds", type=float)
+    _opt(bd, DiffRenderBenchSettings, "workers",
+         help="trainings and renders run this many at a time, one thread each (0: one after another, all threads)")
     _opt(bd, DiffRenderBenchSettings, "seed")
     bd.set_defaults(func=_cmd_bench_diffrender)
     from .benchmarks.matdiff import MatDiffBenchSettings

@@ -289,7 +289,10 @@ class DiffRenderSettings:
     #: its large geometry errors, and a model trained on both learns corrections that overshoot on the morphed
     #: G-buffers it is applied to and do not transfer to a mesh it never saw. Measured 2026-11-26 (scratch, H200, at
     #: the CPU bench's 780 steps, 1 step × mean of 8; ꟻLIP held-out village + armadillo / unseen bunny; PBR morphed
-    #: 0.0650 / 0.0391): both sources 0.0670 / 0.0415, morphed only 0.0632 / 0.0391; at 1500 steps 0.0563 / 0.0387
+    #: 0.0650 / 0.0391): both sources 0.0670 / 0.0415, morphed only 0.0632 / 0.0391; at 1500 steps 0.0563 / 0.0387.
+    #: The ground truth's own G-buffers beside them ("truth": the seed's exact-intrinsics pairs) are worse too:
+    #: 960 s at one thread, default UNet, ꟻLIP village / armadillo / bunny / cow 0.0895 / 0.0342 / 0.0418 / 0.0400
+    #: against morphed only 0.0829 / 0.0333 / 0.0411 / 0.0395 (2026-11-27, the ninth bench run's data)
     sources: tuple[str, ...] = ("morphed",)
     checkpoint_every: int = 50
     threads: int = 0  #: torch intra-op threads while training (0: all cores)

@@ -2,8 +2,8 @@
 
 Data per case (village, armadillo; the bunny is the *unseen* mesh, never trained on): the morph
 benchmark and a morph run (the GAN bench's recipe, reused from the work folder), the coarse and
-morphed G-buffers (and the ground truth's, for the runs that train on them). Everything trained is kept in
-``OUT/diffrender_work`` and reused by later runs (the shared loop resumes or returns a finished run).
+morphed G-buffers. Everything trained is kept in ``OUT/diffrender_work`` and reused by later runs (the shared
+loop resumes or returns a finished run).
 
 Work is done in two batches of independent items on :mod:`foundation.pool` (``workers`` at a time, one thread
 each; ``workers=0``: here, one after another): (a) every mesh's benchmark, morph and input renders, and the
@@ -17,8 +17,8 @@ reference renders. Sampling and metrics follow in this process.
    from A‖I‖S (recomposition ablation), off; R plus the decomposed pairs (data ablation); the photo
    generated directly instead of the residual over R; a smaller UNet; the residual learned on every pixel
    instead of being known (0) where the G-buffer sees no surface; the coarse mesh's G-buffers as training
-   inputs beside the default's; the ground truth's pairs added to (or taken from) the default's sources. Each row also carries the
-   unseen meshes' held-out metrics (``unseen``): generalisation is what some of these choices change.
+   inputs beside the default's. Each row also carries the unseen meshes' held-out metrics (``unseen``):
+   generalisation is what some of these choices change.
 3. **Sweep** of DDIM steps × model size (the R and small runs, on the first ``sweep_views`` held-out
    views per case): seconds per 128² image and ꟻLIP; **chosen** = the cheapest (seconds) within
    ``tolerance_rel`` of the best ꟻLIP: the sampler (steps, draws, guidance). The main model is trained
@@ -62,7 +62,7 @@ from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import json_digest
 from foundation.scene import recompose
 from foundation.threads import torch_threads
-from generative.diffusion import (DECOMPOSED, TRUTH, with_truth_layers, ConditionalDiffusion, DecompDataSettings, DecompSettings,
+from generative.diffusion import (DECOMPOSED, ConditionalDiffusion, DecompDataSettings, DecompSettings,
                                   DiffRenderSettings, GBufferSettings, IntrinsicViews, SampleSettings, count_parameters, decompose, diffusion_loss, heldout_psnr,
                                   load_decomp_data, load_decomposer, load_diffrender, load_intrinsic_views,
                                   make_scheduler, photographs, render_gbuffers, render_views, train_decomposer,
@@ -370,23 +370,18 @@ def _choose(sweep: list[dict], tol_rel: float) -> dict:
 # folder, where the first batch caches the benchmarks, morphs and input renders
 
 
-def _case_views(work: str, gb: GanBenchSettings, cases: tuple[str, ...], input_spp: int,
-                truth: bool = False) -> list[IntrinsicViews]:
-    """The cases' views (G-buffers cached by :func:`item_prepare`), with the ground truth's layers if ``truth``."""
+def _case_views(work: str, gb: GanBenchSettings, cases: tuple[str, ...], input_spp: int) -> list[IntrinsicViews]:
+    """The cases' views (G-buffers cached by :func:`item_prepare`)."""
     out = []
     for c in cases:
         bench, mdir, _ = _prepare(c, Path(work), gb, False)
-        v = load_intrinsic_views(bench, mdir, GBufferSettings(spp=input_spp), show_progress=False)
-        out.append(with_truth_layers(v, bench, mdir, GBufferSettings(spp=input_spp), show_progress=False)
-                   if truth else v)
+        out.append(load_intrinsic_views(bench, mdir, GBufferSettings(spp=input_spp), show_progress=False))
     return out
 
 
-def item_prepare(case: str, work: str, gb: GanBenchSettings, input_spp: int, gan_renders: bool,
-                 truth: bool = False) -> str:
-    """A case's benchmark and morph, and the input renders the methods read (G-buffers; the GANs' renders; the
-    ground truth's G-buffers for training cases)."""
-    _case_views(work, gb, (case,), input_spp, truth)
+def item_prepare(case: str, work: str, gb: GanBenchSettings, input_spp: int, gan_renders: bool) -> str:
+    """A case's benchmark and morph, and the input renders the methods read (G-buffers; the GANs' renders)."""
+    _case_views(work, gb, (case,), input_spp)
     if gan_renders:
         bench, mdir, _ = _prepare(case, Path(work), gb, False)
         load_paired_views(bench, mdir, GanDataSettings(spp=input_spp), show_progress=False)
@@ -403,8 +398,7 @@ def item_decomposer(work: str, dds: DecompDataSettings, ds: DecompSettings) -> i
 def item_diffrender(work: str, gb: GanBenchSettings, cases: tuple[str, ...], input_spp: int, out: str,
                     ds: DiffRenderSettings, extra: list[IntrinsicViews]) -> int:
     """One diffusion-renderer training run on the cases' train views (+ ``extra`` pairs); returns its steps."""
-    train_diffrender(_case_views(work, gb, cases, input_spp, TRUTH in ds.sources) + list(extra), out, ds,
-                     show_progress=False)
+    train_diffrender(_case_views(work, gb, cases, input_spp) + list(extra), out, ds, show_progress=False)
     return int(read_json(Path(out) / "metrics.json", "diffusion metrics")["training"]["steps"])
 
 
@@ -450,20 +444,14 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     dds, dset = _decomp_settings(s)
     # 1. benchmarks, morphs and input renders of every mesh, and the decomposition network (longest first)
     first = [Item("decomposition", f"{__name__}:item_decomposer", (str(work), dds, dset))]
-    first += [Item(f"prepare {c}", f"{__name__}:item_prepare", (c, str(work), gb, s.input_spp, s.gans and c in s.cases,
-                                                                c in s.cases)) for c in every]
+    first += [Item(f"prepare {c}", f"{__name__}:item_prepare", (c, str(work), gb, s.input_spp, s.gans and c in s.cases))
+              for c in every]
     timing["prepare_and_decomposer"] = _run_batch(first, s, "benchmarks, morphs, decomposer", show_progress,
                                                  item_seconds)
     prepared = {c: _prepare(c, work, gb, show_progress)[:2] for c in every}
     views = {c: load_intrinsic_views(b, m, GBufferSettings(spp=s.input_spp), show_progress=show_progress)
              for c, (b, m) in prepared.items()}
     train_views = [views[c] for c in s.cases]
-    # the ground truth's G-buffers of the train views, for the runs that train on them (a run's folder is named by the
-    # data it reads: the others keep theirs)
-    truth_views = _case_views(str(work), gb, s.cases, s.input_spp, truth=True)
-
-    def data_of(ds: DiffRenderSettings) -> list[IntrinsicViews]:
-        return truth_views if TRUTH in ds.sources else train_views
 
     t = time.perf_counter()
     decomposition, extra = _decomposition(s, work, {c: views[c] for c in s.cases}, show_progress)
@@ -476,17 +464,13 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
             "none": (replace(base, global_source="none"), False), "R+decomposed": (base, True),
             "direct": (replace(base, residual=False), False), "small": (replace(base, widths=s.small_widths), False),
             "every_pixel": (replace(base, known_background=False), False),
-            "coarse+morphed": (replace(base, sources=("coarse", *base.sources)), False)}
-    if TRUTH in base.sources:  # the training data's ablation: without the ground truth's pairs
-        runs["morphed_only"] = (replace(base, sources=tuple(x for x in base.sources if x != TRUTH)), False)
-    else:
-        runs["+truth"] = (replace(base, sources=(*base.sources, TRUTH)), False)
-    dirs = {name: run_dir(work / "ablation", name, ds, data_of(ds) + (extra if use_extra else []))
+            "coarse+morphed": (replace(base, sources=("coarse", "morphed")), False)}
+    dirs = {name: run_dir(work / "ablation", name, ds, train_views + (extra if use_extra else []))
             for name, (ds, use_extra) in runs.items()}
     # without validation meshes the size is the sweep's, known only after it: trained then
     sizes = list(dict.fromkeys([tuple(base.widths), tuple(s.small_widths)])) if s.validation else []
     main_runs = {w: DiffRenderSettings(max_seconds=s.train_seconds, widths=w, seed=s.seed) for w in sizes}
-    main_dirs = {w: main_dir(work, ms_, data_of(ms_)) for w, ms_ in main_runs.items()}
+    main_dirs = {w: main_dir(work, ms_, train_views) for w, ms_ in main_runs.items()}
 
     def train_item(key: str, out: Path, ds: DiffRenderSettings, use_extra: bool) -> Item:
         return Item(key, f"{__name__}:item_diffrender",
@@ -553,7 +537,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     if not s.validation:
         w = tuple(chosen["widths"])
         main_runs = {w: DiffRenderSettings(max_seconds=s.train_seconds, widths=w, seed=s.seed)}
-        main_dirs = {w: main_dir(work, main_runs[w], data_of(main_runs[w]))}
+        main_dirs = {w: main_dir(work, main_runs[w], train_views)}
         timing["main_training"] = _run_batch([train_item("main", main_dirs[w], main_runs[w], False)], s,
                                              "main model", show_progress, item_seconds)
     size_choice = []
@@ -576,7 +560,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     main_s = DiffRenderSettings(max_seconds=s.train_seconds, widths=tuple(pick["widths"]), seed=s.seed)
     with torch_threads(main_s.threads):
         tput = throughput(main_s)
-    main = main_dir(work, main_s, data_of(main_s))
+    main = main_dir(work, main_s, train_views)
     trained_main = load_diffrender(main)
     # the sweep chose the sampler; the size is the validation meshes' choice (which may differ from the sweep row's)
     chosen = {**chosen, "main_widths": list(main_s.widths),
