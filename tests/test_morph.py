@@ -399,6 +399,13 @@ def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):
               budget_iterations=1)
     with pytest.raises(CheckpointError, match=r"other settings or data \(settings.iterations: 2 → 3\)"):
         run_morph(small_armadillo, tmp_path, MorphSettings(iterations=3, resolution=32), show_progress=False)
+    # the same coarse mesh with other photos (a benchmark made again with other lighting or samples) is refused too
+    from dataclasses import replace
+
+    other = replace(small_armadillo, photos={**small_armadillo.photos,
+                                             "view00": small_armadillo.photos["view00"] * np.float32(1.01)})
+    with pytest.raises(CheckpointError, match=r"other settings or data \(photos: "):
+        run_morph(other, tmp_path, MorphSettings(iterations=2, resolution=32), show_progress=False)
     (tmp_path / "checkpoint.npz").write_bytes(b"PK\x03\x04 truncated")
     with pytest.raises(CheckpointError, match="checkpoint.npz: damaged checkpoint .* delete it to start over"):
         run_morph(small_armadillo, tmp_path, MorphSettings(iterations=2, resolution=32), show_progress=False)

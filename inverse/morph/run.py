@@ -47,7 +47,7 @@ from mi_plugins.arrays import aligned
 
 from foundation import validate
 from foundation.errors import UsageError
-from foundation.files import file_digest
+from foundation.files import array_key, file_digest
 from foundation.loop import (DrJitStage, LoopSettings, RunState, StepResult, TrainingSummary, rng_state, run_loop,
                              set_rng_state)
 from foundation.mesh import face_normals, load_mesh_any, read_ply_colours, unique_edges, write_ply
@@ -400,6 +400,10 @@ class MorphStage(DrJitStage):
         (self.v_in, self.f_in, self.c_in), (v0, f0, c0) = start_mesh(bench, s)
         self.v_start, self.f_start = v0, f0
         self.digest = file_digest(bench.coarse)
+        # the photos it fits (and the cameras they were taken from): a benchmark made again over the same coarse mesh
+        # with other photos must not resume this run's optimiser as if nothing changed
+        self.photos_digest = array_key(*(bench.photo(i) for i in range(len(meta.cameras))),
+                                       np.array([[*c.eye, *c.target] for c in meta.cameras], np.float64))[0][:16]
         self.rng = np.random.default_rng(s.seed)
         self.planarity = decide_planarity(v0, f0, s)
         self.colour_prior = decide_colour_prior(self.c_in, self.f_in, s)
@@ -459,7 +463,7 @@ class MorphStage(DrJitStage):
     def fingerprint(self) -> dict:
         # prior_margin only decides between runs (the decision files record it); a run's own steps do not read it
         settings = {k: v for k, v in asdict(self.s).items() if k != "prior_margin"}
-        return {"settings": settings, "input": self.digest}
+        return {"settings": settings, "input": self.digest, "photos": self.photos_digest}
 
     def state(self) -> dict:
         return {"faces": self.faces, "v_ref": self.v_ref, "vertices": self.vertices(), "colours": self.colours(),
