@@ -44,7 +44,7 @@ from foundation.scene import mitsuba_log_level
 
 from .benchmark import MorphBenchmark
 from .evaluate import evaluate_morph
-from .run import MorphResult, MorphSettings
+from .run import MorphResult, MorphSettings, photos_digest
 from .scene import morph_scene, photo_tensors, render_views
 
 
@@ -162,6 +162,7 @@ class GCNMorphStage(TorchStage):
         self.photos = photo_tensors(bench, self.res)
         self.v_in, self.f_in, self.c_in = read_ply_colours(bench.coarse)
         self.digest = file_digest(bench.coarse)
+        self.photos_digest = photos_digest(bench)
         self.rng = np.random.default_rng(s.seed)
         self.work_ply = out / ".gcn_work.ply"
         write_ply(self.work_ply, self.v_in, self.f_in, self.c_in)
@@ -193,7 +194,7 @@ class GCNMorphStage(TorchStage):
         return loss / len(views)
 
     def fingerprint(self) -> dict:
-        return {"settings": self.s, "gcn": self.g, "input": self.digest}
+        return {"settings": self.s, "gcn": self.g, "input": self.digest, "photos": self.photos_digest}
 
     def state(self) -> dict:
         return {"net": self.net.state_dict(), "optimizer": optimizer_state(self.opt), "rng": rng_state(self.rng),

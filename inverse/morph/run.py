@@ -400,10 +400,7 @@ class MorphStage(DrJitStage):
         (self.v_in, self.f_in, self.c_in), (v0, f0, c0) = start_mesh(bench, s)
         self.v_start, self.f_start = v0, f0
         self.digest = file_digest(bench.coarse)
-        # the photos it fits (and the cameras they were taken from): a benchmark made again over the same coarse mesh
-        # with other photos must not resume this run's optimiser as if nothing changed
-        self.photos_digest = array_key(*(bench.photo(i) for i in range(len(meta.cameras))),
-                                       np.array([[*c.eye, *c.target] for c in meta.cameras], np.float64))[0][:16]
+        self.photos_digest = photos_digest(bench)
         self.rng = np.random.default_rng(s.seed)
         self.planarity = decide_planarity(v0, f0, s)
         self.colour_prior = decide_colour_prior(self.c_in, self.f_in, s)
@@ -644,6 +641,14 @@ def validation_split(train: list[int], k: int) -> list[int]:
     if k <= 0:
         return []
     return sorted({train[int((j + 0.5) * len(train) / k)] for j in range(k)})
+
+
+def photos_digest(bench: MorphBenchmark) -> str:
+    """The photos a run fits and the cameras they were taken from, for its fingerprint: a benchmark made again over
+    the same coarse mesh with other photos must not resume a run's optimiser as if nothing had changed."""
+    meta = bench.meta
+    return array_key(*(bench.photo(i) for i in range(len(meta.cameras))),
+                     np.array([[*c.eye, *c.target] for c in meta.cameras], np.float64))[0][:16]
 
 
 def run_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = None,
