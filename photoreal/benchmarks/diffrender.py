@@ -443,10 +443,10 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
     timing, item_seconds = {}, {}
     dds, dset = _decomp_settings(s)
     # 1. benchmarks, morphs and input renders of every mesh, and the decomposition network (longest first)
-    first = [Item("decomposition", f"{__name__}:item_decomposer", (str(work), dds, dset))]
-    first += [Item(f"prepare {c}", f"{__name__}:item_prepare", (c, str(work), gb, s.input_spp, s.gans and c in s.cases))
+    prep = [Item("decomposition", f"{__name__}:item_decomposer", (str(work), dds, dset))]
+    prep += [Item(f"prepare {c}", f"{__name__}:item_prepare", (c, str(work), gb, s.input_spp, s.gans and c in s.cases))
               for c in every]
-    timing["prepare_and_decomposer"] = _run_batch(first, s, "benchmarks, morphs, decomposer", show_progress,
+    timing["prepare_and_decomposer"] = _run_batch(prep, s, "benchmarks, morphs, decomposer", show_progress,
                                                  item_seconds)
     prepared = {c: _prepare(c, work, gb, show_progress)[:2] for c in every}
     views = {c: load_intrinsic_views(b, m, GBufferSettings(spp=s.input_spp), show_progress=show_progress)
