@@ -669,7 +669,7 @@ def _cmd_diffrender(a) -> int:
 
 
 def _add_diffrender_parser(sub) -> None:
-    from generative.diffusion import DiffRenderSettings, SampleSettings
+    from generative.diffusion import TRAIN_SOURCES, DiffRenderSettings, SampleSettings
 
     g = sub.add_parser("diffrender", help="intrinsic-conditioned diffusion renderer: G-buffers (A, I, S, N) → photo "
                                           "(seed 000)")
@@ -693,7 +693,7 @@ def _add_diffrender_parser(sub) -> None:
          help="generate the photo itself (the seed) instead of its residual over R = A·I + S")
     _opt(t, DiffRenderSettings, "known_background", "--every-pixel",
          help="learn the residual on every pixel instead of holding it at 0 where the G-buffer sees no surface")
-    _opt(t, DiffRenderSettings, "sources", choices=["coarse", "morphed", "truth"],
+    _opt(t, DiffRenderSettings, "sources", choices=list(TRAIN_SOURCES),
          help="whose G-buffers are training inputs: the morphed mesh's, the coarse mesh's (worse on held-out and "
               "unseen meshes, measured), the benchmark's ground truth's (exact intrinsics, the seed's pairs)")
     _opt(t, DiffRenderSettings, "threads", help="torch threads (0: all cores)")

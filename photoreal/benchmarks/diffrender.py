@@ -381,9 +381,9 @@ def _case_views(work: str, gb: GanBenchSettings, cases: tuple[str, ...], input_s
 
 def item_prepare(case: str, work: str, gb: GanBenchSettings, input_spp: int, gan_renders: bool) -> str:
     """A case's benchmark and morph, and the input renders the methods read (G-buffers; the GANs' renders)."""
-    _case_views(work, gb, (case,), input_spp)
+    bench, mdir, _ = _prepare(case, Path(work), gb, False)
+    load_intrinsic_views(bench, mdir, GBufferSettings(spp=input_spp), show_progress=False)
     if gan_renders:
-        bench, mdir, _ = _prepare(case, Path(work), gb, False)
         load_paired_views(bench, mdir, GanDataSettings(spp=input_spp), show_progress=False)
     return case
 
@@ -411,6 +411,7 @@ def item_gan(case: str, work: str, gb: GanBenchSettings, input_spp: int, gs: Gan
 
 
 def item_references(case: str, work: str, gb: GanBenchSettings, ids: list[int], spp: int, photos_clean: bool) -> str:
+    """A case's references at held-out views ``ids`` (:func:`cached_references`), rendered into its cache."""
     bench, mdir, _ = _prepare(case, Path(work), gb, False)
     cached_references(bench, mdir, ids, spp, photos_clean)
     return case
