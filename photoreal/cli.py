@@ -981,6 +981,12 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "prior_margin", type=float,
          help="a prior those choices ask the photos about (planarity candidate, colour prior) is kept only where its "
               "validation L1 is this fraction below the best run without it (0: the lower L1 wins)")
+    _opt(mr, MorphSettings, "indirect_every", type=int,
+         help="re-estimate the light the direct-only renders miss (path traced minus direct, per photo) every N "
+              "iterations and add it to the renders (0: off)")
+    _opt(mr, MorphSettings, "colour_lambda", type=float,
+         help="large-steps λ for the vertex colours' steps (0: plain per-vertex steps): smooth colour changes come "
+              "fast, bump-sized ones slowly, so that the geometry explains the bumps' shading")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

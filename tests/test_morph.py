@@ -158,15 +158,16 @@ def test_morph_improves_photos_and_resumes_exactly(small_armadillo, tmp_path):
     # resumed run must equal the uninterrupted one exactly (tolerance 0). The coarse input as is
     # (min_vertices=None) keeps the test small.
     # The λ schedule (25 → 2, refactored at the checks every 3 iterations) is part of the state to resume.
-    s = MorphSettings(iterations=10, checkpoint_every=5, resolution=48, min_vertices=None, lambda_start=25.0,
-                      check_every=3, validation_fraction=0.5)
+    # The indirect-light estimate (every 10 iterations here) is part of the state too.
+    s = MorphSettings(iterations=30, checkpoint_every=10, resolution=48, min_vertices=None, lambda_start=25.0,
+                      check_every=10, validation_fraction=0.5, indirect_every=10)
     straight = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
-    assert [t.iteration for t in straight.trace] == [0, 3, 6, 9, 10]
+    assert [t.iteration for t in straight.trace] == [0, 10, 20, 30]
     lams = [t.lambda_ for t in straight.trace]
     assert lams[0] == 25.0 and lams[-1] == 2.0 and all(a >= b for a, b in zip(lams, lams[1:]))
     assert all(t.chamfer > 0 and t.validation_l1 > 0 for t in straight.trace)
     assert straight.validation_views and not set(straight.validation_views) & set(small_armadillo.meta.test)
-    assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=4) is None
+    assert run_morph(small_armadillo, tmp_path / "b", s, show_progress=False, budget_iterations=14) is None
     assert (tmp_path / "b" / "checkpoint.npz").is_file() and not (tmp_path / "b" / "morphed.ply").exists()
     resumed = run_morph(small_armadillo, tmp_path / "b", s, show_progress=False)
     va, _ = load_mesh_any(tmp_path / "a" / "morphed.ply")
@@ -176,12 +177,12 @@ def test_morph_improves_photos_and_resumes_exactly(small_armadillo, tmp_path):
     assert resumed.training.loss_last == straight.training.loss_last
     assert [t.validation_l1 for t in resumed.trace] == [t.validation_l1 for t in straight.trace]
     assert straight.psnr_heldout_morphed > straight.psnr_heldout_input
-    assert straight.training.skipped_steps == 0 and straight.training.steps == 10
+    assert straight.training.skipped_steps == 0 and straight.training.steps == 30
     for v in (straight.chamfer_input, straight.chamfer_morphed, straight.psnr_heldout_input,
               straight.psnr_heldout_morphed, straight.spikes, straight.seconds):
         assert np.isfinite(v)
     saved = json.loads((tmp_path / "a" / "metrics.json").read_text())
-    assert saved["chamfer_morphed"] == straight.chamfer_morphed and saved["training"]["steps"] == 10
+    assert saved["chamfer_morphed"] == straight.chamfer_morphed and saved["training"]["steps"] == 30
 
 
 def test_early_stop_ends_the_run_and_a_resumed_run_stays_ended(small_armadillo, tmp_path):
