@@ -986,7 +986,7 @@ def build_parser() -> argparse.ArgumentParser:
               "iterations and add it to the renders (0: off)")
     _opt(mr, MorphSettings, "colour_lambda", type=float,
          help="large-steps λ for the vertex colours' steps (0: plain per-vertex steps): smooth colour changes come "
-              "fast, bump-sized ones slowly, so that the geometry explains the bumps' shading")
+              "fast, bump-sized ones slowly, so that the geometry explains the bumps' shading (default 0: off)")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

@@ -158,9 +158,9 @@ def test_morph_improves_photos_and_resumes_exactly(small_armadillo, tmp_path):
     # resumed run must equal the uninterrupted one exactly (tolerance 0). The coarse input as is
     # (min_vertices=None) keeps the test small.
     # The λ schedule (25 → 2, refactored at the checks every 3 iterations) is part of the state to resume.
-    # The indirect-light estimate (every 10 iterations here) is part of the state too.
+    # The indirect-light estimate (every 10 iterations here) and the colours' large steps are part of the state too.
     s = MorphSettings(iterations=30, checkpoint_every=10, resolution=48, min_vertices=None, lambda_start=25.0,
-                      check_every=10, validation_fraction=0.5, indirect_every=10)
+                      check_every=10, validation_fraction=0.5, indirect_every=10, colour_lambda=10.0)
     straight = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
     assert [t.iteration for t in straight.trace] == [0, 10, 20, 30]
     lams = [t.lambda_ for t in straight.trace]
@@ -857,7 +857,8 @@ def _indirect_estimate(tmp_path, name, v, f) -> float:
     src = write_ply(tmp_path / f"{name}.ply", v, f)
     bs = MorphBenchmarkSettings(n_views=4, resolution=24, spp=4, coarse_vertices=400)
     bench = load_morph_benchmark(make_morph_benchmark(src, tmp_path / f"bench_{name}", bs, show_progress=False))
-    stage = MorphStage(bench, tmp_path / f"run_{name}", MorphSettings(min_vertices=None, resolution=24, indirect_spp=64))
+    s = MorphSettings(min_vertices=None, resolution=24, indirect_every=100, indirect_spp=64)
+    stage = MorphStage(bench, tmp_path / f"run_{name}", s)
     try:
         stage.estimate_indirect()
         images = [np.array(stage.indirect[i]) for i in bench.meta.train]

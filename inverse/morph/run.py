@@ -156,16 +156,16 @@ class MorphSettings:
     #: the light the morph's direct-only renders miss (interreflections; the photos are path traced) is estimated
     #: per photo at iteration 0 and every ``indirect_every`` iterations — a path-traced render at the photos' depth
     #: minus a direct render of the current mesh, ``indirect_spp`` each, no gradients — and added to that view's
-    #: renders until the next estimate, so that neither the colours nor the geometry absorb it ('lit' mode;
-    #: 0 = off). Josie, 200 iterations from the suite's start: together with ``colour_lambda`` Chamfer −32.5 %
-    #: against −27.4 % (alone −25.3 %, colour λ alone −28.6 %; README)
-    indirect_every: int = 100
+    #: renders until the next estimate ('lit' mode; 0 = off). Off by default: with ``colour_lambda`` 10 the suite
+    #: gained on josie (−27 → −32 % Chamfer), the village (−50 → −56 %), bunny and cow, and lost the airplane
+    #: (−43 → −37 %) and the table (−41 → −37 %) below the −40 % target (README)
+    indirect_every: int = 0
     indirect_spp: int = 64
-    #: large-steps λ for the vertex colours (0: plain per-vertex colours): their steps are diffused over the surface
-    #: like the positions' (same operator, Nicolet et al. 2021 eq. 8, here on colour), so the colours take the
-    #: smooth part of what the photos show quickly and the bump-sized part slowly, leaving the bumps' shading to
-    #: the geometry; the fixed point is unchanged (a preconditioner, not a prior)
-    colour_lambda: float = 10.0
+    #: large-steps λ for the vertex colours (0: plain per-vertex steps): their steps are diffused over the surface
+    #: like the positions' (the same operator, Nicolet et al. 2021), so the colours take the smooth part of what the
+    #: photos show quickly and the bump-sized part slowly, leaving the bumps' shading to the geometry; the fixed
+    #: point is unchanged (a preconditioner, not a prior). Off by default (see ``indirect_every``)
+    colour_lambda: float = 0.0
     seed: int = 0
 
     def __post_init__(self):
