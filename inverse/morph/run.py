@@ -469,7 +469,8 @@ class MorphStage(DrJitStage):
         return self.ls_c.to_differential(c) if self.ls_c is not None else c
 
     def colour_values(self):
-        return self.ls_c.from_differential(self.opt["c"]) if self.ls_c is not None else self.opt["c"]
+        """The vertex colours, flat (r, g, b per vertex), from the optimiser's variable."""
+        return dr.ravel(self.ls_c.from_differential(self.opt["c"])) if self.ls_c is not None else self.opt["c"]
 
     def positions(self):
         return self.ls.from_differential(self.opt["u"]) if self.ls is not None else self.opt["v"]
@@ -600,7 +601,7 @@ class MorphStage(DrJitStage):
         self.opt.set_learning_rate({self.key: self.lr_pos * decay, "c": s.lr_colour * decay})
         flat = dr.ravel(self.positions()) if self.ls is not None else self.positions()
         self.params["mesh.vertex_positions"] = flat
-        colours = dr.ravel(self.colour_values()) if self.ls_c is not None else self.colour_values()
+        colours = self.colour_values()
         self.params["mesh.vertex_color"] = colours
         with mitsuba_log_level(mi.LogLevel.Error):  # non-manifold vertices of remeshed inputs: expected
             self.params.update()
@@ -623,7 +624,7 @@ class MorphStage(DrJitStage):
         s = self.s
         v_before = self.vertices() if s.forbid_flips else None
         self.opt.step()
-        c = dr.clip(dr.ravel(dr.detach(self.colour_values())), 0.0, 1.0 if s.mode == "lit" else 10.0)
+        c = dr.clip(dr.detach(self.colour_values()), 0.0, 1.0 if s.mode == "lit" else 10.0)
         self.opt["c"] = self._to_colour_key(c)
         if v_before is not None:
             undo_flips(self.opt, self.key, v_before, self.positions,
