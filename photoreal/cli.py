@@ -987,6 +987,13 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "colour_lambda", type=float,
          help="large-steps λ for the vertex colours' steps (0: plain per-vertex steps): smooth colour changes come "
               "fast, bump-sized ones slowly, so that the geometry explains the bumps' shading (default 0: off)")
+    _opt(mr, MorphSettings, "light_select_every", type=int,
+         help="where both of those are off, the selection's winner also runs with the light estimate every N "
+              "iterations and colour large steps to the selection point, and the validation photos (each run "
+              "measured after a fresh light estimate on its own mesh) decide by --prior-margin (0: no such "
+              "candidate)")
+    _opt(mr, MorphSettings, "light_select_colour_lambda", type=float,
+         help="colour λ of that candidate")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

@@ -229,6 +229,18 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     assert col.kept == (col.validation_l1_with < (1 - s.prior_margin) * col.validation_l1_without)
     assert col.trial_seconds > 0 and col.margin == s.prior_margin
     final = sel.winner if col.kept else replace(sel.winner, colour=0.0)
+    # the light estimate and colour large steps off (the defaults): that winner also ran with them to the same point,
+    # each scored after a fresh light estimate on its own mesh, and the one the photos prefer by the margin went on
+    light = r.light_selection
+    assert light is not None and light.candidate == final.folder and light.at_iteration == 4
+    assert light.validation_l1_without > 0 and light.validation_l1_with > 0 and light.trial_seconds > 0
+    assert light.kept == (light.validation_l1_with < (1 - s.prior_margin) * light.validation_l1_without)
+    assert (light.every, light.colour_lambda) == (s.light_select_every, s.light_select_colour_lambda) == (100, 10.0)
+    from inverse.morph.run import validation_l1_with_light
+    plain = final
+    final = replace(final, light=True) if light.kept else final
+    assert candidate_settings(s, replace(plain, light=True)).indirect_every == 100
+    assert candidate_settings(s, replace(plain, light=True)).colour_lambda == 10.0
     assert r.colour_prior.weight == (s.colour_prior_auto_weight if col.kept else 0.0)
     alone = run_morph(small_armadillo, tmp_path / "alone", candidate_settings(s, final), show_progress=False)
     assert r.chamfer_morphed == alone.chamfer_morphed and r.iterations == 8 and r.settings == s
@@ -239,11 +251,20 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     np.testing.assert_array_equal(v_sel, v_alone)
     # the candidates not chosen stopped at the selection point, each in its own folder
     from foundation.loop import read_checkpoint
-    for c in sel.candidate_list() + [replace(sel.winner, colour=0.0)]:
+    for c in sel.candidate_list() + [replace(sel.winner, colour=0.0), replace(plain, light=True)]:
         if c != final:
             assert read_checkpoint(tmp_path / "a" / "lambda_select" / c.folder / "checkpoint.npz").run.step == 4
     assert {c.folder for c in sel.candidate_list()} == {"start_2", "start_25", "start_2_planarity_0.1"}
     assert replace(sel.winner, colour=0.0).folder == sel.winner.folder + "_colour_0"
+    assert replace(plain, light=True).folder == plain.folder + "_light"
+    # the stored score is the measurement's, made again from the run's checkpoint at the selection point
+    lost = replace(plain, light=True) if not light.kept else plain
+    again = validation_l1_with_light(small_armadillo, tmp_path / "a" / "lambda_select" / lost.folder,
+                                     candidate_settings(s, lost), 4)
+    assert again == (light.validation_l1_with if lost.light else light.validation_l1_without)
+    with pytest.raises(UsageError, match="at iteration 3, this one is at 4"):
+        validation_l1_with_light(small_armadillo, tmp_path / "a" / "lambda_select" / lost.folder,
+                                 candidate_settings(s, lost), 3)
     saved = json.loads((tmp_path / "a" / "metrics.json").read_text())
     assert saved["lambda_selection"]["chosen"] == sel.chosen
     assert saved["lambda_selection"]["chosen_planarity"] == sel.chosen_planarity
@@ -253,9 +274,10 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     resumed = run_morph(small_armadillo, tmp_path / "b", s, show_progress=False)
     assert replace(resumed.lambda_selection, trial_seconds=sel.trial_seconds) == sel  # all but the clock
     assert replace(resumed.colour_selection, trial_seconds=col.trial_seconds) == col
+    assert replace(resumed.light_selection, trial_seconds=light.trial_seconds) == light
     assert resumed.chamfer_morphed == r.chamfer_morphed
     # decision files removed after the run: remade from the trials' figures at the selection point, not from the
-    # winner's later ones (its folder ran on to the end)
+    # winner's later ones (its folder ran on to the end); the light choice, made from the runs' meshes there, stays
     for f in ("decision.json", "colour_decision.json"):
         (tmp_path / "b" / "lambda_select" / f).unlink()
     (tmp_path / "b" / "metrics.json").unlink()
@@ -263,6 +285,13 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     assert remade.lambda_selection.validation_l1 == sel.validation_l1 and remade.lambda_selection.winner == sel.winner
     assert replace(remade.colour_selection, trial_seconds=col.trial_seconds) == col
     assert remade.chamfer_morphed == r.chamfer_morphed
+    # no light choice where the estimate or colour large steps are set, or with it switched off
+    from inverse.morph.run import light_select_on
+    assert light_select_on(s) and not light_select_on(replace(s, light_select_every=0))
+    assert not light_select_on(replace(s, indirect_every=10)) and not light_select_on(replace(s, colour_lambda=5.0))
+    assert not light_select_on(replace(s, mode="unlit"))
+    with pytest.raises(UsageError, match="light_select_every"):
+        MorphSettings(light_select_every=-1)
     # a given colour weight: no colour choice
     assert run_morph(small_armadillo, tmp_path / "c", replace(s, iterations=6, colour_prior_weight=0.1),
                      show_progress=False).colour_selection is None
@@ -294,6 +323,9 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     cpath.write_text(cpath.read_text().replace(sel.winner.folder, "start_7"))
     with pytest.raises(UsageError, match="colour_decision.json: made for start_7"):
         run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
+    cpath.write_text(cpath.read_text().replace("start_7", sel.winner.folder))
+    with pytest.raises(UsageError, match="light_decision.json: made for .* colour λ 10; not for these settings"):
+        run_morph(small_armadillo, tmp_path / "a", replace(s, light_select_colour_lambda=5.0), show_progress=False)
 
 
 def test_a_prior_continues_only_where_the_photos_prefer_it_by_the_margin():
@@ -848,6 +880,15 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
     assert "0.0296" in _colour_why(rule)
     given = SimpleNamespace(colour_selection=None, colour_prior=ColourPriorDecision(0.1, False, None))
     assert _colour_why(given) == "given"
+    from photoreal.demo import _light_why
+    from inverse.morph.run import LightSelection
+    sel = SimpleNamespace(light_selection=LightSelection("start_2", 200, 0.0120, 0.0115, True, 9.0, every=100,
+                                                         colour_lambda=10.0, margin=0.015))
+    assert _light_why(sel).startswith("on: at iteration 200") and "0.0115 with, 0.0120 without" in _light_why(sel)
+    off = SimpleNamespace(light_selection=None, settings=MorphSettings())
+    assert _light_why(off) == "off"
+    assert _light_why(SimpleNamespace(light_selection=None, settings=MorphSettings(indirect_every=50))) == \
+        "given: light estimate every 50 iterations, colour λ 0"
 
 
 def _indirect_estimate(tmp_path, name, v, f) -> float:

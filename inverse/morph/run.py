@@ -166,6 +166,13 @@ class MorphSettings:
     #: photos show quickly and the bump-sized part slowly, leaving the bumps' shading to the geometry; the fixed
     #: point is unchanged (a preconditioner, not a prior). Off by default (see ``indirect_every``)
     colour_lambda: float = 0.0
+    #: the two above decided from the photos, where both are off: the winner of the choices above also runs with
+    #: ``indirect_every`` = ``light_select_every`` and ``colour_lambda`` = ``light_select_colour_lambda`` to the
+    #: selection point and continues only where its validation L1 there is below (1 − ``prior_margin``) × the
+    #: winner's, both measured after a fresh estimate of the missing light on their own mesh (the estimate lowers
+    #: any mesh's L1: it must not decide by itself; :class:`LightSelection`). 0 = no such candidate.
+    light_select_every: int = 100
+    light_select_colour_lambda: float = 10.0
     seed: int = 0
 
     def __post_init__(self):
@@ -195,6 +202,8 @@ class MorphSettings:
         validate.integer("indirect_every", self.indirect_every, 0)
         validate.integer("indirect_spp", self.indirect_spp, 1, 1 << 16)
         validate.non_negative("colour_lambda", self.colour_lambda)
+        validate.integer("light_select_every", self.light_select_every, 0)
+        validate.positive("light_select_colour_lambda", self.light_select_colour_lambda)
         validate.seed("seed", self.seed, 200_000)  # render seeds are seed·7919 + step·101 + view
         validate.integer("validation_views", self.validation_views, 0)
         validate.in_range("validation_fraction", self.validation_fraction, 0.0, 0.5)
@@ -259,11 +268,12 @@ class Candidate:
     lambda_start: float
     planarity: float | None = None
     colour: float | None = None  #: the colour prior's weight (None: the rule's)
+    light: bool = False  #: with the light estimate and colour large steps (:attr:`MorphSettings.light_select_every`)
 
     @property
     def folder(self) -> str:
         return (f"start_{self.lambda_start:g}" + ("" if self.planarity is None else f"_planarity_{self.planarity:g}")
-                + ("" if self.colour is None else f"_colour_{self.colour:g}"))
+                + ("" if self.colour is None else f"_colour_{self.colour:g}") + ("_light" if self.light else ""))
 
 
 @dataclass
@@ -307,6 +317,25 @@ class ColourSelection:
 
 
 @dataclass
+class LightSelection:
+    """Where the light estimate and colour large steps were off, the winner so far also ran with them from the same
+    start to the selection point; they stayed on only where that run's validation L1 there was below
+    (1 − ``margin``) × the winner's. Both L1 are measured the same way, after a fresh estimate of the missing light
+    on each run's own mesh (:func:`validation_l1_with_light`), so they differ by their meshes and colours only."""
+
+    candidate: str  #: folder of the winner so far (without)
+    at_iteration: int
+    validation_l1_without: float | None
+    validation_l1_with: float | None
+    kept: bool  #: the run with them continued
+    trial_seconds: float  #: the run not continued, to the selection point, and both measurements
+    _: KW_ONLY
+    every: int  #: ``indirect_every`` of the run with them
+    colour_lambda: float
+    margin: float = 0.0
+
+
+@dataclass
 class MorphResult(MorphEvaluation):
     """``metrics.json`` of a morph run."""
 
@@ -328,6 +357,7 @@ class MorphResult(MorphEvaluation):
     trace_chamfer_input: float | None = None  #: the coarse input's Chamfer with the trace's estimator
     lambda_selection: LambdaSelection | None = None  #: when ``settings.lambda_select`` chose the λ schedule
     colour_selection: ColourSelection | None = None  #: when the validation photos decided the colour prior
+    light_selection: LightSelection | None = None  #: when they decided the light estimate and colour large steps
 
 
 def start_mesh(bench: MorphBenchmark, s: MorphSettings) -> tuple[tuple, tuple]:
@@ -484,8 +514,9 @@ class MorphStage(DrJitStage):
     # -- the loop's interface -----------------------------------------------------------------------------------
 
     def fingerprint(self) -> dict:
-        # prior_margin only decides between runs (the decision files record it); a run's own steps do not read it
-        settings = {k: v for k, v in asdict(self.s).items() if k != "prior_margin"}
+        # these only decide between runs (the decision files record them); a run's own steps do not read them
+        between = ("prior_margin", "light_select_every", "light_select_colour_lambda")
+        settings = {k: v for k, v in asdict(self.s).items() if k not in between}
         return {"settings": settings, "input": self.digest, "photos": self.photos_digest}
 
     def state(self) -> dict:
@@ -526,8 +557,9 @@ class MorphStage(DrJitStage):
         extra = self.indirect.get(int(i))
         return img[..., :3] if extra is None else img[..., :3] + extra
 
-    def estimate_indirect(self) -> None:
-        """Per photo: path traced (the photos' depth) minus direct light of the current mesh, no gradients."""
+    def estimate_indirect(self, views: list[int] | None = None) -> None:
+        """Per photo (of ``views``; None: every training photo): path traced (the photos' depth) minus direct light
+        of the current mesh, no gradients."""
         meta = self.bench.meta
         if not self.s.indirect_every or self.s.mode != "lit":
             return
@@ -535,7 +567,7 @@ class MorphStage(DrJitStage):
         with dr.suspend_grad(), mitsuba_log_level(mi.LogLevel.Error):
             path = mi.load_dict({"type": "path", "max_depth": depth})
             direct = mi.load_dict({"type": "direct"})
-            for i in meta.train:
+            for i in (meta.train if views is None else views):
                 sensor = mi.load_dict(sensor_dict(meta.cameras[int(i)], self.res, meta.fov))
                 seed = 9_000_011 + int(i)
                 a = mi.render(self.scene, self.params, sensor=sensor, integrator=path, spp=self.s.indirect_spp, seed=seed)
@@ -768,9 +800,37 @@ def choose_with_margin(scores: list[float | None], with_prior: list[bool], margi
 
 def candidate_settings(s: MorphSettings, c: Candidate) -> MorphSettings:
     """One candidate's own run: its λ start (≤ λ: constant λ) and planarity weight, no selection of its own."""
-    return replace(s, lambda_start=float(c.lambda_start) if c.lambda_start > s.lambda_ else None, lambda_select=(),
-                   planarity_select=(), planarity_weight=s.planarity_weight if c.planarity is None else c.planarity,
-                   colour_prior_weight=s.colour_prior_weight if c.colour is None else c.colour)
+    out = replace(s, lambda_start=float(c.lambda_start) if c.lambda_start > s.lambda_ else None, lambda_select=(),
+                  planarity_select=(), planarity_weight=s.planarity_weight if c.planarity is None else c.planarity,
+                  colour_prior_weight=s.colour_prior_weight if c.colour is None else c.colour)
+    return replace(out, indirect_every=s.light_select_every, colour_lambda=s.light_select_colour_lambda) \
+        if c.light else out
+
+
+def light_select_on(s: MorphSettings) -> bool:
+    """Whether the selection asks the photos about the light estimate and colour large steps (both off, lit)."""
+    return s.light_select_every > 0 and not s.indirect_every and not s.colour_lambda and s.mode == "lit"
+
+
+def validation_l1_with_light(bench: MorphBenchmark, folder: Path, s: MorphSettings, at: int) -> float | None:
+    """Validation L1 of the run in ``folder`` (settings ``s``, checkpoint at iteration ``at``) after a fresh estimate
+    of the light its direct renders miss, on its own mesh and colours (fixed seeds: runs compare like with like)."""
+    import tempfile
+
+    from foundation.loop import read_checkpoint
+
+    saved = read_checkpoint(folder / "checkpoint.npz")
+    if saved.run.step != at:
+        raise UsageError(f"{folder}: the light choice compares runs at iteration {at}, this one is at "
+                         f"{saved.run.step}; delete {folder.parent} to start over")
+    with tempfile.TemporaryDirectory(prefix=".light_", dir=folder) as tmp:
+        stage = MorphStage(bench, Path(tmp), replace(s, indirect_every=s.indirect_every or 1))
+        try:
+            stage.load_state(saved.stage)
+            stage.estimate_indirect(stage.val_ids)
+            return stage.validation_l1()
+        finally:
+            stage.close()
 
 
 def _trial_dir(out: Path, c: Candidate) -> Path:
@@ -874,8 +934,39 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
             colour = ColourSelection(winner.folder, at, with_l1, without_l1, kept, _trial_status(lost, at)[3],
                                      margin=s.prior_margin)
             write_json(colour_path, to_json(colour))
-        extra = colour.trial_seconds
+        extra += colour.trial_seconds
         if not colour.kept:
+            winner = twin
+    light = None
+    if light_select_on(s):  # then the winner with the light estimate and colour large steps: the photos decide
+        light_path = out / "lambda_select" / "light_decision.json"
+        twin = replace(winner, light=True)
+        if light_path.is_file():
+            light = from_json(LightSelection, read_json(light_path, "light selection"), str(light_path))
+            made = (light.candidate, light.at_iteration, light.margin, light.every, light.colour_lambda)
+            if made != (winner.folder, at, s.prior_margin, s.light_select_every, s.light_select_colour_lambda):
+                raise UsageError(f"{light_path}: made for {light.candidate} at iteration {light.at_iteration} with "
+                                 f"prior_margin {light.margin:g}, every {light.every}, colour λ "
+                                 f"{light.colour_lambda:g}; not for these settings: delete {out / 'lambda_select'} "
+                                 f"to start over")
+        else:
+            for c in (winner, twin):
+                reached, budget = _advance(bench, _trial_dir(out, c), candidate_settings(s, c), at, show_progress,
+                                           budget)
+                if not reached:
+                    return None
+            t0 = time.perf_counter()
+            l1 = [validation_l1_with_light(bench, _trial_dir(out, c), candidate_settings(s, c), at)
+                  for c in (winner, twin)]
+            kept = None not in l1 and choose_with_margin(l1, [False, True], s.prior_margin) == 1
+            lost = _trial_dir(out, winner if kept else twin) / "checkpoint.npz"
+            light = LightSelection(winner.folder, at, l1[0], l1[1], kept,
+                                   _trial_status(lost, at)[3] + time.perf_counter() - t0,
+                                   every=s.light_select_every, colour_lambda=s.light_select_colour_lambda,
+                                   margin=s.prior_margin)
+            write_json(light_path, to_json(light))
+        extra += light.trial_seconds
+        if light.kept:
             winner = twin
     if budget is not None and budget <= 0:
         return None
@@ -887,7 +978,7 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
         if f.is_file() and f.name not in ("checkpoint.npz", "metrics.json") and not f.name.startswith("."):
             with atomic_path(out / f.name) as tmp:
                 shutil.copyfile(f, tmp)
-    r = replace(r, settings=s, lambda_selection=sel, colour_selection=colour,
+    r = replace(r, settings=s, lambda_selection=sel, colour_selection=colour, light_selection=light,
                 seconds=r.seconds + sel.trial_seconds + extra)
     write_json(out / "metrics.json", to_json(r))
     return r

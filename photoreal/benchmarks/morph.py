@@ -172,10 +172,12 @@ def suite_row(name: str, m: MorphResult) -> dict:
            "iterations": m.iterations, "stopped_early": m.stopped_early, "trace_chamfer_input": m.trace_chamfer_input,
            # per iteration of the run that finished (the candidates not chosen are in ``seconds``, not in this)
            "s_per_iteration": (m.seconds - (m.lambda_selection.trial_seconds if m.lambda_selection else 0.0)
-                               - (m.colour_selection.trial_seconds if m.colour_selection else 0.0))
+                               - (m.colour_selection.trial_seconds if m.colour_selection else 0.0)
+                               - (m.light_selection.trial_seconds if m.light_selection else 0.0))
            / max(m.iterations, 1), "validation_seconds": m.validation_seconds,
            "lambda_selection": asdict(m.lambda_selection) if m.lambda_selection else None,
            "colour_selection": asdict(m.colour_selection) if m.colour_selection else None,
+           "light_selection": asdict(m.light_selection) if m.light_selection else None,
            "planarity_weight": m.planarity.weight if m.planarity else None,
            "trace": [{"iteration": t.iteration, "seconds": t.seconds, "validation_l1": t.validation_l1,
                       "chamfer": t.chamfer} for t in m.trace]}
