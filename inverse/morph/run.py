@@ -156,21 +156,23 @@ class MorphSettings:
     #: the light the morph's direct-only renders miss (interreflections; the photos are path traced) is estimated
     #: per photo at iteration 0 and every ``indirect_every`` iterations — a path-traced render at the photos' depth
     #: minus a direct render of the current mesh, ``indirect_spp`` each, no gradients — and added to that view's
-    #: renders until the next estimate ('lit' mode; 0 = off). Off by default: with ``colour_lambda`` 10 the suite
-    #: gained on josie (−27 → −32 % Chamfer), the village (−50 → −56 %), bunny and cow, and lost the airplane
-    #: (−43 → −37 %) and the table (−41 → −37 %) below the −40 % target (README)
+    #: renders until the next estimate ('lit' mode; 0 = off). Off by default and asked of the photos instead
+    #: (``light_select_every``): on for every mesh, with ``colour_lambda`` 10, the suite gained on josie (−27 → −32 %
+    #: Chamfer), the village (−50 → −56 %), bunny and cow, and lost the airplane (−43 → −37 %) and the table
+    #: (−41 → −37 %) below the −40 % target (README)
     indirect_every: int = 0
     indirect_spp: int = 64
     #: large-steps λ for the vertex colours (0: plain per-vertex steps): their steps are diffused over the surface
     #: like the positions' (the same operator, Nicolet et al. 2021), so the colours take the smooth part of what the
     #: photos show quickly and the bump-sized part slowly, leaving the bumps' shading to the geometry; the fixed
-    #: point is unchanged (a preconditioner, not a prior). Off by default (see ``indirect_every``)
+    #: point is unchanged (a preconditioner, not a prior). Off by default, asked of the photos (``indirect_every``)
     colour_lambda: float = 0.0
     #: the two above decided from the photos, where both are off: the winner of the choices above also runs with
     #: ``indirect_every`` = ``light_select_every`` and ``colour_lambda`` = ``light_select_colour_lambda`` to the
     #: selection point and continues only where its validation L1 there is below (1 − ``prior_margin``) × the
-    #: winner's, both measured after a fresh estimate of the missing light on their own mesh (the estimate lowers
-    #: any mesh's L1: it must not decide by itself; :class:`LightSelection`). 0 = no such candidate.
+    #: winner's, both measured the same way, after a fresh estimate of the missing light on each run's own mesh
+    #: (each run's own validation L1 would compare renders with an estimate against renders without one;
+    #: :class:`LightSelection`). 0 = no such candidate.
     light_select_every: int = 100
     light_select_colour_lambda: float = 10.0
     seed: int = 0
