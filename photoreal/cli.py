@@ -191,6 +191,9 @@ def _cmd_bench_morph(a) -> int:
                                     "s_per_iter_baseline", "chosen_vertices") if k in result}
     if "suite" in result:
         shown.update(suite_mean=result["suite"]["mean"], suite_failing=result["suite"]["failing"])
+    if "iteration_cost" in result:
+        c = result["iteration_cost"]
+        shown.update(s_per_iteration=c["s_per_iteration"], iteration_cost_ratio=c["ratio"])
     _print(shown)
     return 0
 
@@ -774,11 +777,15 @@ def build_parser() -> argparse.ArgumentParser:
     bp.set_defaults(func=_cmd_bench_plugins)
     bm = bsub.add_parser("morph", help="geometry morphing: accuracy vs time, speed vs the tutorial recipe, stability, "
                                        "the generalisation suite, the benchmark's framing")
-    _opt(bm, MorphBenchSettings, "parts", choices=["cases", "suite", "framing", "floor"],
+    _opt(bm, MorphBenchSettings, "parts", choices=["cases", "suite", "framing", "floor", "iteration"],
          help="cases: village/armadillo (speed, sweep, stability); suite: every suite mesh at the same defaults; "
               "framing: views and photo resolution swept on the first suite mesh; floor: each suite mesh morphed "
-              "from its own ground truth (how far the method drifts from the answer)")
+              "from its own ground truth (how far the method drifts from the answer); iteration: seconds per "
+              "iteration of today's defaults against the recipe issue 17 was filed against, same mesh, in turns")
     _opt(bm, MorphBenchSettings, "floor_iterations", help="iterations of the truth-start runs (--parts floor)")
+    _opt(bm, MorphBenchSettings, "cost_mesh", help="the mesh of --parts iteration")
+    _opt(bm, MorphBenchSettings, "cost_iterations", help="steps per timed block (--parts iteration)")
+    _opt(bm, MorphBenchSettings, "cost_rounds", help="timed blocks per recipe, in turns (--parts iteration)")
     _opt(bm, MorphBenchSettings, "cases")
     _opt(bm, MorphBenchSettings, "suite", help="suite meshes (village and armadillo may be added)")
     _opt(bm, MorphBenchSettings, "iterations", help="morph iterations of the main and suite runs")

@@ -39,14 +39,28 @@ def morph_scene(mesh_ply: Path, mode: str, hdri: str | Path, integrator: dict | 
                              "env": envmap(hdri), "mesh": shape})
 
 
+def projective_integrator(spp: int, boundary_spp: int) -> dict:
+    """The morph's differentiable direct-light integrator: ``spp`` samples per pixel for the image and its
+    continuous derivative, ``boundary_spp`` for the silhouettes' (primarily visible discontinuities), no indirect
+    discontinuities. Render with :func:`render_views` and ``integrator_spp=True`` so that these counts hold."""
+    return {"type": "direct_projective", "sppc": int(spp), "sppp": int(boundary_spp), "sppi": 0}
+
+
 def render_views(scene: mi.Scene, params, cameras: list[Camera], ids, res: int, fov: float, spp: int,
-                 seed: int) -> list[mi.TensorXf]:
-    """Differentiable renders of cameras ``ids`` (seed + view index each), films that sample their border."""
+                 seed: int, integrator_spp: bool = False) -> list[mi.TensorXf]:
+    """Differentiable renders of cameras ``ids`` (seed + view index each), films that sample their border.
+
+    ``integrator_spp``: the scene's integrator keeps its own per-part sample counts (:func:`projective_integrator`);
+    ``spp`` then sets the sampler, i.e. the image's own samples. Otherwise ``spp`` is every part's count."""
     out = []
     with mitsuba_log_level(mi.LogLevel.Error):  # projective integrators dump non-manifold meshes at first render
         for i in ids:
-            sensor = mi.load_dict(sensor_dict(cameras[int(i)], res, fov, sample_border=True))
-            out.append(mi.render(scene, params, sensor=sensor, spp=spp, seed=int(seed + i)))
+            sd = sensor_dict(cameras[int(i)], res, fov, sample_border=True)
+            if integrator_spp:
+                sd["sampler"] = {"type": "independent", "sample_count": int(spp)}
+            sensor = mi.load_dict(sd)
+            # a run-time spp overrides every count of a projective integrator; 0 leaves them to it (and the sampler)
+            out.append(mi.render(scene, params, sensor=sensor, spp=0 if integrator_spp else spp, seed=int(seed + i)))
     return out
 
 

@@ -23,8 +23,10 @@ class MorphBenchSettings:
     #: what to run: "cases" (village and armadillo: main run, speed vs the tutorial, vertex sweep, stability),
     #: "suite" (the generalisation suite: one run per mesh at the same defaults), "framing" (views and photo
     #: resolution of the benchmark, swept on the first suite mesh), "floor" (each suite mesh's morph started at
-    #: its ground truth: how far the method drifts from the answer; not in the default parts)
-    parts: tuple[str, ...] = ("cases", "suite", "framing")
+    #: its ground truth: how far the method drifts from the answer; not in the default parts), "iteration" (the
+    #: cost of one iteration of today's defaults against the recipe issue 17 measured, same mesh and vertices,
+    #: timed in turns in this process)
+    parts: tuple[str, ...] = ("cases", "suite", "framing", "iteration")
     cases: tuple[str, ...] = ("village", "armadillo")
     suite: tuple[str, ...] = SUITE  #: suite meshes (inverse.morph.suite); "village"/"armadillo" may be added
     framing_views: tuple[int, ...] = (8, 16, 32)
@@ -39,6 +41,9 @@ class MorphBenchSettings:
     baseline_spp: int = 16  #: the tutorial recipe's samples per pixel
     stability_iterations: int = 80
     floor_iterations: int = 100  #: iterations of the truth-start runs ("floor"), constant λ
+    cost_mesh: str = "village"  #: the "iteration" part's mesh (a suite mesh, "village" or "armadillo")
+    cost_iterations: int = 25  #: steps per timed block of the "iteration" part
+    cost_rounds: int = 3  #: timed blocks per recipe, interleaved (the median is reported)
     #: keep ``OUT/morph_work`` (benchmarks, meshes, checkpoints) after the bench: a rerun then re-reads the
     #: finished runs instead of recomputing them (the default removes it: ~1 GB for the whole bench)
     keep_work: bool = False
@@ -46,7 +51,7 @@ class MorphBenchSettings:
 
     def __post_init__(self):
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
-                     "floor_iterations"):
+                     "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
         for n in (*self.sweep_vertices, self.speed_vertices):
             validate.integer("sweep_vertices", n, 100)
@@ -55,7 +60,8 @@ class MorphBenchSettings:
         validate.integer("baseline_spp", self.baseline_spp, 1)
         validate.seed("seed", self.seed)
         for part in self.parts:
-            validate.one_of("parts", part, ("cases", "suite", "framing", "floor"))
+            validate.one_of("parts", part, ("cases", "suite", "framing", "floor", "iteration"))
+        validate.one_of("cost_mesh", self.cost_mesh, (*SUITE, "village", "armadillo"))
         for name in self.suite:
             validate.one_of("suite", name, (*SUITE, "village", "armadillo"))
         for n in self.framing_views:
@@ -305,6 +311,97 @@ def bench_framing(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_pr
             "resolution": [row(f"res_{r}", resolution=r) for r in s.framing_resolutions]}
 
 
+def cost_recipes(s: MorphBenchSettings) -> dict[str, MorphSettings]:
+    """The two recipes the "iteration" part times. ``issue_recipe``: the defaults issue 17 was filed against
+    (constant λ 2, the planarity rule, plain colour steps, every gradient part at ``spp``, no validation renders).
+    ``defaults``: today's defaults with every per-iteration option the selection may switch on (the light
+    estimate, colour large steps) — the dearest run the selection can continue."""
+    from inverse.morph.run import Candidate, candidate_settings
+
+    d = MorphSettings(seed=s.seed)
+    issue = replace(d, lambda_select=(), planarity_select=(), colour_prior_weight=0.0, boundary_spp=None,
+                    validation_views=0, early_stop=False, light_select_every=0)
+    today = candidate_settings(d, Candidate(lambda_start=d.lambda_, light=True))
+    return {"issue_recipe": issue, "defaults": today}
+
+
+def iteration_cost(bench, recipes: dict[str, MorphSettings], iterations: int, rounds: int, tmp: Path,
+                   show_progress: bool = False) -> dict:
+    """Seconds per iteration of each recipe on ``bench``, timed in alternating blocks in this process with its
+    thread count: ``iterations`` steps as the loop makes them (render, backward, optimiser step), plus what a recipe
+    does every so many steps, per step (the light estimate every ``indirect_every``, the validation renders every
+    ``check_every``). One untimed block per recipe first compiles the kernels; the median block is reported."""
+    import drjit as dr
+    from tqdm import tqdm
+
+    from inverse.morph.run import MorphStage
+
+    blocks: dict[str, list] = {k: [] for k in recipes}
+    vertices, pools = {}, {}
+
+    def block(k: str) -> dict:
+        """One timed block, the recipe's scene the only one alive (Mitsuba traces every live plugin instance)."""
+        rs = recipes[k]
+        (tmp / k).mkdir(parents=True, exist_ok=True)
+        st = MorphStage(bench, tmp / k, rs)
+        try:
+            vertices[k] = int(len(st.vertices()))
+            pools[k] = list(st.train_ids)
+            if len(pools) == len(recipes):  # every recipe draws the same views (one seed): a view's cost varies
+                st.train_ids = sorted(set.intersection(*(set(p) for p in pools.values())))
+            st.estimate_indirect()  # a run's iteration 0 (nothing when the recipe has no estimate)
+            for it in range(2):  # kernels from the cache; not timed
+                st.step(it)
+                st.apply(it)
+            dr.eval(st.opt[st.key], st.opt["c"])
+            t0 = time.perf_counter()
+            for it in range(2, 2 + iterations):
+                st.step(it)
+                st.apply(it)
+            dr.eval(st.opt[st.key], st.opt["c"])
+            out = {"step": (time.perf_counter() - t0) / iterations}
+            if rs.indirect_every:  # periodic work, per step
+                t0 = time.perf_counter()
+                st.estimate_indirect()
+                out["light_estimate"] = (time.perf_counter() - t0) / rs.indirect_every
+            if rs.validation_views:
+                t0 = time.perf_counter()
+                st.validation_l1()
+                out["validation"] = (time.perf_counter() - t0) / rs.check_every
+        finally:
+            st.close()
+        return {**out, "total": sum(out.values())}
+
+    for k in recipes:  # compile every kernel once
+        block(k)
+    bar = tqdm(total=rounds * len(recipes), desc="bench morph iteration cost", disable=not show_progress)
+    for r in range(rounds):
+        for k in (list(recipes) if r % 2 == 0 else list(recipes)[::-1]):  # alternate who goes first
+            blocks[k].append(block(k))
+            bar.update()
+    bar.close()
+    med = {k: float(np.median([b["total"] for b in v])) for k, v in blocks.items()}
+    return {"vertices": vertices, "threads": int(dr.thread_count()), "iterations_per_block": iterations,
+            "views": sorted(set.intersection(*(set(p) for p in pools.values()))),
+            "recipes": {k: {"boundary_spp": rs.boundary_spp, "spp": rs.spp, "indirect_every": rs.indirect_every,
+                            "indirect_spp": rs.indirect_spp, "colour_lambda": rs.colour_lambda,
+                            "check_every": rs.check_every if rs.validation_views else None}
+                        for k, rs in recipes.items()},
+            "blocks": blocks, "s_per_iteration": med}
+
+
+def bench_iteration_cost(work: Path, s: MorphBenchSettings, show_progress: bool) -> dict:
+    """:func:`iteration_cost` of :func:`cost_recipes` on ``s.cost_mesh`` (the same remeshed start: the same vertex
+    count); ``ratio`` = today's defaults / the issue's recipe."""
+    import tempfile
+
+    bench = load_morph_benchmark(_suite_bench(s.cost_mesh, work, MorphBenchmarkSettings(seed=s.seed)))
+    with tempfile.TemporaryDirectory(dir=work) as tmp:
+        out = iteration_cost(bench, cost_recipes(s), s.cost_iterations, s.cost_rounds, Path(tmp), show_progress)
+    med = out["s_per_iteration"]
+    return {"mesh": s.cost_mesh, **out, "ratio": med["defaults"] / med["issue_recipe"]}
+
+
 def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True,
                 pool: PoolSettings | None = None) -> dict:
     """Run the bench in ``out_dir/morph_work`` (kept while it runs: a killed bench resumes; removed at the end
@@ -331,6 +428,8 @@ def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True
         result["framing"] = bench_framing(work, s, pool, show_progress)
     if "floor" in s.parts:
         result["floor"] = bench_floor(work, s, pool, show_progress)
+    if "iteration" in s.parts:
+        result["iteration_cost"] = bench_iteration_cost(work, s, show_progress)
     result["seconds"] = time.perf_counter() - t0
     if not s.keep_work:
         shutil.rmtree(work, ignore_errors=True)
