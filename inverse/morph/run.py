@@ -78,8 +78,9 @@ class MorphSettings:
     spp: int = 4
     #: samples per pixel of the silhouettes' gradient (the projective integrator's primarily visible
     #: discontinuities); None = ``spp``. They cost more than the image's own samples (village, 2 threads: the
-    #: backward pass 0.51 s at 4, 0.43 s at 2, 0.30 s at 1); an unbiased estimate at any count (tested)
-    boundary_spp: int | None = 2
+    #: backward pass 0.51 s at 4, 0.43 s at 2, 0.30 s at 1); an unbiased estimate at any count (tested), but the
+    #: suite's fits were worse at 2 (josie −24.9 % Chamfer, village −49.9 %, against −32.4 / −55.8 % at 4: README)
+    boundary_spp: int | None = None
     resolution: int | None = None  #: None = the benchmark's photo resolution
     remesh_input: bool = True  #: isotropic remesh of the input first (decimators leave slivers that flip)
     target_vertices: int | None = None  #: remesh the input to about this many vertices (None: see min_vertices)
