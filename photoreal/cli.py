@@ -989,9 +989,12 @@ def build_parser() -> argparse.ArgumentParser:
          help="a prior those choices ask the photos about (planarity candidate, colour prior) is kept only where its "
               "validation L1 is this fraction below the best run without it (0: the lower L1 wins)")
     _opt(mr, MorphSettings, "indirect_every", type=int,
-         help="re-estimate the light the direct-only renders miss (path traced at the photos' depth minus depth 2, "
-              "one seed, per photo) every N iterations and add it to the renders (0: off)")
+         help="re-estimate the light the direct-only renders miss (path traced at the photos' depth minus direct "
+              "light, per photo) every N iterations and add it to the renders (0: off)")
     _opt(mr, MorphSettings, "indirect_spp", type=int, help="samples per pixel of each render of that estimate")
+    _opt(mr, MorphSettings, "indirect_reference", choices=["direct", "depth2"],
+         help="what that estimate subtracts: the direct integrator, or the path tracer at depth 2 with the same seed "
+              "(the first bounce cancels: 3× less noise at the same spp)")
     _opt(mr, MorphSettings, "boundary_spp", type=int,
          help="samples per pixel of the silhouettes' gradient (the image and the rest of its gradient take 4)")
     _opt(mr, MorphSettings, "colour_lambda", type=float,

@@ -160,14 +160,18 @@ class MorphSettings:
     prior_margin: float = 0.015
     #: the light the morph's direct-only renders miss (interreflections; the photos are path traced) is estimated
     #: per photo at iteration 0 and every ``indirect_every`` iterations — a path-traced render at the photos' depth
-    #: minus one of depth 2 (direct light) with the same random numbers, ``indirect_spp`` each, no gradients: the
-    #: first bounce cancels sample for sample (:meth:`MorphStage.estimate_indirect`) — and added to that view's
+    #: minus direct light (``indirect_reference``), ``indirect_spp`` each, no gradients — and added to that view's
     #: renders until the next estimate ('lit' mode; 0 = off). Off by default and asked of the photos instead
     #: (``light_select_every``): on for every mesh, with ``colour_lambda`` 10, the suite gained on josie (−27 → −32 %
     #: Chamfer), the village (−50 → −56 %), bunny and cow, and lost the airplane (−43 → −37 %) and the table
     #: (−41 → −37 %) below the −40 % target (README)
     indirect_every: int = 0
-    indirect_spp: int = 16
+    indirect_spp: int = 64
+    #: what the estimate subtracts from the path-traced render: "direct" (the ``direct`` integrator, its own random
+    #: numbers) or "depth2" (the path tracer at depth 2 with the same seed: the first bounce cancels sample for
+    #: sample, 3× less noise at the same spp, RMSE 0.0031 at 16 spp against 0.0050 — but the suite with "depth2" at
+    #: 16 spp fitted josie worse, −26.6 % / +2.89 dB against −32.4 % / +3.77 dB: README)
+    indirect_reference: Literal["direct", "depth2"] = "direct"
     #: large-steps λ for the vertex colours (0: plain per-vertex steps): their steps are diffused over the surface
     #: like the positions' (the same operator, Nicolet et al. 2021), so the colours take the smooth part of what the
     #: photos show quickly and the bump-sized part slowly, leaving the bumps' shading to the geometry; the fixed
@@ -210,6 +214,7 @@ class MorphSettings:
         validate.in_range("prior_margin", self.prior_margin, 0.0, 0.5)
         validate.integer("indirect_every", self.indirect_every, 0)
         validate.integer("indirect_spp", self.indirect_spp, 1, 1 << 16)
+        validate.one_of("indirect_reference", self.indirect_reference, ("direct", "depth2"))
         validate.non_negative("colour_lambda", self.colour_lambda)
         validate.integer("light_select_every", self.light_select_every, 0)
         validate.positive("light_select_colour_lambda", self.light_select_colour_lambda)
@@ -528,8 +533,10 @@ class MorphStage(DrJitStage):
     def fingerprint(self) -> dict:
         # these only decide between runs (the decision files record them); a run's own steps do not read them
         between = ("prior_margin", "light_select_every", "light_select_colour_lambda")
-        # boundary_spp = spp renders what runs made before the field did, bit for bit: their checkpoints still match
-        same = ("boundary_spp",) if self.shared_spp else ()
+        # fields added later, at the value that computes what runs made before them did (bit for bit): those runs'
+        # checkpoints still match
+        same = (("boundary_spp",) if self.shared_spp else ()) + \
+            (("indirect_reference",) if self.s.indirect_reference == "direct" else ())
         settings = {k: v for k, v in asdict(self.s).items() if k not in between + same}
         return {"settings": settings, "input": self.digest, "photos": self.photos_digest}
 
@@ -572,18 +579,19 @@ class MorphStage(DrJitStage):
         return img[..., :3] if extra is None else img[..., :3] + extra
 
     def estimate_indirect(self, views: list[int] | None = None) -> None:
-        """Per photo (of ``views``; None: every training photo): a path-traced render at the photos' depth minus one
-        of depth 2 (direct light), same seed, no gradients. Mitsuba's path tracer draws the same random numbers for
-        the same first bounce at either depth, so the first bounce cancels sample for sample and the difference is
-        the indirect light with its own noise only (josie, 16 spp: RMSE 0.0031 against a 512-spp reference; the
-        ``direct`` integrator's independent samples in its place: 0.0050 at 64 spp, four times the cost)."""
+        """Per photo (of ``views``; None: every training photo): a path-traced render at the photos' depth minus
+        direct light (``indirect_reference``), no gradients. With "depth2" the subtrahend is the path tracer at depth
+        2 with the same seed: Mitsuba's path tracer draws the same random numbers for the same first bounce at
+        either depth, so the first bounce cancels sample for sample and the difference carries the indirect light's
+        own noise only (josie, 128²: RMSE 0.0031 at 16 spp against 0.0050 for "direct" at 64 spp)."""
         meta = self.bench.meta
         if not self.s.indirect_every or self.s.mode != "lit":
             return
         depth = meta.settings.photo_max_depth
         with dr.suspend_grad(), mitsuba_log_level(mi.LogLevel.Error):
             path = mi.load_dict({"type": "path", "max_depth": depth})
-            direct = mi.load_dict({"type": "path", "max_depth": 2})
+            direct = mi.load_dict({"type": "path", "max_depth": 2} if self.s.indirect_reference == "depth2"
+                                  else {"type": "direct"})
             for i in (meta.train if views is None else views):
                 sensor = mi.load_dict(sensor_dict(meta.cameras[int(i)], self.res, meta.fov))
                 seed = 9_000_011 + int(i)

@@ -312,17 +312,17 @@ def bench_framing(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_pr
 
 
 def cost_recipes(s: MorphBenchSettings) -> dict[str, MorphSettings]:
-    """The two recipes the "iteration" part times. ``issue_recipe``: the defaults issue 17 was filed against
-    (constant λ 2, the planarity rule, plain colour steps, every gradient part at ``spp``, no validation renders).
-    ``defaults``: today's defaults with every per-iteration option the selection may switch on (the light
-    estimate, colour large steps) — the dearest run the selection can continue."""
+    """The recipes the "iteration" part times. ``issue_recipe``: the defaults issue 17 was filed against
+    (constant λ 2, the planarity rule, plain colour steps, no validation renders). ``defaults``: today's defaults
+    where the photos keep the plain run (validation renders every ``check_every``). ``defaults_light``: where they
+    keep the light run (also the light estimate every ``light_select_every`` and colour large steps)."""
     from inverse.morph.run import Candidate, candidate_settings
 
     d = MorphSettings(seed=s.seed)
-    issue = replace(d, lambda_select=(), planarity_select=(), colour_prior_weight=0.0, boundary_spp=None,
-                    validation_views=0, early_stop=False, light_select_every=0)
-    today = candidate_settings(d, Candidate(lambda_start=d.lambda_, light=True))
-    return {"issue_recipe": issue, "defaults": today}
+    issue = replace(d, lambda_select=(), planarity_select=(), colour_prior_weight=0.0, validation_views=0,
+                    early_stop=False, light_select_every=0)
+    return {"issue_recipe": issue, "defaults": candidate_settings(d, Candidate(lambda_start=d.lambda_)),
+            "defaults_light": candidate_settings(d, Candidate(lambda_start=d.lambda_, light=True))}
 
 
 def iteration_cost(bench, recipes: dict[str, MorphSettings], iterations: int, rounds: int, tmp: Path,
@@ -384,7 +384,8 @@ def iteration_cost(bench, recipes: dict[str, MorphSettings], iterations: int, ro
     return {"vertices": vertices, "threads": int(dr.thread_count()), "iterations_per_block": iterations,
             "views": sorted(set.intersection(*(set(p) for p in pools.values()))),
             "recipes": {k: {"boundary_spp": rs.boundary_spp, "spp": rs.spp, "indirect_every": rs.indirect_every,
-                            "indirect_spp": rs.indirect_spp, "colour_lambda": rs.colour_lambda,
+                            "indirect_spp": rs.indirect_spp, "indirect_reference": rs.indirect_reference,
+                            "colour_lambda": rs.colour_lambda,
                             "check_every": rs.check_every if rs.validation_views else None}
                         for k, rs in recipes.items()},
             "blocks": blocks, "s_per_iteration": med}
@@ -392,14 +393,15 @@ def iteration_cost(bench, recipes: dict[str, MorphSettings], iterations: int, ro
 
 def bench_iteration_cost(work: Path, s: MorphBenchSettings, show_progress: bool) -> dict:
     """:func:`iteration_cost` of :func:`cost_recipes` on ``s.cost_mesh`` (the same remeshed start: the same vertex
-    count); ``ratio`` = today's defaults / the issue's recipe."""
+    count); ``ratio``: each of today's recipes / the issue's."""
     import tempfile
 
     bench = load_morph_benchmark(_suite_bench(s.cost_mesh, work, MorphBenchmarkSettings(seed=s.seed)))
     with tempfile.TemporaryDirectory(dir=work) as tmp:
         out = iteration_cost(bench, cost_recipes(s), s.cost_iterations, s.cost_rounds, Path(tmp), show_progress)
     med = out["s_per_iteration"]
-    return {"mesh": s.cost_mesh, **out, "ratio": med["defaults"] / med["issue_recipe"]}
+    return {"mesh": s.cost_mesh, **out,
+            "ratio": {k: v / med["issue_recipe"] for k, v in med.items() if k != "issue_recipe"}}
 
 
 def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True,
