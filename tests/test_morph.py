@@ -967,7 +967,7 @@ def test_boundary_samples_change_only_the_silhouette_gradient_and_not_its_mean(s
     import mitsuba as mi
 
     from inverse.morph import morph_scene, render_views
-    from inverse.morph.scene import projective_integrator
+    from inverse.morph import projective_integrator
 
     b = small_armadillo
     views, res = [0, 3], 24

@@ -24,15 +24,16 @@ from .gcn import GCNSettings, run_gcn_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import PleatReport, RepairReport, remesh, repair_flips, unfold_pleats
 from .batch import load_result, run_item
-from .run import ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, PlanarityDecision, TracePoint, run_morph, start_mesh
+from .run import (Candidate, ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, MorphStage,
+                  PlanarityDecision, TracePoint, candidate_settings, run_morph, start_mesh)
 from .suite import SUITE, KINDS, suite_mesh
-from .scene import MODES, morph_scene, photo_at, render_views
+from .scene import MODES, morph_scene, photo_at, projective_integrator, render_views
 
 __all__ = [
-    "ARTIFACT_REGIONS", "Camera", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
-    "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "PlanarityDecision",
-    "RepairReport", "artifact_masks", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
-    "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "remesh",
+    "ARTIFACT_REGIONS", "Camera", "Candidate", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
+    "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "MorphStage", "PlanarityDecision",
+    "RepairReport", "artifact_masks", "candidate_settings", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
+    "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",
     "render_views", "repair_flips", "run_gcn_morph", "run_item", "run_morph", "sensor_dict", "start_mesh",
     "KINDS", "PleatReport", "SUITE", "TracePoint", "silhouette_margins", "suite_mesh", "truth_scene",
     "truth_start_benchmark",

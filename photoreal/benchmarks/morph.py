@@ -13,9 +13,9 @@ from foundation import validate
 from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
-from inverse.morph import (KINDS, SUITE, MorphBenchmarkSettings, MorphResult, MorphSettings, load_morph_benchmark,
-                           make_morph_benchmark, run_morph, silhouette_margins, start_mesh, suite_mesh,
-                           truth_start_benchmark)
+from inverse.morph import (KINDS, SUITE, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
+                           candidate_settings, load_morph_benchmark, make_morph_benchmark, run_morph, silhouette_margins,
+                           start_mesh, suite_mesh, truth_start_benchmark)
 
 
 @dataclass
@@ -316,8 +316,6 @@ def cost_recipes(s: MorphBenchSettings) -> dict[str, MorphSettings]:
     (constant λ 2, the planarity rule, plain colour steps, no validation renders). ``defaults``: today's defaults
     where the photos keep the plain run (validation renders every ``check_every``). ``defaults_light``: where they
     keep the light run (also the light estimate every ``light_select_every`` and colour large steps)."""
-    from inverse.morph.run import Candidate, candidate_settings
-
     d = MorphSettings(seed=s.seed)
     issue = replace(d, lambda_select=(), planarity_select=(), colour_prior_weight=0.0, validation_views=0,
                     early_stop=False, light_select_every=0)
@@ -333,8 +331,6 @@ def iteration_cost(bench, recipes: dict[str, MorphSettings], iterations: int, ro
     ``check_every``). One untimed block per recipe first compiles the kernels; the median block is reported."""
     import drjit as dr
     from tqdm import tqdm
-
-    from inverse.morph.run import MorphStage
 
     blocks: dict[str, list] = {k: [] for k in recipes}
     vertices, pools = {}, {}
