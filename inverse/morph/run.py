@@ -899,6 +899,23 @@ def colour_rule_on(bench: MorphBenchmark, s: MorphSettings) -> bool:
     return decide_colour_prior(c, f, s).weight > 0
 
 
+def _twin_decision(path: Path, cls: type, what: str, made_for, wanted: tuple, describe, make):
+    """A choice between the selection's winner and its twin (one setting changed): read from ``path`` — refused,
+    naming the file, where ``made_for(decision) != wanted`` (``describe`` says what it was made for) — or made by
+    ``make`` (None: the iteration budget ran out first) and written there."""
+    from foundation.files import read_json, write_json
+
+    if path.is_file():
+        d = from_json(cls, read_json(path, what), str(path))
+        if made_for(d) != wanted:
+            raise UsageError(f"{path}: made for {describe(d)}; delete {path.parent} to start over")
+        return d
+    d = make()
+    if d is not None:
+        write_json(path, to_json(d))
+    return d
+
+
 def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progress: bool,
                   budget: int | None) -> MorphResult | None:
     """Every candidate (:func:`selection_candidates`) to the selection point, then the one with the lowest
@@ -935,17 +952,12 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
                               planarity=[c.planarity for c in cands], chosen_planarity=chosen.planarity,
                               margin=s.prior_margin)
         write_json(decision_path, to_json(sel))
-    winner, extra, colour = sel.winner, 0.0, None
+    winner, extra, colour, light = sel.winner, 0.0, None, None
     if colour_rule_on(bench, s):  # then the winner without the colour prior, to the same point: the photos decide
-        colour_path = out / "lambda_select" / "colour_decision.json"
         twin = replace(winner, colour=0.0)
-        if colour_path.is_file():
-            colour = from_json(ColourSelection, read_json(colour_path, "colour-prior selection"), str(colour_path))
-            if colour.candidate != winner.folder or colour.at_iteration != at or colour.margin != s.prior_margin:
-                raise UsageError(f"{colour_path}: made for {colour.candidate} at iteration {colour.at_iteration} "
-                                 f"with prior_margin {colour.margin:g}, not {winner.folder} at {at} with "
-                                 f"{s.prior_margin:g}; delete {out / 'lambda_select'} to start over")
-        else:
+
+        def decide_colour() -> ColourSelection | None:
+            nonlocal budget
             reached, budget = _advance(bench, _trial_dir(out, twin), candidate_settings(s, twin), at, show_progress,
                                        budget)
             if not reached:
@@ -956,25 +968,24 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
             kept = without_l1 is None or with_l1 is None or \
                 choose_with_margin([without_l1, with_l1], [False, True], s.prior_margin) == 1
             lost = _trial_dir(out, twin if kept else winner) / "checkpoint.npz"
-            colour = ColourSelection(winner.folder, at, with_l1, without_l1, kept, _trial_status(lost, at)[3],
-                                     margin=s.prior_margin)
-            write_json(colour_path, to_json(colour))
+            return ColourSelection(winner.folder, at, with_l1, without_l1, kept, _trial_status(lost, at)[3],
+                                   margin=s.prior_margin)
+
+        colour = _twin_decision(
+            out / "lambda_select" / "colour_decision.json", ColourSelection, "colour-prior selection",
+            lambda d: (d.candidate, d.at_iteration, d.margin), (winner.folder, at, s.prior_margin),
+            lambda d: f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}, not "
+                      f"{winner.folder} at {at} with {s.prior_margin:g}", decide_colour)
+        if colour is None:
+            return None
         extra += colour.trial_seconds
         if not colour.kept:
             winner = twin
-    light = None
     if light_select_on(s):  # then the winner with the light estimate and colour large steps: the photos decide
-        light_path = out / "lambda_select" / "light_decision.json"
         twin = replace(winner, light=True)
-        if light_path.is_file():
-            light = from_json(LightSelection, read_json(light_path, "light selection"), str(light_path))
-            made = (light.candidate, light.at_iteration, light.margin, light.every, light.colour_lambda)
-            if made != (winner.folder, at, s.prior_margin, s.light_select_every, s.light_select_colour_lambda):
-                raise UsageError(f"{light_path}: made for {light.candidate} at iteration {light.at_iteration} with "
-                                 f"prior_margin {light.margin:g}, every {light.every}, colour λ "
-                                 f"{light.colour_lambda:g}; not for these settings: delete {out / 'lambda_select'} "
-                                 f"to start over")
-        else:
+
+        def decide_light() -> LightSelection | None:
+            nonlocal budget
             for c in (winner, twin):
                 reached, budget = _advance(bench, _trial_dir(out, c), candidate_settings(s, c), at, show_progress,
                                            budget)
@@ -985,11 +996,19 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
                   for c in (winner, twin)]
             kept = None not in l1 and choose_with_margin(l1, [False, True], s.prior_margin) == 1
             lost = _trial_dir(out, winner if kept else twin) / "checkpoint.npz"
-            light = LightSelection(winner.folder, at, l1[0], l1[1], kept,
-                                   _trial_status(lost, at)[3] + time.perf_counter() - t0,
-                                   every=s.light_select_every, colour_lambda=s.light_select_colour_lambda,
-                                   margin=s.prior_margin)
-            write_json(light_path, to_json(light))
+            return LightSelection(winner.folder, at, l1[0], l1[1], kept,
+                                  _trial_status(lost, at)[3] + time.perf_counter() - t0,
+                                  every=s.light_select_every, colour_lambda=s.light_select_colour_lambda,
+                                  margin=s.prior_margin)
+
+        light = _twin_decision(
+            out / "lambda_select" / "light_decision.json", LightSelection, "light selection",
+            lambda d: (d.candidate, d.at_iteration, d.margin, d.every, d.colour_lambda),
+            (winner.folder, at, s.prior_margin, s.light_select_every, s.light_select_colour_lambda),
+            lambda d: f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}, every {d.every}, "
+                      f"colour λ {d.colour_lambda:g}; not for these settings", decide_light)
+        if light is None:
+            return None
         extra += light.trial_seconds
         if light.kept:
             winner = twin
