@@ -899,10 +899,10 @@ def colour_rule_on(bench: MorphBenchmark, s: MorphSettings) -> bool:
     return decide_colour_prior(c, f, s).weight > 0
 
 
-def _twin_decision(path: Path, cls: type, what: str, made_for, wanted: tuple, describe, make):
-    """A choice between the selection's winner and its twin (one setting changed): read from ``path`` — refused,
-    naming the file, where ``made_for(decision) != wanted`` (``describe`` says what it was made for) — or made by
-    ``make`` (None: the iteration budget ran out first) and written there."""
+def _decision_file(path: Path, cls: type, what: str, made_for, wanted: tuple, describe, make):
+    """One choice of the selection (λ and planarity, colour prior, light): read from ``path`` — refused, naming the
+    file, where ``made_for(decision) != wanted`` (``describe`` says what it was made for) — or made by ``make``
+    (None: the iteration budget ran out first) and written there."""
     from foundation.files import read_json, write_json
 
     if path.is_file():
@@ -923,22 +923,16 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
     into ``out`` with the choice recorded. ``budget`` counts iterations of this call over all candidates."""
     import shutil
 
-    from foundation.files import atomic_path, read_json, write_json
+    from foundation.files import atomic_path, write_json
 
     at = selection_point(s)
-    decision_path = out / "lambda_select" / "decision.json"
     prior_on = False
     if s.planarity_weight is None and s.planarity_select:  # the rule first: the input remeshed (memoised) as run
         prior_on = decide_planarity(*start_mesh(bench, s)[1][:2], s).weight > 0
     cands = selection_candidates(s, prior_on)
-    if decision_path.is_file():
-        sel = from_json(LambdaSelection, read_json(decision_path, "λ selection"), str(decision_path))
-        if sel.candidate_list() != cands or sel.at_iteration != at or sel.margin != s.prior_margin:
-            made = [c.folder for c in sel.candidate_list()]
-            raise UsageError(f"{decision_path}: made for candidates {made} at iteration {sel.at_iteration} with "
-                             f"prior_margin {sel.margin:g}, not {[c.folder for c in cands]} at {at} with "
-                             f"{s.prior_margin:g}; delete {out / 'lambda_select'} to start over")
-    else:
+
+    def decide_lambda() -> LambdaSelection | None:
+        nonlocal budget
         for c in cands:
             reached, budget = _advance(bench, _trial_dir(out, c), candidate_settings(s, c), at, show_progress, budget)
             if not reached:
@@ -947,11 +941,19 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
         scores = [status[c][2] for c in cands]
         # planarity candidates carry a prior the λ candidates do not (those take the rule's weight, off here)
         chosen = cands[choose_with_margin(scores, [c.planarity is not None for c in cands], s.prior_margin)]
-        sel = LambdaSelection([c.lambda_start for c in cands], at, scores, chosen.lambda_start,
-                              float(sum(status[c][3] for c in cands if c != chosen)),
-                              planarity=[c.planarity for c in cands], chosen_planarity=chosen.planarity,
-                              margin=s.prior_margin)
-        write_json(decision_path, to_json(sel))
+        return LambdaSelection([c.lambda_start for c in cands], at, scores, chosen.lambda_start,
+                               float(sum(status[c][3] for c in cands if c != chosen)),
+                               planarity=[c.planarity for c in cands], chosen_planarity=chosen.planarity,
+                               margin=s.prior_margin)
+
+    sel = _decision_file(
+        out / "lambda_select" / "decision.json", LambdaSelection, "λ selection",
+        lambda d: (d.candidate_list(), d.at_iteration, d.margin), (cands, at, s.prior_margin),
+        lambda d: f"candidates {[c.folder for c in d.candidate_list()]} at iteration {d.at_iteration} with "
+                  f"prior_margin {d.margin:g}, not {[c.folder for c in cands]} at {at} with {s.prior_margin:g}",
+        decide_lambda)
+    if sel is None:
+        return None
     winner, extra, colour, light = sel.winner, 0.0, None, None
     if colour_rule_on(bench, s):  # then the winner without the colour prior, to the same point: the photos decide
         twin = replace(winner, colour=0.0)
@@ -971,7 +973,7 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
             return ColourSelection(winner.folder, at, with_l1, without_l1, kept, _trial_status(lost, at)[3],
                                    margin=s.prior_margin)
 
-        colour = _twin_decision(
+        colour = _decision_file(
             out / "lambda_select" / "colour_decision.json", ColourSelection, "colour-prior selection",
             lambda d: (d.candidate, d.at_iteration, d.margin), (winner.folder, at, s.prior_margin),
             lambda d: f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}, not "
@@ -1001,7 +1003,7 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
                                   every=s.light_select_every, colour_lambda=s.light_select_colour_lambda,
                                   margin=s.prior_margin)
 
-        light = _twin_decision(
+        light = _decision_file(
             out / "lambda_select" / "light_decision.json", LightSelection, "light selection",
             lambda d: (d.candidate, d.at_iteration, d.margin, d.every, d.colour_lambda),
             (winner.folder, at, s.prior_margin, s.light_select_every, s.light_select_colour_lambda),

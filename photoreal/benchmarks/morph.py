@@ -342,9 +342,9 @@ def iteration_cost(bench, recipes: dict[str, MorphSettings], iterations: int, ro
         st = MorphStage(bench, tmp / k, rs)
         try:
             vertices[k] = int(len(st.vertices()))
-            pools[k] = list(st.train_ids)
+            pools[k] = set(st.train_ids)
             if len(pools) == len(recipes):  # every recipe draws the same views (one seed): a view's cost varies
-                st.train_ids = sorted(set.intersection(*(set(p) for p in pools.values())))
+                st.train_ids = sorted(set.intersection(*pools.values()))
             st.estimate_indirect()  # a run's iteration 0 (nothing when the recipe has no estimate)
             for it in range(2):  # kernels from the cache; not timed
                 st.step(it)
@@ -378,7 +378,7 @@ def iteration_cost(bench, recipes: dict[str, MorphSettings], iterations: int, ro
     bar.close()
     med = {k: float(np.median([b["total"] for b in v])) for k, v in blocks.items()}
     return {"vertices": vertices, "threads": int(dr.thread_count()), "iterations_per_block": iterations,
-            "views": sorted(set.intersection(*(set(p) for p in pools.values()))),
+            "views": sorted(set.intersection(*pools.values())),
             "recipes": {k: {"boundary_spp": rs.boundary_spp, "spp": rs.spp, "indirect_every": rs.indirect_every,
                             "indirect_spp": rs.indirect_spp, "indirect_reference": rs.indirect_reference,
                             "colour_lambda": rs.colour_lambda,
