@@ -119,6 +119,15 @@ def vertex_neighbours_mean(x: np.ndarray, f: np.ndarray) -> np.ndarray:
     return (a @ x) / np.maximum(deg, 1)[:, None]
 
 
+def spike_mask(v0: np.ndarray, v1: np.ndarray, f: np.ndarray, k: float = 3.0,
+               ell: np.ndarray | None = None) -> np.ndarray:
+    """Vertices whose displacement ``v1 − v0`` departs from their 1-ring's mean displacement by more than ``k`` ×
+    their local edge length in ``v0`` (``ell``, computed when not given): the spikes of :func:`spikes`."""
+    d = v1 - v0
+    ell = edge_lengths(v0, f) if ell is None else ell
+    return np.linalg.norm(d - vertex_neighbours_mean(d, f), axis=1) > k * ell
+
+
 def spikes(v0: np.ndarray, v1: np.ndarray, f: np.ndarray, k: float = 3.0) -> dict:
     """Spikes and folds a morph made, judged against its start ``v0`` (same topology ``f``).
 
@@ -130,10 +139,9 @@ def spikes(v0: np.ndarray, v1: np.ndarray, f: np.ndarray, k: float = 3.0) -> dic
     * ``inverted_triangles``: triangles whose normal flipped relative to the start (folds).
     * ``spikes`` = spike vertices + inverted triangles.
     """
-    d = v1 - v0
     ell = edge_lengths(v0, f)
-    spike = np.linalg.norm(d - vertex_neighbours_mean(d, f), axis=1) > k * ell
-    far = np.linalg.norm(d, axis=1) > k * ell
+    spike = spike_mask(v0, v1, f, k, ell)
+    far = np.linalg.norm(v1 - v0, axis=1) > k * ell
     flipped = int((np.sum(face_normals(v0, f) * face_normals(v1, f), axis=1) < 0).sum())
     return {"spike_vertices": int(spike.sum()), "far_moved_vertices": int(far.sum()), "inverted_triangles": flipped,
             "spikes": int(spike.sum() + flipped)}

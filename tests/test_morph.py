@@ -532,6 +532,31 @@ def test_repair_flips_unfolds_locally_and_reports():
     assert rep0 == RepairReport(0, 0, 0, 0.0)
 
 
+def test_iron_spikes_brings_a_needle_back_to_its_neighbours_and_nothing_else():
+    """A vertex pushed 5 edge lengths out of a sphere (its ring left behind) is a spike against the start; ironing
+    its displacement towards the ring's mean leaves none, flips nothing, moves no other vertex, and says so."""
+    from foundation.mesh import edge_lengths
+    from foundation.mesh_metrics import spikes
+    from inverse.morph import SpikeReport, iron_spikes
+
+    v, f = _sphere(1.0, 16)
+    i = 120
+    needle = v.copy()
+    needle[i] = v[i] * (1.0 + 5.0 * edge_lengths(v, f)[i])
+    assert spikes(v, needle, f)["spike_vertices"] == 1
+    fixed, rep = iron_spikes(needle, f, v)
+    assert spikes(v, fixed, f)["spike_vertices"] == 0 and spikes(v, fixed, f)["inverted_triangles"] == 0
+    others = np.arange(len(v)) != i
+    np.testing.assert_array_equal(fixed[others], needle[others])
+    assert rep.spikes_before == 1 and rep.spikes_after == 0 and rep.moved_vertices == 1
+    assert rep.max_move == pytest.approx(np.linalg.norm(fixed[i] - needle[i]))
+    # a coherent move of a whole region is not a spike: nothing to iron
+    shifted = v + np.array([0.3, 0.0, 0.0]) * (v[:, 2:3] > 0.5)
+    same, rep0 = iron_spikes(shifted, f, v)
+    np.testing.assert_array_equal(same, shifted)
+    assert rep0 == SpikeReport(0, 0, 0, 0.0)
+
+
 def _box(n=8):
     """Closed unit cube [-1, 1]³, each side an n×n grid, outward winding, shared corner/edge vertices."""
     g = np.linspace(-1, 1, n + 1)

@@ -22,7 +22,7 @@ from .benchmark import (ARTIFACT_REGIONS, Camera, MorphBenchmark, MorphBenchmark
 from .evaluate import MorphEvaluation, evaluate_morph
 from .gcn import GCNSettings, run_gcn_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
-from .mesh_edit import PleatReport, RepairReport, remesh, repair_flips, unfold_pleats
+from .mesh_edit import PleatReport, RepairReport, SpikeReport, iron_spikes, remesh, repair_flips, unfold_pleats
 from .batch import load_result, run_item
 from .run import (Candidate, ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, MorphStage,
                   PlanarityDecision, TracePoint, candidate_settings, run_morph, start_mesh)
@@ -35,7 +35,7 @@ __all__ = [
     "RepairReport", "artifact_masks", "candidate_settings", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",
     "render_views", "repair_flips", "run_gcn_morph", "run_item", "run_morph", "sensor_dict", "start_mesh",
-    "KINDS", "PleatReport", "SUITE", "TracePoint", "silhouette_margins", "suite_mesh", "truth_scene",
+    "KINDS", "PleatReport", "SpikeReport", "iron_spikes", "SUITE", "TracePoint", "silhouette_margins", "suite_mesh", "truth_scene",
     "truth_start_benchmark",
     "unfold_pleats",
 ]

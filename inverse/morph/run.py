@@ -59,7 +59,8 @@ from foundation.scene import mitsuba_log_level
 from .benchmark import MorphBenchmark, sensor_dict
 from .evaluate import MorphEvaluation, evaluate_morph
 from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
-from .mesh_edit import PleatReport, RepairReport, remesh, repair_flips, undo_flips, unfold_pleats
+from .mesh_edit import (PleatReport, RepairReport, SpikeReport, iron_spikes, remesh, repair_flips, undo_flips,
+                        unfold_pleats)
 from .scene import MODES, morph_scene, photo_tensors, projective_integrator, render_views
 
 
@@ -363,6 +364,7 @@ class MorphResult(MorphEvaluation):
     colour_prior: ColourPriorDecision | None = None
     repair: RepairReport | None = None
     pleats: PleatReport | None = None  #: the final ironing of pleats (after the unfolding of flips)
+    spike_ironing: SpikeReport | None = None  #: spikes the repairs left, brought back to their neighbours (last)
     pretrain_loss_last: float | None = None  #: GCN only: identity pre-training
     trace: list[TracePoint] = field(default_factory=list)
     stopped_early: bool = False  #: the validation loss stopped improving before ``settings.iterations``
@@ -710,7 +712,7 @@ class MorphStage(DrJitStage):
         s = self.s
         v_out, c_out = self.vertices(), self.colours()
         repair = None
-        pleat_report = None
+        pleat_report = spike_report = None
         if s.repair_flips and not s.remesh_at:
             v_out, repair = repair_flips(v_out, self.faces, self.v_start)
             v_unfolded, pleat_report = unfold_pleats(v_out, self.faces)
@@ -720,6 +722,7 @@ class MorphStage(DrJitStage):
                 v_out = v_unfolded
             else:  # kept as it was: the report says so
                 pleat_report = PleatReport(pleat_report.pleats_before, pleat_report.pleats_before, 0, 0.0)
+            v_out, spike_report = iron_spikes(v_out, self.faces, self.v_start)
         write_ply(self.out / "morphed.ply", v_out, self.faces, np.clip(c_out, 0, 1))
         seconds = self.setup_seconds + run.train_seconds
         self.close()
@@ -737,7 +740,7 @@ class MorphStage(DrJitStage):
         return MorphResult(**vars(ev), seconds=seconds, iterations=run.step, vertices=int(len(v_out)),
                            method=s.parameterisation, settings=s, training=run.summary(),
                            planarity=self.planarity, colour_prior=self.colour_prior, repair=repair,
-                           pleats=pleat_report, trace=self.trace,
+                           pleats=pleat_report, spike_ironing=spike_report, trace=self.trace,
                            stopped_early=run.stopped,
                            validation_views=list(self.val_ids), validation_seconds=self.validation_seconds,
                            trace_chamfer_input=trace_in)
