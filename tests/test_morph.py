@@ -605,6 +605,35 @@ def test_pleats_are_found_without_a_reference_and_ironed_out():
     assert rep0.pleats_before == 0 and rep0.moved_vertices == 0
 
 
+def test_pleats_that_cannot_be_ironed_without_a_flip_stay_and_the_others_are_ironed():
+    """Two wrinkles; the reference orientation (the morph's start) holds the second one's triangles as they are, so
+    ironing it would turn them against it: with ``v_ref`` that wrinkle stays, the first is ironed out, and no
+    triangle turns against the reference. (Before, the morph refused the whole ironing in such a case.)"""
+    from foundation.mesh import face_normals
+    from inverse.morph.mesh_edit import pleats, unfold_pleats
+
+    v, f = _sphere(1.0, 20)
+    a, b = 10 * 40 + 7, 10 * 40 + 27  # two vertices of the equator band, half the sphere apart
+    wrinkled = v.copy()
+    for k in (a, b):
+        wrinkled[k] = v[k] + 2.0 * (v[k + 1] - v[k])
+    ref = v.copy()
+    ref[b] = wrinkled[b]  # the reference holds wrinkle b as it is
+    fan_a, fan_b = (f == a).any(axis=1), (f == b).any(axis=1)
+    bad = pleats(wrinkled, f)
+    assert bad[fan_a].any() and bad[fan_b].any()
+    fixed, rep = unfold_pleats(wrinkled, f, v_ref=ref)
+    after = pleats(fixed, f)
+    assert not after[fan_a].any() and after[fan_b].any()
+    assert rep.pleats_before == int(bad.sum()) and rep.pleats_after == int(after.sum()) > 0
+    n_ref = face_normals(ref, f)
+    turned_before = np.sum(face_normals(wrinkled, f) * n_ref, axis=1) < 0
+    assert not ((np.sum(face_normals(fixed, f) * n_ref, axis=1) < 0) & ~turned_before).any()
+    free, _ = unfold_pleats(wrinkled, f)  # without the reference both are ironed (and wrinkle b turns against it)
+    assert not pleats(free, f).any()
+    assert ((np.sum(face_normals(free, f) * n_ref, axis=1) < 0) & ~turned_before).any()
+
+
 def test_planarity_prior_closed_form_gradient_and_pairs():
     """Hinge of two triangles: prior = d/(d+σ) with d = 1 − cos θ (closed form); gradient = central
     differences (rtol 1e-3); a cube has 3F/2 consistent pairs, a flipped face drops its three edges."""

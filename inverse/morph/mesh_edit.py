@@ -128,24 +128,45 @@ def pleats(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return np.sum(fn * (inc.T @ vn), axis=1) < 0
 
 
-def unfold_pleats(v: np.ndarray, f: np.ndarray, rounds: int = 30) -> tuple[np.ndarray, PleatReport]:
+def unfold_pleats(v: np.ndarray, f: np.ndarray, rounds: int = 30,
+                  v_ref: np.ndarray | None = None) -> tuple[np.ndarray, PleatReport]:
     """Iron out pleats (:func:`pleats`): each round the vertices of pleated triangles move halfway to their 1-ring
     mean; only they move. Measured on the morph suite (300 iterations): the bone's 14 triangles facing against the
-    truth → 0, Chamfer within 0.4 %. A result with more pleats than it started with is not returned."""
+    truth → 0, Chamfer within 0.4 %. A result with more pleats than it started with is not returned.
+
+    ``v_ref``: orientations to keep — a vertex whose move turns a triangle against its orientation in ``v_ref``
+    (one that was not turned before) goes back and stays, and the other pleats are still ironed. Without it the
+    morph had to refuse the whole ironing whenever one pleat could not be ironed without such a flip: face000's 45
+    pleats all stayed (area facing against the truth 0.210 %); with it 21 stay (0.158 %), josie 26 → 10
+    (1.51 → 1.46 %), the cow 28 → 5 (1.44 → 1.34 %), Chamfer within 0.1 %."""
     v = np.array(v, np.float64)
     v0 = v.copy()
     lap = graph_laplacian(len(v), f)
     deg = np.maximum(lap.diagonal(), 1)
+    n_ref = face_normals(v_ref, f) if v_ref is not None else None
+    turned0 = np.sum(face_normals(v, f) * n_ref, axis=1) < 0 if n_ref is not None else None
+    stays = np.zeros(len(v), bool)
     bad = pleats(v, f)
     before = int(bad.sum())
     moved = np.zeros(len(v), bool)
     for _ in range(rounds):
-        if not bad.any():
-            break
         sel = np.zeros(len(v), bool)
         sel[f[bad].ravel()] = True
+        sel &= ~stays
+        if not sel.any():
+            break
+        prev = v.copy()
         target = v - (lap @ v) / deg[:, None]
         v[sel] = 0.5 * v[sel] + 0.5 * target[sel]
+        if n_ref is not None:
+            turned = (np.sum(face_normals(v, f) * n_ref, axis=1) < 0) & ~turned0
+            if turned.any():  # a triangle's normal depends on its corners only: putting back its movers undoes it
+                back = np.zeros(len(v), bool)
+                back[f[turned].ravel()] = True
+                back &= sel
+                v[back] = prev[back]
+                stays |= back
+                sel &= ~back
         moved |= sel
         bad = pleats(v, f)
     if bad.sum() > before:

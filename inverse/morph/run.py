@@ -715,9 +715,11 @@ class MorphStage(DrJitStage):
         pleat_report = spike_report = None
         if s.repair_flips and not s.remesh_at:
             v_out, repair = repair_flips(v_out, self.faces, self.v_start)
-            v_unfolded, pleat_report = unfold_pleats(v_out, self.faces)
-            # the pleats' smoothing must not bring back a flip w.r.t. the start
-            flips = np.sum(face_normals(v_unfolded, self.faces) * face_normals(self.v_start, self.faces), axis=1) < 0
+            v_unfolded, pleat_report = unfold_pleats(v_out, self.faces, v_ref=self.v_start)
+            # the pleats' smoothing must not bring back a flip w.r.t. the start (``v_ref`` sees to it: checked)
+            n_start = face_normals(self.v_start, self.faces)
+            flips = (np.sum(face_normals(v_unfolded, self.faces) * n_start, axis=1) < 0) & \
+                (np.sum(face_normals(v_out, self.faces) * n_start, axis=1) >= 0)
             if not flips.any():
                 v_out = v_unfolded
             else:  # kept as it was: the report says so
