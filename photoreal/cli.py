@@ -787,7 +787,8 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bm, MorphBenchSettings, "cost_iterations", help="steps per timed block (--parts iteration)")
     _opt(bm, MorphBenchSettings, "cost_rounds", help="timed blocks per recipe, in turns (--parts iteration)")
     _opt(bm, MorphBenchSettings, "cases")
-    _opt(bm, MorphBenchSettings, "suite", help="suite meshes (village and armadillo may be added)")
+    _opt(bm, MorphBenchSettings, "suite", help="suite meshes (village and armadillo may be added; paul, face000 "
+                                               "and bracket are meshes the defaults never saw)")
     _opt(bm, MorphBenchSettings, "iterations", help="morph iterations of the main and suite runs")
     _opt(bm, MorphBenchSettings, "keep_work", help="keep OUT/morph_work after the bench: a rerun re-reads the "
                                                    "finished runs instead of recomputing them (default: removed)")
