@@ -26,7 +26,7 @@ from .mesh_edit import PleatReport, RepairReport, SpikeReport, iron_spikes, reme
 from .batch import load_result, run_item
 from .run import (Candidate, ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, MorphStage,
                   PlanarityDecision, TracePoint, candidate_settings, run_morph, start_mesh)
-from .suite import SUITE, KINDS, suite_mesh
+from .suite import SUITE, KINDS, UNSEEN, suite_mesh
 from .scene import MODES, morph_scene, photo_at, projective_integrator, render_views
 
 __all__ = [
@@ -35,7 +35,7 @@ __all__ = [
     "RepairReport", "artifact_masks", "candidate_settings", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",
     "render_views", "repair_flips", "run_gcn_morph", "run_item", "run_morph", "sensor_dict", "start_mesh",
-    "KINDS", "PleatReport", "SpikeReport", "iron_spikes", "SUITE", "TracePoint", "silhouette_margins", "suite_mesh", "truth_scene",
+    "KINDS", "UNSEEN", "PleatReport", "SpikeReport", "iron_spikes", "SUITE", "TracePoint", "silhouette_margins", "suite_mesh", "truth_scene",
     "truth_start_benchmark",
     "unfold_pleats",
 ]

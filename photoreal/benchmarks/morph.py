@@ -13,7 +13,7 @@ from foundation import validate
 from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
-from inverse.morph import (KINDS, SUITE, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
+from inverse.morph import (KINDS, SUITE, UNSEEN, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
                            candidate_settings, load_morph_benchmark, make_morph_benchmark, run_morph, silhouette_margins,
                            start_mesh, suite_mesh, truth_start_benchmark)
 
@@ -28,7 +28,8 @@ class MorphBenchSettings:
     #: timed in turns in this process)
     parts: tuple[str, ...] = ("cases", "suite", "framing", "iteration")
     cases: tuple[str, ...] = ("village", "armadillo")
-    suite: tuple[str, ...] = SUITE  #: suite meshes (inverse.morph.suite); "village"/"armadillo" may be added
+    #: suite meshes (inverse.morph.suite); "village"/"armadillo" and the ``UNSEEN`` ones may be added
+    suite: tuple[str, ...] = SUITE
     framing_views: tuple[int, ...] = (8, 16, 32)
     framing_resolutions: tuple[int, ...] = (64, 128, 192)
     iterations: int = 600  #: the cap of the main and suite runs (they stop early: MorphSettings.early_stop)
@@ -61,9 +62,9 @@ class MorphBenchSettings:
         validate.seed("seed", self.seed)
         for part in self.parts:
             validate.one_of("parts", part, ("cases", "suite", "framing", "floor", "iteration"))
-        validate.one_of("cost_mesh", self.cost_mesh, (*SUITE, "village", "armadillo"))
+        validate.one_of("cost_mesh", self.cost_mesh, (*SUITE, *UNSEEN, "village", "armadillo"))
         for name in self.suite:
-            validate.one_of("suite", name, (*SUITE, "village", "armadillo"))
+            validate.one_of("suite", name, (*SUITE, *UNSEEN, "village", "armadillo"))
         for n in self.framing_views:
             validate.integer("framing_views", n, 4, 1024)
         for n in self.framing_resolutions:
