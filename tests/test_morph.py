@@ -433,6 +433,9 @@ def test_generated_suite_meshes_are_closed_outward_and_of_known_volume(tmp_path)
         load_mesh_any(suite_mesh(name, tmp_path))
     with pytest.raises(UsageError, match="unknown case 'nope'.*bracket"):
         suite_mesh("nope", tmp_path)
+    from photoreal.benchmarks.morph import MorphBenchSettings
+
+    assert MorphBenchSettings(suite=UNSEEN).suite == UNSEEN  # the bench runs them by name
 
 
 def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):
