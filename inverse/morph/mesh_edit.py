@@ -135,7 +135,8 @@ def unfold_pleats(v: np.ndarray, f: np.ndarray, rounds: int = 30,
     truth → 0, Chamfer within 0.4 %. A result with more pleats than it started with is not returned.
 
     ``v_ref``: orientations to keep — a vertex whose move turns a triangle against its orientation in ``v_ref``
-    (one that was not turned before) goes back and stays, and the other pleats are still ironed. Without it the
+    (one that was not turned before) goes back and stays, and the other pleats are still ironed. Not a guarantee:
+    putting a vertex back can turn a neighbouring triangle whose other corner moved (the caller checks). Without it the
     morph had to refuse the whole ironing whenever one pleat could not be ironed without such a flip: face000's 45
     pleats all stayed (area facing against the truth 0.210 %); with it 21 stay (0.158 %), josie 26 → 10
     (1.51 → 1.46 %), the cow 28 → 5 (1.44 → 1.34 %), Chamfer within 0.1 %."""
