@@ -716,8 +716,8 @@ class MorphStage(DrJitStage):
         if s.repair_flips and not s.remesh_at:
             v_out, repair = repair_flips(v_out, self.faces, self.v_start)
             v_unfolded, pleat_report = unfold_pleats(v_out, self.faces, v_ref=self.v_start)
-            # the pleats' smoothing must not bring back a flip w.r.t. the start. ``v_ref`` keeps most away, not all: a
-            # vertex put back can leave a neighbouring triangle half moved (the suite's village: one); then none of it
+            # the pleats' smoothing must not bring back a flip w.r.t. the start: ``v_ref`` guarantees it; this guard
+            # keeps the promise should that change (it refused the village's whole ironing before the repeated put-back)
             n_start = face_normals(self.v_start, self.faces)
             flips = (np.sum(face_normals(v_unfolded, self.faces) * n_start, axis=1) < 0) & \
                 (np.sum(face_normals(v_out, self.faces) * n_start, axis=1) >= 0)
