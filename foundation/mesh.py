@@ -75,6 +75,13 @@ def unique_edges(f: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
+def boundary_edges(f: np.ndarray) -> np.ndarray:
+    """Edges that belong to one triangle only (an open mesh's border), as sorted (i, j) pairs."""
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    u, count = np.unique(e, axis=0, return_counts=True)
+    return u[count == 1]
+
+
 def graph_laplacian(n: int, faces: np.ndarray):
     """Combinatorial Laplacian D − A of the mesh's edge graph (binary adjacency), scipy CSR."""
     import scipy.sparse as sp

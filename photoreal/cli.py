@@ -456,6 +456,40 @@ def _cmd_morph_run(a) -> int:
     return 0
 
 
+def _cmd_morph_errors(a) -> int:
+    from foundation.files import check_output_file, write_json
+    from foundation.records import to_json
+    from inverse.morph import benchmark_errors, load_morph_benchmark
+
+    bench = load_morph_benchmark(a.benchmark)
+    results: dict[str, Path] = {}
+    for item in a.results:
+        p = Path(item)
+        ply = p / "morphed.ply" if p.is_dir() else p
+        if not ply.is_file():
+            raise _usage(f"{item}: no such mesh file" + (" (a folder without morphed.ply)" if p.is_dir() else ""))
+        name = (p.name if p.is_dir() else p.parent.name if p.stem == "morphed" else p.stem) or "result"
+        base, k = name, 2
+        while name in results or name == "input":
+            name, k = f"{base}_{k}", k + 1
+        results[name] = ply
+    if a.json:
+        check_output_file(a.json, "--json")
+    if a.band is not None and not a.band > 0:
+        raise _usage(f"--band must be > 0, got {a.band}")
+    if Path(a.out).exists() and not Path(a.out).is_dir():
+        raise _usage(f"--out {a.out}: is a file, expected a folder")
+    r = benchmark_errors(bench, results, Path(a.out), band=a.band)
+    if a.json:
+        write_json(a.json, to_json(r))
+    for e in r.meshes:
+        _print({"mesh": e.name, "chamfer": e.chamfer, "to_truth": e.to_truth, "from_truth": e.from_truth,
+                "from_truth_border": e.from_truth_border, "from_truth_interior": e.from_truth_interior,
+                "input_error_left": e.input_error_left, "new_error_rms": e.new_error_rms})
+    print(f"maps: {a.out}/errors_*.ply, figure: {r.files['figure']}")
+    return 0
+
+
 # -- btf ------------------------------------------------------------------------------------------------------------
 
 
@@ -1011,6 +1045,17 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)
+
+    me = msub.add_parser("errors", help="where meshes lie against a benchmark's truth: both Chamfer directions, its "
+                                        "open border against its interior, the input's error a result kept; "
+                                        "signed-distance PLYs and a figure")
+    me.add_argument("benchmark", help="folder made by `photoreal morph make-benchmark`")
+    me.add_argument("results", nargs="+", help="result meshes (OBJ/PLY/OFF) or morph output folders (their morphed.ply)")
+    me.add_argument("--out", required=True, help="folder for errors.json, errors_<name>.ply and errors.png")
+    me.add_argument("--json", default=None, help="also write the report here")
+    me.add_argument("--band", type=float, default=None,
+                    help="width of the truth's border band (default 2.5%% of its bounding-box diagonal)")
+    me.set_defaults(func=_cmd_morph_errors)
 
     t = sub.add_parser("btf", help="universal neural BTF: data, basis training, per-material fitting (seed 002)")
     tsub = t.add_subparsers(dest="btf_cmd", required=True)
