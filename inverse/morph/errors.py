@@ -75,7 +75,7 @@ def surface_errors(gv: np.ndarray, gf: np.ndarray, meshes: dict[str, tuple[np.nd
     ``reference``: the name of the mesh whose error the others are regressed on (the coarse input). ``band``: width
     of the truth's border band (default 2.5 % of the truth's bounding-box diagonal). ``n``: points per surface (default
     the Chamfer's query count, :data:`~foundation.mesh_metrics.DEFAULT_SAMPLES`; the mesh side of the truth → mesh
-    direction uses the Chamfer's denser reference count)."""
+    direction uses the Chamfer's denser reference count). ``seed``: of those samplings (fixed: reports repeat)."""
     from scipy.spatial import cKDTree
 
     n_q, n_ref = (DEFAULT_SAMPLES[0] if n is None else n), DEFAULT_SAMPLES[1]
@@ -137,7 +137,7 @@ def error_maps(gv: np.ndarray, gf: np.ndarray, meshes: dict[str, tuple[np.ndarra
 
 
 def error_figure(files: dict[str, Path], cameras: list, fov: float, scale: float, path: Path,
-                 res: int = 384, spp: int = 128, titles: dict[str, str] | None = None) -> Path:
+                 res: int = 384, spp: int = 128) -> Path:
     """A figure of the signed-distance PLYs (rows) from ``cameras`` (columns), with the colour bar: each rendered
     two-sided diffuse under a uniform white sky, direct light only, so that the colours read as they are and
     ambient occlusion shows the shape."""
@@ -155,7 +155,7 @@ def error_figure(files: dict[str, Path], cameras: list, fov: float, scale: float
 
     rows, cols = len(files), len(cameras)
     imgs = {}
-    for r, (name, ply) in enumerate(files.items()):
+    for r, ply in enumerate(files.values()):
         with mitsuba_log_level(mi.LogLevel.Error):
             scene = mi.load_dict({
                 "type": "scene", "integrator": {"type": "path", "max_depth": 2},
@@ -187,7 +187,7 @@ def error_figure(files: dict[str, Path], cameras: list, fov: float, scale: float
         ax.imshow(np.clip(img[y0:y1, x0:x1, :3], 0, 1))
         ax.set_xticks([]), ax.set_yticks([])
         if c == 0:
-            ax.set_ylabel((titles or {}).get(list(files)[r], list(files)[r]))
+            ax.set_ylabel(list(files)[r])
     sm = plt.cm.ScalarMappable(cmap="RdBu_r", norm=matplotlib.colors.Normalize(-scale, scale))
     fig.colorbar(sm, ax=axes, shrink=0.8, label="signed distance to the truth (blue: behind, red: in front)")
     path = Path(path)
