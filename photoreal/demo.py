@@ -263,7 +263,8 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
     """Armadillo morph benchmark: degraded input vs morphed vs photo, metrics; bench tables if present."""
     import shutil
 
-    from inverse.morph import MorphBenchmarkSettings, MorphSettings, load_morph_benchmark, make_morph_benchmark, run_morph
+    from inverse.morph import (MorphBenchmarkSettings, MorphSettings, benchmark_errors, load_morph_benchmark,
+                               make_morph_benchmark, run_morph)
 
     mdir = Path(out_dir) / "morph"
     bench = load_morph_benchmark(make_morph_benchmark(ARMADILLO, mdir / "benchmark", MorphBenchmarkSettings(seed=seed)))
@@ -279,6 +280,10 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
             ("chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input", "psnr_heldout_morphed",
              "spikes", "inverted_triangles", "inverted_before_repair", "repaired_vertices", "seconds")
             if m.get(k) is not None]
+    # where the error sits (photoreal morph errors): what of the input's error the morph kept, what it made
+    err = {e.name: e for e in benchmark_errors(bench, {"morphed": mdir / "run" / "morphed.ply"}, mdir / "errors").meshes}
+    rows += [{"metric": "input's error left (slope)", "value": err["morphed"].input_error_left},
+             {"metric": "new error (rms)", "value": err["morphed"].new_error_rms}]
     body = (f"<p>Stanford Armadillo, {len(bench.meta.cameras)} drone-orbit photos path traced under the "
             f"{bench.meta.hdri} HDRI; degraded input: {bench.meta.degradation.coarse_vertices} vertices "
             f"with bumps, wobble and misregistered colours. Morph: {iterations} iterations, large steps, lit mode, "
@@ -286,7 +291,11 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
             f"locally and counted (inverted_before_repair). Planarity prior weight {mr.planarity.weight:g} "
             f"(auto: the input's largest plane holds {mr.planarity.dominant_plane_fraction or 0:.0%} of its area; "
             f"on from 20%, as on the village). Colour prior weight {mr.colour_prior.weight:g} "
-            f"({_colour_why(mr)}). Light estimate and colour large steps {_light_why(mr)}.</p><div>{figs}</div>" + _table(rows, ["metric", "value"]))
+            f"({_colour_why(mr)}). Light estimate and colour large steps {_light_why(mr)}.</p><div>{figs}</div>" + _table(rows, ["metric", "value"])
+            + "<p>Where the error sits (<code>photoreal morph errors</code>): signed distance to the truth, blue "
+              "behind it, red in front, coarse input above, morphed below; the input's error left is the slope of "
+              "the result's signed distance on the input's (1: kept, 0: gone), the new error what that leaves.</p>"
+            + _figure("morph/errors/errors.png", "signed distance to the truth"))
     mb = _bench_json(bench_dir, "morph.json")
     if mb is not None:
         body += "<h3>Benchmark (<code>photoreal bench morph</code>)</h3>"
