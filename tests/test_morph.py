@@ -1216,3 +1216,18 @@ def test_morph_errors_cli_writes_maps_a_figure_and_a_report(small_armadillo, tmp
     assert main(["morph", "errors", str(b.path), str(b.coarse), "--out", str(tmp_path / "e3"), "--band", "-1"]) == 2
     assert "--band must be > 0" in capsys.readouterr().err
     assert not (tmp_path / "e2").exists() and not (tmp_path / "e3").exists()
+
+
+def test_the_suite_bench_row_says_where_the_error_sits(small_armadillo):
+    """``where_errors`` (each suite row's ``errors``): the coarse input as its own result keeps all of its error
+    (slope 1, no new error) and both directions agree with the Chamfer the run reports (within 5 %)."""
+    from foundation.mesh import load_mesh_any
+    from foundation.mesh_metrics import chamfer
+    from photoreal.benchmarks.morph import where_errors
+
+    b = small_armadillo
+    e = where_errors(b, b.coarse)
+    assert e["input_error_left"] == pytest.approx(1.0, abs=1e-9) and e["new_error_rms"] < 1e-12
+    ch = chamfer(*load_mesh_any(b.coarse), *load_mesh_any(b.ground_truth))["chamfer"]
+    assert 0.5 * (e["to_truth"] + e["from_truth"]) == pytest.approx(ch, rel=0.05)
+    assert e["from_truth_border"] is None  # the armadillo is closed

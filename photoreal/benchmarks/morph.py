@@ -15,7 +15,7 @@ from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
 from inverse.morph import (KINDS, SUITE, UNSEEN, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
                            candidate_settings, load_morph_benchmark, make_morph_benchmark, run_morph, silhouette_margins,
-                           start_mesh, suite_mesh, truth_start_benchmark)
+                           start_mesh, suite_mesh, surface_errors, truth_start_benchmark)
 
 
 @dataclass
@@ -200,6 +200,19 @@ def suite_row(name: str, m: MorphResult) -> dict:
     return row
 
 
+def where_errors(bench, result: Path) -> dict:
+    """:func:`inverse.morph.surface_errors` of a result against its benchmark's truth, its coarse input the
+    reference: both Chamfer directions, the truth's border band against the rest, the input's error left, new error."""
+    from foundation.mesh import load_mesh_any
+
+    gv, gf = load_mesh_any(bench.ground_truth)
+    e = surface_errors(gv, gf, {"input": load_mesh_any(bench.coarse), "morphed": load_mesh_any(result)},
+                       reference="input")["morphed"]
+    return {k: getattr(e, k) for k in ("to_truth", "from_truth", "from_truth_border", "from_truth_interior",
+                                       "border_share", "input_error_left", "input_error_correlation",
+                                       "new_error_rms", "signed_mean")}
+
+
 def _item(key: str, bench_dir: Path, out: Path, settings: MorphSettings, **kw) -> Item:
     """One morph run of the pool (resumable: a finished run's metrics.json is its value)."""
     return Item(key, "inverse.morph:run_item", (str(bench_dir), str(out), settings), kw,
@@ -234,6 +247,8 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
     report.raise_if_failed()
     rows = {r.key: suite_row(r.key, r.value) for r in report.results}
     rows = {n: rows[n] for n in s.suite}
+    for n, row in rows.items():  # where the error sits (photoreal morph errors, without its maps)
+        row["errors"] = where_errors(load_morph_benchmark(benches[n]), work / f"suite_{n}" / "morphed.ply")
     keys = ("chamfer_reduction", "psnr_gain_db", "spike_vertices", "inverted_triangles", "seconds", "s_per_iteration")
     mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in keys}
     return {"meshes": rows, "mean": mean, "targets": TARGETS,
