@@ -172,6 +172,8 @@ def unfold_pleats(v: np.ndarray, f: np.ndarray, rounds: int = 30,
             back = np.zeros(len(v), bool)
             back[f[turned].ravel()] = True
             back &= sel
+            if not back.any():  # cannot happen by the argument above; never loop on it
+                break
             v[back] = prev[back]
             stays |= back
             sel &= ~back
