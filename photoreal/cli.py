@@ -817,6 +817,9 @@ def build_parser() -> argparse.ArgumentParser:
               "from its own ground truth (how far the method drifts from the answer); iteration: seconds per "
               "iteration of today's defaults against the recipe issue 17 was filed against, same mesh, in turns")
     _opt(bm, MorphBenchSettings, "floor_iterations", help="iterations of the truth-start runs (--parts floor)")
+    _opt(bm, MorphBenchSettings, "truth_normals", choices=["vertex", "face"],
+         help="shading of the suite's and floor's photographed truths (face: flat, as the Chamfer measures them; "
+              "their folders get _face)")
     _opt(bm, MorphBenchSettings, "cost_mesh", help="the mesh of --parts iteration")
     _opt(bm, MorphBenchSettings, "cost_iterations", help="steps per timed block (--parts iteration)")
     _opt(bm, MorphBenchSettings, "cost_rounds", help="timed blocks per recipe, in turns (--parts iteration)")
@@ -979,6 +982,9 @@ def build_parser() -> argparse.ArgumentParser:
          help="camera elevation range in degrees (default: 25 45 for the village, -15 65 for an object)")
     _opt(mm, MorphBenchmarkSettings, "framing_margin",
          help="objects: free border around the bounding sphere, fraction of the half-image")
+    _opt(mm, MorphBenchmarkSettings, "truth_normals", choices=["vertex", "face"],
+         help="shading of the photographed truth: interpolated vertex normals (smooth) or each triangle flat, the "
+              "geometry the Chamfer measures (they disagree for truths with few vertices)")
     mm.set_defaults(func=_cmd_morph_make_benchmark)
     mr = msub.add_parser("run", help="morph benchmarks' coarse meshes (resumes from their checkpoints)")
     mr.add_argument("benchmark", nargs="+", help="benchmark folder(s), or a folder of them")

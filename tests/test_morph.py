@@ -1231,3 +1231,24 @@ def test_the_suite_bench_row_says_where_the_error_sits(small_armadillo):
     ch = chamfer(*load_mesh_any(b.coarse), *load_mesh_any(b.ground_truth))["chamfer"]
     assert 0.5 * (e["to_truth"] + e["from_truth"]) == pytest.approx(ch, rel=0.05)
     assert e["from_truth_border"] is None  # the armadillo is closed
+
+
+def test_a_benchmark_can_photograph_its_truth_flat_as_the_chamfer_measures_it(tmp_path):
+    """``truth_normals="face"``: the photos shade each triangle flat. Oracles: the truth's scene still reproduces the
+    stored photos exactly (it reads the setting), and on a truth with few vertices (josie, 1,600) the flat photos
+    differ from the smooth ones made with the same seeds (same noise) by more than their rounding; an old benchmark
+    (no such field) loads as "vertex"; a bad value is named."""
+    josie = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "face" / "cyberheads" / "josie.obj"
+    s = MorphBenchmarkSettings(n_views=4, resolution=32, spp=8, coarse_vertices=300)
+    smooth = load_morph_benchmark(make_morph_benchmark(josie, tmp_path / "smooth", s, show_progress=False))
+    flat = load_morph_benchmark(make_morph_benchmark(josie, tmp_path / "flat", replace(s, truth_normals="face"),
+                                                     show_progress=False))
+    _assert_truth_scene_reproduces_photos(flat)
+    diff = np.mean([np.abs(flat.photo(i) - smooth.photo(i)).mean() for i in range(4)])
+    assert diff > 10 * 2.0 ** -11 * np.mean([smooth.photo(i).mean() for i in range(4)]), diff
+    meta = json.loads((tmp_path / "smooth" / "morph_benchmark.json").read_text())
+    meta["settings"].pop("truth_normals")
+    (tmp_path / "smooth" / "morph_benchmark.json").write_text(json.dumps(meta))
+    assert load_morph_benchmark(tmp_path / "smooth").meta.settings.truth_normals == "vertex"
+    with pytest.raises(UsageError, match="truth_normals"):
+        MorphBenchmarkSettings(truth_normals="phong")

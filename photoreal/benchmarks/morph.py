@@ -49,8 +49,12 @@ class MorphBenchSettings:
     #: finished runs instead of recomputing them (the default removes it: ~1 GB for the whole bench)
     keep_work: bool = False
     seed: int = 0
+    #: the suite's and the floor's benchmarks photograph their truth with these shading normals
+    #: (:attr:`~inverse.morph.MorphBenchmarkSettings.truth_normals`; "face": folders ``*_face``, beside the others)
+    truth_normals: str = "vertex"
 
     def __post_init__(self):
+        validate.one_of("truth_normals", self.truth_normals, ("vertex", "face"))
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
                      "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
@@ -236,19 +240,28 @@ def _suite_bench(name: str, work: Path, bs: MorphBenchmarkSettings, tag: str = "
     return make_morph_benchmark(src, out, bs, show_progress=False)
 
 
+def _normals_tag(s: MorphBenchSettings) -> str:
+    return "" if s.truth_normals == "vertex" else f"_{s.truth_normals}"
+
+
+def _suite_benchmark_settings(s: MorphBenchSettings) -> MorphBenchmarkSettings:
+    return MorphBenchmarkSettings(seed=s.seed, truth_normals=s.truth_normals)
+
+
 def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
     """Every suite mesh morphed with the same defaults (the pool runs them side by side)."""
-    benches = {n: _suite_bench(n, work, MorphBenchmarkSettings(seed=s.seed)) for n in s.suite}
+    tag = _normals_tag(s)
+    benches = {n: _suite_bench(n, work, _suite_benchmark_settings(s), tag) for n in s.suite}
     settings = MorphSettings(iterations=s.iterations, seed=s.seed)
     for b in benches.values():  # the start remeshes made here, once, before the workers read them (stored_remesh)
         start_mesh(load_morph_benchmark(b), settings)
-    items = [_item(n, benches[n], work / f"suite_{n}", settings) for n in s.suite]
+    items = [_item(n, benches[n], work / f"suite_{n}{tag}", settings) for n in s.suite]
     report = run_items(items, pool, desc="bench morph suite", show_progress=show_progress)
     report.raise_if_failed()
     rows = {r.key: suite_row(r.key, r.value) for r in report.results}
     rows = {n: rows[n] for n in s.suite}
     for n, row in rows.items():  # where the error sits (photoreal morph errors, without its maps)
-        row["errors"] = where_errors(load_morph_benchmark(benches[n]), work / f"suite_{n}" / "morphed.ply")
+        row["errors"] = where_errors(load_morph_benchmark(benches[n]), work / f"suite_{n}{tag}" / "morphed.ply")
     keys = ("chamfer_reduction", "psnr_gain_db", "spike_vertices", "inverted_triangles", "seconds", "s_per_iteration")
     mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in keys}
     return {"meshes": rows, "mean": mean, "targets": TARGETS,
@@ -282,15 +295,15 @@ def floor_row(m: MorphResult, colour_only: MorphResult) -> dict:
 def bench_floor(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
     """Every suite mesh's morph started at its ground truth (:func:`truth_start_benchmark`), constant λ, beside
     the same run with positions frozen (colours fitted to the truth's geometry)."""
-    items = []
+    items, tag = [], _normals_tag(s)
     for n in s.suite:
-        bench = _suite_bench(n, work, MorphBenchmarkSettings(seed=s.seed))
-        start = work / f"truth_start_{n}"
+        bench = _suite_bench(n, work, _suite_benchmark_settings(s), tag)
+        start = work / f"truth_start_{n}{tag}"
         if not (start / "morph_benchmark.json").is_file():
             truth_start_benchmark(bench, start)
         free = MorphSettings(iterations=s.floor_iterations, lambda_select=(), seed=s.seed)
-        items.append(_item(n, start, work / f"floor_{n}", free))
-        items.append(_item(f"{n}:colour_only", start, work / f"floor_{n}_colour_only", replace(free, lr=0.0)))
+        items.append(_item(n, start, work / f"floor_{n}{tag}", free))
+        items.append(_item(f"{n}:colour_only", start, work / f"floor_{n}{tag}_colour_only", replace(free, lr=0.0)))
     report = run_items(items, pool, desc="bench morph floor (truth start)", show_progress=show_progress)
     report.raise_if_failed()
     runs = {r.key: r.value for r in report.results}
