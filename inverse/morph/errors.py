@@ -210,21 +210,34 @@ class ErrorReport:
     files: dict[str, str]
 
 
-def benchmark_errors(bench, results: dict[str, Path], out: Path, band: float | None = None,
-                     res: int = 384) -> ErrorReport:
-    """:func:`surface_errors`, :func:`error_maps` and :func:`error_figure` of ``results`` (name → mesh file) against
-    a morph benchmark's truth, with its coarse input as the reference; writes ``OUT/errors.json`` last (atomically:
-    a report on disk means its maps are there)."""
-    from foundation.files import write_json
+def _benchmark_meshes(bench, results: dict[str, Path]) -> tuple[tuple[np.ndarray, np.ndarray], dict]:
+    """The benchmark's truth, and its coarse input (``input``) with ``results`` (name → mesh file), loaded."""
     from foundation.mesh import load_mesh_any
 
     if "input" in results:
         raise ValueError("'input' names the benchmark's coarse input; give the results other names")
+    meshes = {"input": load_mesh_any(bench.coarse), **{k: load_mesh_any(p) for k, p in results.items()}}
+    return load_mesh_any(bench.ground_truth), meshes
+
+
+def benchmark_surface_errors(bench, results: dict[str, Path], band: float | None = None) -> dict[str, SurfaceErrors]:
+    """:func:`surface_errors` of ``results`` (name → mesh file) against a morph benchmark's truth, its coarse input
+    (``input``) the reference."""
+    (gv, gf), meshes = _benchmark_meshes(bench, results)
+    return surface_errors(gv, gf, meshes, reference="input", band=band)
+
+
+def benchmark_errors(bench, results: dict[str, Path], out: Path, band: float | None = None,
+                     res: int = 384) -> ErrorReport:
+    """:func:`surface_errors`, :func:`error_maps` and :func:`error_figure` of ``results`` (name → mesh file) against
+    a morph benchmark's truth, with its coarse input as the reference; writes ``OUT/errors.json`` last (atomically:
+    a report on disk means its maps are there). Every mesh is read before ``out`` is made."""
+    from foundation.files import write_json
+
+    (gv, gf), meshes = _benchmark_meshes(bench, results)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     meta = bench.meta
-    gv, gf = load_mesh_any(bench.ground_truth)
-    meshes = {"input": load_mesh_any(bench.coarse), **{k: load_mesh_any(p) for k, p in results.items()}}
     errs = surface_errors(gv, gf, meshes, reference="input", band=band)
     scale, files = error_maps(gv, gf, meshes, out)
     # the first held-out view and the held-out view farthest from it (the other side, for an open sheet its back)

@@ -172,8 +172,8 @@ def unfold_pleats(v: np.ndarray, f: np.ndarray, rounds: int = 30,
             back = np.zeros(len(v), bool)
             back[f[turned].ravel()] = True
             back &= sel
-            if not back.any():  # cannot happen by the argument above; never loop on it
-                break
+            if not back.any():  # cannot happen by the argument above; should it, every mover goes back (all at prev)
+                back = sel.copy()
             v[back] = prev[back]
             stays |= back
             sel &= ~back

@@ -715,16 +715,8 @@ class MorphStage(DrJitStage):
         pleat_report = spike_report = None
         if s.repair_flips and not s.remesh_at:
             v_out, repair = repair_flips(v_out, self.faces, self.v_start)
-            v_unfolded, pleat_report = unfold_pleats(v_out, self.faces, v_ref=self.v_start)
-            # the pleats' smoothing must not bring back a flip w.r.t. the start: ``v_ref`` guarantees it; this guard
-            # keeps the promise should that change (it refused the village's whole ironing before the repeated put-back)
-            n_start = face_normals(self.v_start, self.faces)
-            flips = (np.sum(face_normals(v_unfolded, self.faces) * n_start, axis=1) < 0) & \
-                (np.sum(face_normals(v_out, self.faces) * n_start, axis=1) >= 0)
-            if not flips.any():
-                v_out = v_unfolded
-            else:  # kept as it was: the report says so
-                pleat_report = PleatReport(pleat_report.pleats_before, pleat_report.pleats_before, 0, 0.0)
+            # the pleats' smoothing brings back no flip w.r.t. the start (``v_ref``: unfold_pleats guarantees it)
+            v_out, pleat_report = unfold_pleats(v_out, self.faces, v_ref=self.v_start)
             v_out, spike_report = iron_spikes(v_out, self.faces, self.v_start)
         write_ply(self.out / "morphed.ply", v_out, self.faces, np.clip(c_out, 0, 1))
         seconds = self.setup_seconds + run.train_seconds

@@ -15,7 +15,7 @@ from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
 from inverse.morph import (KINDS, SUITE, UNSEEN, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
                            candidate_settings, load_morph_benchmark, make_morph_benchmark, run_morph, silhouette_margins,
-                           start_mesh, suite_mesh, surface_errors, truth_start_benchmark)
+                           start_mesh, suite_mesh, benchmark_surface_errors, truth_start_benchmark)
 
 
 @dataclass
@@ -205,13 +205,9 @@ def suite_row(name: str, m: MorphResult) -> dict:
 
 
 def where_errors(bench, result: Path) -> dict:
-    """:func:`inverse.morph.surface_errors` of a result against its benchmark's truth, its coarse input the
-    reference: both Chamfer directions, the truth's border band against the rest, the input's error left, new error."""
-    from foundation.mesh import load_mesh_any
-
-    gv, gf = load_mesh_any(bench.ground_truth)
-    e = surface_errors(gv, gf, {"input": load_mesh_any(bench.coarse), "morphed": load_mesh_any(result)},
-                       reference="input")["morphed"]
+    """:func:`inverse.morph.benchmark_surface_errors` of a result: both Chamfer directions, the truth's border band
+    against the rest, the input's error left, new error."""
+    e = benchmark_surface_errors(bench, {"morphed": result})["morphed"]
     return {k: getattr(e, k) for k in ("to_truth", "from_truth", "from_truth_border", "from_truth_interior",
                                        "border_share", "input_error_left", "input_error_correlation",
                                        "new_error_rms", "signed_mean")}
