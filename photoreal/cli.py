@@ -820,6 +820,8 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bm, MorphBenchSettings, "truth_normals", choices=["vertex", "face"],
          help="shading of the suite's and floor's photographed truths (face: flat, as the Chamfer measures them; "
               "their folders get _face)")
+    _opt(bm, MorphBenchSettings, "seed", help="another draw of every benchmark (photos' noise, views) and of every "
+                                               "morph's render seeds (work folder: OUT/morph_work_seed<k>)")
     _opt(bm, MorphBenchSettings, "cost_mesh", help="the mesh of --parts iteration")
     _opt(bm, MorphBenchSettings, "cost_iterations", help="steps per timed block (--parts iteration)")
     _opt(bm, MorphBenchSettings, "cost_rounds", help="timed blocks per recipe, in turns (--parts iteration)")

@@ -438,6 +438,22 @@ def test_generated_suite_meshes_are_closed_outward_and_of_known_volume(tmp_path)
     assert MorphBenchSettings(suite=UNSEEN).suite == UNSEEN  # the bench runs them by name
 
 
+def test_bench_seed_gets_its_own_work_folder(tmp_path):
+    """``photoreal bench morph --seed k``: finished pool items are resumed by folder (their metrics.json), so another
+    draw must not find seed 0's runs — each seed works in a folder of its own (seed 0 keeps the old name)."""
+    from photoreal.benchmarks.morph import MorphBenchSettings, work_folder
+    from photoreal.cli import _settings, build_parser
+
+    a = build_parser().parse_args(["bench", "morph", "--parts", "suite", "--suite", "josie", "--seed", "3",
+                                   "--json", str(tmp_path / "m.json")])
+    s = _settings(MorphBenchSettings, a)
+    assert s.seed == 3 and s.suite == ("josie",)
+    assert work_folder(s, tmp_path) == tmp_path / "morph_work_seed3"
+    assert work_folder(MorphBenchSettings(), tmp_path) == tmp_path / "morph_work"
+    with pytest.raises(UsageError, match="seed"):
+        MorphBenchSettings(seed=-1)
+
+
 def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):
     run_morph(small_armadillo, tmp_path, MorphSettings(iterations=2, resolution=32), show_progress=False,
               budget_iterations=1)

@@ -48,6 +48,8 @@ class MorphBenchSettings:
     #: keep ``OUT/morph_work`` (benchmarks, meshes, checkpoints) after the bench: a rerun then re-reads the
     #: finished runs instead of recomputing them (the default removes it: ~1 GB for the whole bench)
     keep_work: bool = False
+    #: every benchmark's draw (photos' noise, views) and every run's render seeds; another seed works in
+    #: ``OUT/morph_work_seed<k>``, so that it never resumes from (or overwrites) another draw's finished runs
     seed: int = 0
     #: the suite's and the floor's benchmarks photograph their truth with these shading normals
     #: (:attr:`~inverse.morph.MorphBenchmarkSettings.truth_normals`; "face": folders ``*_face``, beside the others)
@@ -426,6 +428,11 @@ def bench_iteration_cost(work: Path, s: MorphBenchSettings, show_progress: bool)
             "ratio": {k: v / med["issue_recipe"] for k, v in med.items() if k != "issue_recipe"}}
 
 
+def work_folder(s: MorphBenchSettings, out_dir: str | Path) -> Path:
+    """Where the bench keeps its benchmarks and runs: one folder per seed (finished runs are resumed by folder)."""
+    return Path(out_dir) / ("morph_work" if s.seed == 0 else f"morph_work_seed{s.seed}")
+
+
 def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True,
                 pool: PoolSettings | None = None) -> dict:
     """Run the bench in ``out_dir/morph_work`` (kept while it runs: a killed bench resumes; removed at the end
@@ -434,7 +441,7 @@ def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True
 
     cores = default_workers()
     pool = pool or PoolSettings(workers=cores, threads=1)
-    work = Path(out_dir) / "morph_work"
+    work = work_folder(s, out_dir)
     t0 = time.perf_counter()
     result: dict = {"settings": asdict(s)}
     if "cases" in s.parts:
