@@ -6,7 +6,7 @@ import pytest
 import drjit as dr
 import mitsuba as mi
 
-from conftest import CUDA, local_si, random_dirs
+from conftest import local_si, random_dirs
 
 N_PAIRS = 20_000
 ROUGHNESS = [0.05, 0.3, 0.6, 1.0]
