@@ -774,7 +774,7 @@ def build_parser() -> argparse.ArgumentParser:
     from foundation.scene import RenderSettings
     from inverse.btf import BTFRenderSettings, OptimSettings, fit_settings, render_dataset, split_slices
     from inverse.face import FaceBenchmarkSettings, FaceFitSettings, PhotoFitSettings, RenderRefineSettings
-    from inverse.morph import MorphBenchmarkSettings, MorphSettings
+    from inverse.morph import TRUTH_NORMALS, MorphBenchmarkSettings, MorphSettings
     from mi_plugins.neural_basis import BasisConfig
 
     from .benchmarks.face import FaceBenchSettings
@@ -817,7 +817,7 @@ def build_parser() -> argparse.ArgumentParser:
               "from its own ground truth (how far the method drifts from the answer); iteration: seconds per "
               "iteration of today's defaults against the recipe issue 17 was filed against, same mesh, in turns")
     _opt(bm, MorphBenchSettings, "floor_iterations", help="iterations of the truth-start runs (--parts floor)")
-    _opt(bm, MorphBenchSettings, "truth_normals", choices=["vertex", "face"],
+    _opt(bm, MorphBenchSettings, "truth_normals", choices=list(TRUTH_NORMALS),
          help="shading of the suite's and floor's photographed truths (face: flat, as the Chamfer measures them; "
               "their folders get _face)")
     _opt(bm, MorphBenchSettings, "seed", help="another draw of every benchmark (photos' noise, views) and of every "
@@ -984,7 +984,7 @@ def build_parser() -> argparse.ArgumentParser:
          help="camera elevation range in degrees (default: 25 45 for the village, -15 65 for an object)")
     _opt(mm, MorphBenchmarkSettings, "framing_margin",
          help="objects: free border around the bounding sphere, fraction of the half-image")
-    _opt(mm, MorphBenchmarkSettings, "truth_normals", choices=["vertex", "face"],
+    _opt(mm, MorphBenchmarkSettings, "truth_normals", choices=list(TRUTH_NORMALS),
          help="shading of the photographed truth: interpolated vertex normals (smooth) or each triangle flat, the "
               "geometry the Chamfer measures (they disagree for truths with few vertices)")
     mm.set_defaults(func=_cmd_morph_make_benchmark)

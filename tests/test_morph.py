@@ -452,6 +452,10 @@ def test_bench_seed_gets_its_own_work_folder(tmp_path):
     assert work_folder(MorphBenchSettings(), tmp_path) == tmp_path / "morph_work"
     with pytest.raises(UsageError, match="seed"):
         MorphBenchSettings(seed=-1)
+    from inverse.morph import MORPH_SEED_MAX  # the runs' own bound, refused before any benchmark is made
+
+    with pytest.raises(UsageError, match=f"seed must be ≤ {MORPH_SEED_MAX}"):
+        MorphBenchSettings(seed=MORPH_SEED_MAX + 1)
 
 
 def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):

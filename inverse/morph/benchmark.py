@@ -43,6 +43,10 @@ STORED_STARTS = "start_remesh_*.ply"
 FORMAT = "photoreal-morph-benchmark/1"
 
 
+#: shadings of the photographed truth (:attr:`MorphBenchmarkSettings.truth_normals`)
+TRUTH_NORMALS = ("vertex", "face")
+
+
 @dataclass
 class MorphBenchmarkSettings:
     n_views: int = 32
@@ -71,7 +75,7 @@ class MorphBenchmarkSettings:
     truth_normals: str = "vertex"
 
     def __post_init__(self):
-        validate.one_of("truth_normals", self.truth_normals, ("vertex", "face"))
+        validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
         # At least 4 views: every test_every-th is held out, and both splits must be non-empty.
         validate.integer("n_views", self.n_views, 4, 1024)
         validate.integer("test_every", self.test_every, 2, self.n_views)

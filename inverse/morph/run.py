@@ -63,6 +63,9 @@ from .mesh_edit import (PleatReport, RepairReport, SpikeReport, iron_spikes, rem
                         unfold_pleats)
 from .scene import MODES, morph_scene, photo_tensors, projective_integrator, render_views
 
+#: largest run seed: render seeds are seed·7919 + step·101 + view and must stay below 2³¹
+MORPH_SEED_MAX = 200_000
+
 
 @dataclass
 class MorphSettings:
@@ -219,7 +222,7 @@ class MorphSettings:
         validate.non_negative("colour_lambda", self.colour_lambda)
         validate.integer("light_select_every", self.light_select_every, 0)
         validate.positive("light_select_colour_lambda", self.light_select_colour_lambda)
-        validate.seed("seed", self.seed, 200_000)  # render seeds are seed·7919 + step·101 + view
+        validate.seed("seed", self.seed, MORPH_SEED_MAX)
         validate.integer("validation_views", self.validation_views, 0)
         validate.in_range("validation_fraction", self.validation_fraction, 0.0, 0.5)
         validate.integer("check_every", self.check_every, 1)

@@ -13,7 +13,7 @@ from foundation import validate
 from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
-from inverse.morph import (KINDS, SUITE, UNSEEN, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
+from inverse.morph import (KINDS, MORPH_SEED_MAX, SUITE, TRUTH_NORMALS, UNSEEN, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
                            candidate_settings, load_morph_benchmark, make_morph_benchmark, run_morph, silhouette_margins,
                            start_mesh, suite_mesh, benchmark_surface_errors, truth_start_benchmark)
 
@@ -56,7 +56,7 @@ class MorphBenchSettings:
     truth_normals: str = "vertex"
 
     def __post_init__(self):
-        validate.one_of("truth_normals", self.truth_normals, ("vertex", "face"))
+        validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
                      "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
@@ -65,7 +65,7 @@ class MorphBenchSettings:
         validate.integer("speed_views", self.speed_views, 1)
         validate.integer("speed_resolution", self.speed_resolution, 8, 4096)
         validate.integer("baseline_spp", self.baseline_spp, 1)
-        validate.seed("seed", self.seed)
+        validate.seed("seed", self.seed, MORPH_SEED_MAX)  # refused before any benchmark is made
         for part in self.parts:
             validate.one_of("parts", part, ("cases", "suite", "framing", "floor", "iteration"))
         validate.one_of("cost_mesh", self.cost_mesh, (*SUITE, *UNSEEN, "village", "armadillo"))
