@@ -198,6 +198,22 @@ def _cmd_bench_morph(a) -> int:
     return 0
 
 
+def _cmd_bench_morph_seeds(a) -> int:
+    from foundation.files import write_json
+
+    from .benchmarks.morph import seeds_chart, seeds_summary
+
+    out = _bench_out(a)
+    summary = seeds_summary(a.results)  # every file read and checked before anything is written
+    summary["chart"] = str(seeds_chart(summary, out.with_name(out.stem + ".png")))
+    write_json(out, summary)
+    _print({"seeds": summary["seeds"], "every_seed_pass": summary["every_seed_pass"],
+            "passes": {n: f"{m['passes']} of {m['of']}" for n, m in summary["meshes"].items()},
+            "chamfer_reduction_worst": {n: round(m["chamfer_reduction"]["worst"], 4)
+                                        for n, m in summary["meshes"].items()}})
+    return 0
+
+
 def _cmd_bench_btf(a) -> int:
     from foundation.files import write_json
 
@@ -833,6 +849,11 @@ def build_parser() -> argparse.ArgumentParser:
                                                    "finished runs instead of recomputing them (default: removed)")
     _pool_opts(bm)
     bm.set_defaults(func=_cmd_bench_morph)
+    bms = bsub.add_parser("morph-seeds", help="the morph suite over several draws: `bench morph --parts suite "
+                                              "--seed K` results, one per seed, summed up per mesh (mean, worst, "
+                                              "at how many seeds every target holds) with a chart")
+    bms.add_argument("results", nargs="+", help="bench morph JSON files with a suite, one per seed")
+    bms.set_defaults(func=_cmd_bench_morph_seeds)
     bb = bsub.add_parser("btf", help="neural BTF: universal vs NeuMIP, width × texture sweep, render time")
     _pool_opts(bb)
     bb.set_defaults(func=_cmd_bench_btf)
@@ -901,7 +922,7 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bs, ScaleBenchSettings, "ray", "--no-ray", help="leave out the Ray configuration")
     _opt(bs, ScaleBenchSettings, "material_item", "--no-material", help="leave out timing one BTF material")
     bs.set_defaults(func=_cmd_bench_scale)
-    for q in (bp, bm, bb, bf, bg, bd, bmd, bfl, bs):
+    for q in (bp, bm, bms, bb, bf, bg, bd, bmd, bfl, bs):
         q.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
 
     f = sub.add_parser("face", help="face material fitting in UV space (seed 003)")

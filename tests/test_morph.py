@@ -1,6 +1,7 @@
 """Geometry morphing: metrics oracles, benchmark generation, optimisation, checkpoint/resume, GCN."""
 
 import json
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -456,6 +457,72 @@ def test_bench_seed_gets_its_own_work_folder(tmp_path):
 
     with pytest.raises(UsageError, match=f"seed must be ≤ {MORPH_SEED_MAX}"):
         MorphBenchSettings(seed=MORPH_SEED_MAX + 1)
+
+
+def _suite_file(path, seed, rows, iterations=600, truth_normals="vertex"):
+    """A ``bench morph --parts suite`` result as the bench writes it (the fields the draws' summary reads)."""
+    from foundation.files import write_json
+
+    meshes = {}
+    for name, (cr, pg, facing_in, facing_out) in rows.items():
+        checks = {"chamfer_reduction": cr >= 0.4, "psnr_gain": pg >= 3.0, "no_spikes": True, "no_inverted": True,
+                  "facing_not_worse": facing_out <= facing_in, "normal_consistency_up": True}
+        meshes[name] = {"kind": "scan", "chamfer_reduction": cr, "psnr_gain_db": pg, "spike_vertices": 0,
+                        "inverted_triangles": 0, "seconds": 600.0,
+                        "facing_against_truth_area": {"input": facing_in, "start": facing_in, "morphed": facing_out},
+                        "normal_consistency": {"input": 0.87, "morphed": 0.93}, "checks": checks,
+                        "passes": all(checks.values())}
+    failing = {n: [c for c, ok in r["checks"].items() if not ok] for n, r in meshes.items() if not r["passes"]}
+    mean = {"chamfer_reduction": float(np.mean([r[0] for r in rows.values()]))}
+    write_json(path, {"settings": {"seed": seed, "iterations": iterations, "truth_normals": truth_normals},
+                      "suite": {"meshes": meshes, "mean": mean, "failing": failing}})
+    return path
+
+
+def test_suite_over_draws_sums_up_each_mesh(tmp_path, capsys):
+    """``photoreal bench morph-seeds``: per mesh the mean, worst and best over the draws and the draws where every
+    target holds; files that are not draws of one experiment are refused by name, nothing written."""
+    from photoreal.benchmarks.morph import seeds_summary
+    from photoreal.cli import main
+
+    a = _suite_file(tmp_path / "s0.json", 0, {"josie": (0.323, 3.76, 0.0178, 0.0146),
+                                              "cow": (0.488, 8.71, 0.0225, 0.0134)})
+    b = _suite_file(tmp_path / "s1.json", 1, {"josie": (0.087, 2.02, 0.0345, 0.0360),
+                                              "cow": (0.210, 4.92, 0.0258, 0.0231), "paul": (0.5, 4.0, 0.01, 0.009)})
+    c = _suite_file(tmp_path / "s2.json", 2, {"josie": (0.156, 3.66, 0.0213, 0.0273),
+                                              "cow": (0.55, 9.0, 0.02, 0.01)})
+    s = seeds_summary([c, a, b])
+    assert s["seeds"] == [0, 1, 2]
+    j = s["meshes"]["josie"]
+    assert j["chamfer_reduction"]["mean"] == pytest.approx((0.323 + 0.087 + 0.156) / 3, abs=1e-12)
+    assert j["chamfer_reduction"]["worst"] == 0.087 and j["chamfer_reduction"]["best"] == 0.323
+    assert j["chamfer_reduction"]["sd"] == pytest.approx(np.std([0.323, 0.087, 0.156], ddof=1), abs=1e-12)
+    assert j["psnr_gain_db"]["worst"] == 2.02 and (j["passes"], j["of"]) == (0, 3)
+    assert j["per_seed"]["1"]["failing"] == ["chamfer_reduction", "psnr_gain", "facing_not_worse"]
+    cow = s["meshes"]["cow"]
+    assert (cow["passes"], cow["of"]) == (2, 3) and cow["per_seed"]["1"]["failing"] == ["chamfer_reduction"]
+    assert s["meshes"]["paul"]["seeds"] == [1] and s["meshes"]["paul"]["chamfer_reduction"]["sd"] is None
+    assert s["every_seed_pass"] == ["paul"]  # over the one draw it has
+    assert s["per_seed"]["1"]["passing"] == 1 and s["per_seed"]["1"]["of"] == 3
+    out = tmp_path / "seeds" / "morph_seeds.json"
+    out.parent.mkdir()
+    assert main(["bench", "morph-seeds", str(a), str(b), str(c), "--json", str(out)]) == 0
+    written = json.loads(out.read_text())
+    assert written["meshes"]["cow"]["chamfer_reduction"]["worst"] == 0.21
+    assert (out.parent / "morph_seeds.png").stat().st_size > 10_000
+    # refused, naming the file, before anything is written
+    other = _suite_file(tmp_path / "o.json", 3, {"josie": (0.3, 3.0, 0.01, 0.01)}, iterations=300)
+    twice = _suite_file(tmp_path / "t.json", 1, {"josie": (0.3, 3.0, 0.01, 0.01)})
+    (tmp_path / "bad.json").write_text("{not json")
+    (tmp_path / "nosuite.json").write_text(json.dumps({"settings": {"seed": 4}, "iteration_cost": {}}))
+    for files, msg in (([a], "at least two"), ([a, other], "o.json: settings .* differ"),
+                       ([a, b, twice], "t.json: seed 1 again"), ([a, tmp_path / "bad.json"], "bad.json"),
+                       ([a, tmp_path / "nosuite.json"], "nosuite.json: not a `photoreal bench morph` result"),
+                       ([a, tmp_path / "none.json"], "none.json: no such")):
+        out2 = tmp_path / "refused.json"
+        assert main(["bench", "morph-seeds", *map(str, files), "--json", str(out2)]) == 2
+        assert re.search(msg, capsys.readouterr().err)
+        assert not out2.exists() and not (tmp_path / "refused.png").exists()
 
 
 def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):

@@ -527,3 +527,114 @@ def morph_chart(result: dict, path: Path) -> Path:
     fig.suptitle("geometry morphing: accuracy vs time over mesh resolution (labels: vertices)")
     return save_figure(fig, path)
 
+
+
+# -- the suite over several draws ----------------------------------------------------------------------------------
+
+
+def _suite_of(path: Path, data: dict) -> tuple[int, dict]:
+    """(seed, suite) of one ``bench morph`` JSON; a file without a suite, or without its settings, is named."""
+    from foundation.errors import UsageError
+
+    suite, settings = data.get("suite"), data.get("settings")
+    if not isinstance(suite, dict) or not isinstance(suite.get("meshes"), dict) or not isinstance(settings, dict):
+        raise UsageError(f"{path}: not a `photoreal bench morph` result with a suite (run it with --parts suite)")
+    seed = settings.get("seed", 0)  # results written before --seed existed are seed 0's
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        raise UsageError(f"{path}: settings.seed is {seed!r}, not an integer")
+    return seed, suite
+
+
+def seeds_summary(paths: list[str | Path]) -> dict:
+    """The suite over several draws (``photoreal bench morph --seed K`` results, one file per seed): per mesh its
+    figures at each seed, their mean and worst, and at how many seeds it meets every target; per seed the meshes that
+    pass. Files must agree on everything but the seed (cap, truth shading): draws of one experiment. A mesh some
+    files lack is reported over the seeds that have it (``seeds`` says which)."""
+    from foundation.errors import UsageError
+    from foundation.files import read_json
+
+    if len(paths) < 2:
+        raise UsageError("the suite over draws needs at least two result files (one per seed)")
+    runs: dict[int, dict] = {}
+    where: dict[int, Path] = {}
+    same: dict | None = None
+    for p in map(Path, paths):
+        data = read_json(p, "bench morph result")
+        seed, suite = _suite_of(p, data)
+        if seed in runs:
+            raise UsageError(f"{p}: seed {seed} again (also {where[seed]}): one file per draw")
+        s = data["settings"]
+        fixed = {k: s.get(k) for k in ("iterations", "truth_normals")}
+        fixed["truth_normals"] = fixed["truth_normals"] or "vertex"  # files from before the option: vertex normals
+        if same is None:
+            same, first = fixed, p
+        elif fixed != same:
+            raise UsageError(f"{p}: settings {fixed} differ from {first}'s {same}: not draws of one experiment")
+        runs[seed], where[seed] = suite, p
+    seeds = sorted(runs)
+    names = list(dict.fromkeys(n for k in seeds for n in runs[k]["meshes"]))
+    meshes = {}
+    for n in names:
+        at = {k: runs[k]["meshes"][n] for k in seeds if n in runs[k]["meshes"]}
+        cr = np.array([r["chamfer_reduction"] for r in at.values()])
+        pg = np.array([r["psnr_gain_db"] for r in at.values()])
+        meshes[n] = {
+            "kind": next(iter(at.values())).get("kind"), "seeds": list(at),
+            "per_seed": {str(k): {"chamfer_reduction": r["chamfer_reduction"], "psnr_gain_db": r["psnr_gain_db"],
+                                  "spike_vertices": r["spike_vertices"], "inverted_triangles": r["inverted_triangles"],
+                                  "facing_area": r["facing_against_truth_area"],
+                                  "normal_consistency": r["normal_consistency"], "seconds": r["seconds"],
+                                  "passes": r["passes"],
+                                  "failing": [c for c, ok in r["checks"].items() if not ok]} for k, r in at.items()},
+            "chamfer_reduction": {"mean": float(cr.mean()), "worst": float(cr.min()), "best": float(cr.max()),
+                                  "sd": float(cr.std(ddof=1)) if len(cr) > 1 else None},
+            "psnr_gain_db": {"mean": float(pg.mean()), "worst": float(pg.min()), "best": float(pg.max())},
+            "spike_vertices_max": int(max(r["spike_vertices"] for r in at.values())),
+            "inverted_triangles_max": int(max(r["inverted_triangles"] for r in at.values())),
+            "passes": int(sum(r["passes"] for r in at.values())), "of": len(at)}
+    per_seed = {str(k): {"file": str(where[k]), "passing": sum(r["passes"] for r in runs[k]["meshes"].values()),
+                         "of": len(runs[k]["meshes"]), "mean": runs[k]["mean"], "failing": runs[k]["failing"]}
+                for k in seeds}
+    return {"seeds": seeds, "settings": same, "targets": TARGETS, "meshes": meshes, "per_seed": per_seed,
+            "every_seed_pass": [n for n, m in meshes.items() if m["passes"] == m["of"]],
+            "chamfer_reduction_mean": float(np.mean([m["chamfer_reduction"]["mean"] for m in meshes.values()])),
+            "chamfer_reduction_worst_mean": float(np.mean([m["chamfer_reduction"]["worst"] for m in meshes.values()])),
+            "psnr_gain_db_mean": float(np.mean([m["psnr_gain_db"]["mean"] for m in meshes.values()]))}
+
+
+def seeds_chart(summary: dict, path: Path) -> Path:
+    """Per mesh, its Chamfer reduction and held-out PSNR gain at every draw (one marker per seed), the mean as a
+    bar, the targets as lines: how far one draw's verdict can be trusted."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from foundation.imageio import save_figure
+
+    names = list(summary["meshes"])
+    x = np.arange(len(names))
+    fig, ax = plt.subplots(1, 2, figsize=(max(8.0, 0.9 * len(names) + 3), 4))
+    for j, (key, scale, target, label) in enumerate((
+            ("chamfer_reduction", 100.0, TARGETS["chamfer_reduction"] * 100, "Chamfer reduction (%)"),
+            ("psnr_gain_db", 1.0, TARGETS["psnr_gain_db"], "held-out PSNR gain (dB)"))):
+        a = ax[j]
+        a.bar(x, [summary["meshes"][n][key]["mean"] * scale for n in names], color="0.85", label="mean")
+        for i, k in enumerate(summary["seeds"]):
+            at = [(xi, summary["meshes"][n]["per_seed"][str(k)]) for xi, n in zip(x, names)
+                  if str(k) in summary["meshes"][n]["per_seed"]]
+            xs = np.array([xi for xi, _ in at]) + 0.12 * (i - (len(summary["seeds"]) - 1) / 2)
+            ys = np.array([r[key] * scale for _, r in at])
+            ok = np.array([r["passes"] for _, r in at], bool)
+            line, = a.plot(xs[ok], ys[ok], "o", ms=5, label=f"seed {k}")
+            # a draw that misses any target (not only this panel's): hollow
+            a.plot(xs[~ok], ys[~ok], "o", ms=5, mfc="none", color=line.get_color())
+        a.axhline(target, color="tab:red", ls="--", lw=0.8, label="target")
+        a.set_xticks(x, names, rotation=45, ha="right", fontsize=8)
+        a.set_ylabel(label)
+        a.grid(alpha=0.3, axis="y")
+    ax[0].legend(fontsize=7, title="hollow: a target missed", title_fontsize=7)
+    n_pass = len(summary["every_seed_pass"])
+    fig.suptitle(f"morph suite over {len(summary['seeds'])} draws: {n_pass} of {len(names)} meshes meet every "
+                 "target at every draw")
+    return save_figure(fig, path)
