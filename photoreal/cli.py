@@ -501,7 +501,9 @@ def _cmd_morph_errors(a) -> int:
     for e in r.meshes:
         _print({"mesh": e.name, "chamfer": e.chamfer, "to_truth": e.to_truth, "from_truth": e.from_truth,
                 "from_truth_border": e.from_truth_border, "from_truth_interior": e.from_truth_interior,
-                "input_error_left": e.input_error_left, "new_error_rms": e.new_error_rms})
+                "input_error_left": e.input_error_left, "new_error_rms": e.new_error_rms,
+                "input_error_left_by_scale": None if e.input_error_left_by_scale is None else
+                {b.band: None if b.slope is None else round(b.slope, 3) for b in e.input_error_left_by_scale}})
     print(f"maps: {a.out}/errors_*.ply, figure: {r.files['figure']}")
     return 0
 
@@ -1076,8 +1078,8 @@ def build_parser() -> argparse.ArgumentParser:
     mr.set_defaults(func=_cmd_morph_run)
 
     me = msub.add_parser("errors", help="where meshes lie against a benchmark's truth: both Chamfer directions, its "
-                                        "open border against its interior, the input's error a result kept; "
-                                        "signed-distance PLYs and a figure")
+                                        "open border against its interior, the input's error a result kept (in all "
+                                        "and per spatial scale); signed-distance PLYs and a figure")
     me.add_argument("benchmark", help="folder made by `photoreal morph make-benchmark`")
     me.add_argument("results", nargs="+", help="result meshes (OBJ/PLY/OFF) or morph output folders (their morphed.ply)")
     me.add_argument("--out", required=True, help="folder for errors.json, errors_<name>.ply and errors.png")

@@ -16,8 +16,18 @@ from pathlib import Path
 import numpy as np
 
 from foundation.files import atomic_path
-from foundation.mesh import boundary_edges, sample_surface, write_ply
+from foundation.mesh import boundary_edges, face_normals, sample_surface, write_ply
 from foundation.mesh_metrics import DEFAULT_SAMPLES, signed_distance, truth_surface
+
+
+@dataclass
+class ScaleBand:
+    """One band of :func:`error_left_by_scale`: the input's and the result's error between two smoothing scales."""
+
+    band: str  #: e.g. "0.02-0.04": Gaussian σ between 2 % and 4 % of the truth's bounding-box diagonal; "mean": offset
+    rms_input: float  #: rms of the input's error in this band
+    rms_result: float  #: rms of the result's error in this band
+    slope: float | None  #: least-squares slope of the result's band on the input's (1: kept, 0: fixed); None: no error
 
 
 @dataclass
@@ -42,6 +52,9 @@ class SurfaceErrors:
     input_error_correlation: float | None = None
     #: rms of the signed distance the slope does not explain: error this mesh made that its input did not have
     new_error_rms: float | None = None
+    #: the input's error kept, per spatial scale (:func:`error_left_by_scale`): which sizes of the input's flaws a
+    #: result fixed (the fine bumps, the broad undulations) and which it left; None for the reference itself
+    input_error_left_by_scale: list[ScaleBand] | None = None
 
 
 def _border_points(gv: np.ndarray, gf: np.ndarray, spacing: float) -> np.ndarray | None:
@@ -59,6 +72,56 @@ def _border_points(gv: np.ndarray, gf: np.ndarray, spacing: float) -> np.ndarray
     return a[i] + t[:, None] * (b[i] - a[i])
 
 
+#: the bands' edges of :func:`error_left_by_scale`, as Gaussian σ in fractions of the truth's bounding-box diagonal
+SCALES = (0.01, 0.02, 0.04, 0.08)
+
+
+def _offsets(g_pts: np.ndarray, g_nrm: np.ndarray, dense: np.ndarray) -> np.ndarray:
+    """Signed offset of a mesh from each truth point: to its nearest point of the mesh's dense sampling, along the
+    truth's normal there (a field on the truth's surface that two meshes can be compared on, point for point)."""
+    from scipy.spatial import cKDTree
+
+    i = cKDTree(dense, balanced_tree=False, compact_nodes=False).query(g_pts)[1]
+    return np.sum((dense[i] - g_pts) * g_nrm, axis=1)
+
+
+def error_left_by_scale(g_pts: np.ndarray, fields: dict[str, np.ndarray], size: float, reference: str,
+                        scales: tuple[float, ...] = SCALES) -> dict[str, list[ScaleBand]]:
+    """Per mesh (``fields``: name → its signed offset at the truth points ``g_pts``, area-uniform), its error split
+    into bands of spatial scale and regressed, band by band, on the ``reference``'s (the input): what a result kept
+    of its input's fine bumps and of its broad undulations. The bands come from Gaussian smoothing over the truth's
+    points at σ = ``scales`` × ``size`` (Euclidean neighbours: across a part thinner than 2.5 σ, both sides mix),
+    each band the difference of two successive smoothings, the coarsest less the mean, the mean its own band."""
+    import scipy.sparse as sp
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(g_pts)
+    lows = {k: [x] for k, x in fields.items()}
+    for sigma in (float(x) * size for x in scales):
+        m = tree.sparse_distance_matrix(tree, 2.5 * sigma, output_type="coo_matrix")
+        w = sp.coo_matrix((np.exp(-0.5 * (m.data / sigma) ** 2), (m.row, m.col)), shape=(len(g_pts),) * 2).tocsr()
+        w = w + sp.identity(len(g_pts), format="csr")  # each point itself (distance 0: not stored as a pair)
+        norm = np.asarray(w.sum(axis=1)).ravel()
+        for k, x in fields.items():
+            lows[k].append((w @ x) / norm)
+    for k, x in fields.items():
+        lows[k].append(np.full_like(x, x.mean()))
+    names = ([f"<{scales[0]:g}"] + [f"{a:g}-{b:g}" for a, b in zip(scales[:-1], scales[1:])] + [f">{scales[-1]:g}"])
+    ref = lows[reference]
+    out = {}
+    for k, low in lows.items():
+        if k == reference:
+            continue
+        bands = []
+        for j, name in enumerate([*names, "mean"]):
+            a, b = (ref[j] - ref[j + 1], low[j] - low[j + 1]) if name != "mean" else (ref[-1], low[-1])
+            aa = float(np.dot(a, a))
+            bands.append(ScaleBand(name, float(np.sqrt(np.mean(a**2))), float(np.sqrt(np.mean(b**2))),
+                                   float(np.dot(a, b)) / aa if aa > 0 else None))
+        out[k] = bands
+    return out
+
+
 def border_band(gv: np.ndarray, band: float | None = None) -> float:
     """The border band's width: ``band``, or 2.5 % of the truth's bounding-box diagonal."""
     band = 0.025 * float(np.linalg.norm(np.ptp(gv, axis=0))) if band is None else float(band)
@@ -69,20 +132,21 @@ def border_band(gv: np.ndarray, band: float | None = None) -> float:
 
 def surface_errors(gv: np.ndarray, gf: np.ndarray, meshes: dict[str, tuple[np.ndarray, np.ndarray]],
                    reference: str | None = None, band: float | None = None, n: int | None = None,
-                   seed: int = 0) -> dict[str, SurfaceErrors]:
+                   seed: int = 0, n_scale: int = 8000) -> dict[str, SurfaceErrors]:
     """:class:`SurfaceErrors` of each mesh (name → vertices, faces) against the truth ``gv, gf``.
 
     ``reference``: the name of the mesh whose error the others are regressed on (the coarse input). ``band``: width
     of the truth's border band (default 2.5 % of the truth's bounding-box diagonal). ``n``: points per surface (default
     the Chamfer's query count, :data:`~foundation.mesh_metrics.DEFAULT_SAMPLES`; the mesh side of the truth → mesh
-    direction uses the Chamfer's denser reference count). ``seed``: of those samplings (fixed: reports repeat)."""
+    direction uses the Chamfer's denser reference count). ``seed``: of those samplings (fixed: reports repeat).
+    ``n_scale``: truth points of the split by scale (:func:`error_left_by_scale`, with a reference; 0: none)."""
     from scipy.spatial import cKDTree
 
     n_q, n_ref = (DEFAULT_SAMPLES[0] if n is None else n), DEFAULT_SAMPLES[1]
     if reference is not None and reference not in meshes:
         raise ValueError(f"reference {reference!r} is not one of the meshes {sorted(meshes)}")
     truth = truth_surface(gv, gf, n_ref, seed)
-    g_pts = sample_surface(gv, gf, n_q, np.random.default_rng(seed + 1))[0]
+    g_pts, g_fid, _ = sample_surface(gv, gf, n_q, np.random.default_rng(seed + 1))
     band = border_band(gv, band)
     border = _border_points(gv, gf, band / 4)
     near = cKDTree(border).query(g_pts)[0] < band if border is not None else None
@@ -91,10 +155,16 @@ def surface_errors(gv: np.ndarray, gf: np.ndarray, meshes: dict[str, tuple[np.nd
         pts = sample_surface(v, f, n_q, np.random.default_rng(seed + 2))[0]
         samples[name] = (pts, signed_distance(pts, truth), truth.tree.query(pts)[0])
     ref_tree = cKDTree(samples[reference][0]) if reference is not None else None
+    by_scale = reference is not None and n_scale > 0 and len(meshes) > 1
+    if by_scale:  # a prefix of the area-uniform points is area-uniform too
+        s_pts, s_nrm = g_pts[:n_scale], face_normals(gv, gf)[g_fid[:n_scale]]
+    offsets = {}
     out = {}
     for name, (v, f) in meshes.items():
         pts, sd, dist = samples[name]
         dense = sample_surface(v, f, n_ref, np.random.default_rng(seed + 3))[0]
+        if by_scale:
+            offsets[name] = _offsets(s_pts, s_nrm, dense)
         back = cKDTree(dense, balanced_tree=False, compact_nodes=False).query(g_pts)[0]
         e = SurfaceErrors(name, chamfer=float(0.5 * (dist.mean() + back.mean())), to_truth=float(dist.mean()),
                           from_truth=float(back.mean()), signed_mean=float(sd.mean()),
@@ -111,6 +181,10 @@ def surface_errors(gv: np.ndarray, gf: np.ndarray, meshes: dict[str, tuple[np.nd
                 e.input_error_correlation = float(np.corrcoef(x, sd)[0, 1]) if x.std() > 0 and sd.std() > 0 else None
                 e.new_error_rms = float(np.sqrt(np.mean((sd - slope * x) ** 2)))
         out[name] = e
+    if by_scale:
+        size = float(np.linalg.norm(np.ptp(gv, axis=0)))
+        for name, bands in error_left_by_scale(s_pts, offsets, size, reference).items():
+            out[name].input_error_left_by_scale = bands
     return out
 
 

@@ -208,11 +208,11 @@ def suite_row(name: str, m: MorphResult) -> dict:
 
 def where_errors(bench, result: Path) -> dict:
     """:func:`inverse.morph.benchmark_surface_errors` of a result: both Chamfer directions, the truth's border band
-    against the rest, the input's error left, new error."""
+    against the rest, the input's error left (in all and per spatial scale), new error."""
     e = benchmark_surface_errors(bench, {"morphed": result})["morphed"]
     return {k: getattr(e, k) for k in ("to_truth", "from_truth", "from_truth_border", "from_truth_interior",
                                        "border_share", "input_error_left", "input_error_correlation",
-                                       "new_error_rms", "signed_mean")}
+                                       "new_error_rms", "signed_mean", "input_error_left_by_scale")}
 
 
 def _item(key: str, bench_dir: Path, out: Path, settings: MorphSettings, **kw) -> Item:
