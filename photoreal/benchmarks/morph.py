@@ -528,7 +528,6 @@ def morph_chart(result: dict, path: Path) -> Path:
     return save_figure(fig, path)
 
 
-
 # -- the suite over several draws ----------------------------------------------------------------------------------
 
 
