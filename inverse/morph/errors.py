@@ -76,15 +76,6 @@ def _border_points(gv: np.ndarray, gf: np.ndarray, spacing: float) -> np.ndarray
 SCALES = (0.01, 0.02, 0.04, 0.08)
 
 
-def _offsets(g_pts: np.ndarray, g_nrm: np.ndarray, dense: np.ndarray) -> np.ndarray:
-    """Signed offset of a mesh from each truth point: to its nearest point of the mesh's dense sampling, along the
-    truth's normal there (a field on the truth's surface that two meshes can be compared on, point for point)."""
-    from scipy.spatial import cKDTree
-
-    i = cKDTree(dense, balanced_tree=False, compact_nodes=False).query(g_pts)[1]
-    return np.sum((dense[i] - g_pts) * g_nrm, axis=1)
-
-
 def error_left_by_scale(g_pts: np.ndarray, fields: dict[str, np.ndarray], size: float, reference: str,
                         scales: tuple[float, ...] = SCALES) -> dict[str, list[ScaleBand]]:
     """Per mesh (``fields``: name → its signed offset at the truth points ``g_pts``, area-uniform), its error split
@@ -106,7 +97,7 @@ def error_left_by_scale(g_pts: np.ndarray, fields: dict[str, np.ndarray], size: 
             lows[k].append((w @ x) / norm)
     for k, x in fields.items():
         lows[k].append(np.full_like(x, x.mean()))
-    names = ([f"<{scales[0]:g}"] + [f"{a:g}-{b:g}" for a, b in zip(scales[:-1], scales[1:])] + [f">{scales[-1]:g}"])
+    names = [f"<{scales[0]:g}"] + [f"{a:g}-{b:g}" for a, b in zip(scales[:-1], scales[1:])] + [f">{scales[-1]:g}"]
     ref = lows[reference]
     out = {}
     for k, low in lows.items():
@@ -156,16 +147,16 @@ def surface_errors(gv: np.ndarray, gf: np.ndarray, meshes: dict[str, tuple[np.nd
         samples[name] = (pts, signed_distance(pts, truth), truth.tree.query(pts)[0])
     ref_tree = cKDTree(samples[reference][0]) if reference is not None else None
     by_scale = reference is not None and n_scale > 0 and len(meshes) > 1
-    if by_scale:  # a prefix of the area-uniform points is area-uniform too
+    if by_scale:  # a prefix of the area-uniform points is area-uniform too (and shares their nearest-point query)
         s_pts, s_nrm = g_pts[:n_scale], face_normals(gv, gf)[g_fid[:n_scale]]
     offsets = {}
     out = {}
     for name, (v, f) in meshes.items():
         pts, sd, dist = samples[name]
         dense = sample_surface(v, f, n_ref, np.random.default_rng(seed + 3))[0]
-        if by_scale:
-            offsets[name] = _offsets(s_pts, s_nrm, dense)
-        back = cKDTree(dense, balanced_tree=False, compact_nodes=False).query(g_pts)[0]
+        back, nearest = cKDTree(dense, balanced_tree=False, compact_nodes=False).query(g_pts)
+        if by_scale:  # signed offset of this mesh from each truth point, along the truth's normal there
+            offsets[name] = np.sum((dense[nearest[:n_scale]] - s_pts) * s_nrm, axis=1)
         e = SurfaceErrors(name, chamfer=float(0.5 * (dist.mean() + back.mean())), to_truth=float(dist.mean()),
                           from_truth=float(back.mean()), signed_mean=float(sd.mean()),
                           p95=float(np.percentile(dist, 95)))
