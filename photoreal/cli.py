@@ -201,16 +201,31 @@ def _cmd_bench_morph(a) -> int:
 def _cmd_bench_morph_seeds(a) -> int:
     from foundation.files import write_json
 
-    from .benchmarks.morph import seeds_chart, seeds_summary
+    from .benchmarks.morph import compare_chart, seeds_chart, seeds_compare, seeds_summary
 
     out = _bench_out(a)
     summary = seeds_summary(a.results)  # every file read and checked before anything is written
+    if a.against:
+        base = seeds_summary(a.against)
+        summary["against"] = base
+        summary["comparison"] = seeds_compare(summary, base)
     summary["chart"] = str(seeds_chart(summary, out.with_name(out.stem + ".png")))
+    if a.against:
+        summary["comparison"]["chart"] = str(compare_chart(summary["comparison"],
+                                                           out.with_name(out.stem + "_against.png")))
     write_json(out, summary)
-    _print({"seeds": summary["seeds"], "every_seed_pass": summary["every_seed_pass"],
-            "passes": {n: f"{m['passes']} of {m['of']}" for n, m in summary["meshes"].items()},
-            "chamfer_reduction_worst": {n: round(m["chamfer_reduction"]["worst"], 4)
-                                        for n, m in summary["meshes"].items()}})
+    shown = {"seeds": summary["seeds"], "every_seed_pass": summary["every_seed_pass"],
+             "passes": {n: f"{m['passes']} of {m['of']}" for n, m in summary["meshes"].items()},
+             "chamfer_reduction_worst": {n: round(m["chamfer_reduction"]["worst"], 4)
+                                         for n, m in summary["meshes"].items()}}
+    if a.against:
+        c = summary["comparison"]
+        shown["against"] = {"pairs": c["pairs"], "chamfer_delta_mean": round(c["chamfer_delta"]["mean"], 4),
+                            "chamfer_delta_se": c["chamfer_delta"]["se"] and round(c["chamfer_delta"]["se"], 4),
+                            "wins": c["wins"], "losses": c["losses"], "sign_test_p": round(c["sign_test_p"], 3),
+                            "passes_every_target": c["passes"],
+                            "gained": c["gained"], "lost": c["lost"]}
+    _print(shown)
     return 0
 
 
@@ -854,7 +869,12 @@ def build_parser() -> argparse.ArgumentParser:
     bms = bsub.add_parser("morph-seeds", help="the morph suite over several draws: `bench morph --parts suite "
                                               "--seed K` results, one per seed, summed up per mesh (mean, worst, "
                                               "at how many seeds every target holds) with a chart")
-    bms.add_argument("results", nargs="+", help="bench morph JSON files with a suite, one per seed")
+    bms.add_argument("results", nargs="+", help="bench morph JSON files with a suite, one per seed (a seed's suite "
+                                                "run in parts: its files, each with other meshes)")
+    bms.add_argument("--against", nargs="+", metavar="RESULT",
+                     help="the same draws under other settings (e.g. before a change): paired by mesh and seed, "
+                          "the change per draw, its mean and standard error, wins and losses (sign test), targets "
+                          "gained and lost, and a chart OUT_against.png")
     bms.set_defaults(func=_cmd_bench_morph_seeds)
     bb = bsub.add_parser("btf", help="neural BTF: universal vs NeuMIP, width × texture sweep, render time")
     _pool_opts(bb)

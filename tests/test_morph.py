@@ -525,6 +525,60 @@ def test_suite_over_draws_sums_up_each_mesh(tmp_path, capsys):
         assert not out2.exists() and not (tmp_path / "refused.png").exists()
 
 
+def test_two_settings_compared_draw_by_draw(tmp_path, capsys):
+    """``bench morph-seeds NEW… --against BASE…``: a seed run in parts is merged; the two settings are paired by mesh
+    and seed (changes, their mean and standard error, wins and losses with a sign test, targets gained and lost) —
+    figures against their closed forms; overlapping parts and sets of other experiments are refused, nothing written."""
+    from math import comb
+
+    from photoreal.benchmarks.morph import seeds_compare, seeds_summary
+    from photoreal.cli import main
+
+    base = [_suite_file(tmp_path / "b0.json", 0, {"josie": (0.32, 3.8, 0.02, 0.015), "cow": (0.49, 8.7, 0.02, 0.01)}),
+            _suite_file(tmp_path / "b1a.json", 1, {"josie": (0.09, 2.0, 0.03, 0.04)}),  # seed 1 in two parts
+            _suite_file(tmp_path / "b1b.json", 1, {"cow": (0.21, 4.9, 0.03, 0.02), "paul": (0.5, 4.0, 0.01, 0.009)})]
+    new = [_suite_file(tmp_path / "n0.json", 0, {"josie": (0.35, 3.9, 0.02, 0.015), "cow": (0.45, 8.0, 0.02, 0.01),
+                                                 "bone": (0.7, 9.0, 0.01, 0.0)}),
+           _suite_file(tmp_path / "n1.json", 1, {"josie": (0.42, 3.5, 0.03, 0.02), "cow": (0.30, 5.0, 0.03, 0.02),
+                                                 "paul": (0.55, 4.2, 0.01, 0.009)})]
+    b = seeds_summary(base)
+    assert b["seeds"] == [0, 1] and b["per_seed"]["1"]["of"] == 3 and len(b["per_seed"]["1"]["files"]) == 2
+    assert b["per_seed"]["1"]["mean"]["chamfer_reduction"] == pytest.approx((0.09 + 0.21 + 0.5) / 3, abs=1e-12)
+    assert set(b["per_seed"]["1"]["failing"]) == {"josie", "cow"}
+    c = seeds_compare(seeds_summary(new), b)
+    d = [0.35 - 0.32, 0.45 - 0.49, 0.42 - 0.09, 0.30 - 0.21, 0.55 - 0.5]  # josie, cow at 0; josie, cow, paul at 1
+    assert c["pairs"] == 5 and "bone" not in c["meshes"]  # bone has no base to pair with
+    assert c["chamfer_delta"]["mean"] == pytest.approx(np.mean(d), abs=1e-12)
+    assert c["chamfer_delta"]["se"] == pytest.approx(np.std(d, ddof=1) / np.sqrt(5), abs=1e-12)
+    assert c["psnr_delta_db"]["mean"] == pytest.approx(np.mean([0.1, -0.7, 1.5, 0.1, 0.2]), abs=1e-12)
+    assert (c["wins"], c["losses"]) == (4, 1)
+    assert c["sign_test_p"] == pytest.approx(2 * (comb(5, 0) + comb(5, 1)) / 2 ** 5, abs=1e-12)
+    assert c["gained"] == ["josie@1"] and c["lost"] == []
+    assert c["passes"] == {"base": 2, "new": 3, "of": 5}
+    assert c["every_seed_pass"] == {"base": ["paul"], "new": ["paul"]}
+    assert c["meshes"]["josie"]["chamfer_delta_mean"] == pytest.approx((0.03 + 0.33) / 2, abs=1e-12)
+    out = tmp_path / "cmp" / "morph_seeds.json"
+    out.parent.mkdir()
+    assert main(["bench", "morph-seeds", *map(str, new), "--against", *map(str, base), "--json", str(out)]) == 0
+    written = json.loads(out.read_text())
+    assert written["comparison"]["wins"] == 4 and written["against"]["seeds"] == [0, 1]
+    assert (out.parent / "morph_seeds_against.png").stat().st_size > 10_000
+    # refused, naming the file or the clash, before anything is written
+    overlap = _suite_file(tmp_path / "o1.json", 1, {"cow": (0.2, 4.0, 0.03, 0.02)})
+    longer = [_suite_file(tmp_path / f"l{k}.json", k, {"josie": (0.3, 3.0, 0.01, 0.01)}, iterations=300)
+              for k in (0, 1)]
+    apart = [_suite_file(tmp_path / f"a{k}.json", k, {"bunny": (0.5, 8.0, 0.01, 0.005)}) for k in (0, 1)]
+    for files, against, msg in (([*base, overlap], new, "o1.json: seed 1 again with cow"),
+                                (new, longer, "differ in .* not the same experiment"),
+                                (new, apart, "share no mesh"),
+                                (new[:1], base, "at least two seeds")):
+        out2 = tmp_path / "refused.json"
+        assert main(["bench", "morph-seeds", *map(str, files), "--against", *map(str, against),
+                     "--json", str(out2)]) == 2
+        assert re.search(msg, capsys.readouterr().err)
+        assert not out2.exists() and not (tmp_path / "refused_against.png").exists()
+
+
 def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):
     run_morph(small_armadillo, tmp_path, MorphSettings(iterations=2, resolution=32), show_progress=False,
               budget_iterations=1)

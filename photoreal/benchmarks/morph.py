@@ -79,6 +79,8 @@ class MorphBenchSettings:
 
 #: the suite's targets (issue 17): per mesh, at the same defaults
 TARGETS = {"chamfer_reduction": 0.40, "psnr_gain_db": 3.0}
+#: the per-mesh figures a suite's mean is taken over
+MEAN_KEYS = ("chamfer_reduction", "psnr_gain_db", "spike_vertices", "inverted_triangles", "seconds", "s_per_iteration")
 
 
 #: benchmark cases named by one of pymeshlab's sample meshes
@@ -260,8 +262,7 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
     rows = {n: rows[n] for n in s.suite}
     for n, row in rows.items():  # where the error sits (photoreal morph errors, without its maps)
         row["errors"] = where_errors(load_morph_benchmark(benches[n]), work / f"suite_{n}{tag}" / "morphed.ply")
-    keys = ("chamfer_reduction", "psnr_gain_db", "spike_vertices", "inverted_triangles", "seconds", "s_per_iteration")
-    mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in keys}
+    mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in MEAN_KEYS}
     return {"meshes": rows, "mean": mean, "targets": TARGETS,
             "all_pass": all(r["passes"] for r in rows.values()),
             "failing": {n: [c for c, ok in r["checks"].items() if not ok] for n, r in rows.items() if not r["passes"]},
@@ -544,24 +545,29 @@ def _suite_of(path: Path, data: dict) -> tuple[int, dict]:
     return seed, suite
 
 
+def _merged_suites(a: dict, b: dict) -> dict:
+    """Two parts of one draw's suite (disjoint meshes) as one: rows joined, the mean and the failing list remade."""
+    meshes = {**a["meshes"], **b["meshes"]}
+    mean = {k: float(np.mean([r[k] for r in meshes.values()])) for k in MEAN_KEYS
+            if all(k in r for r in meshes.values())}
+    return {**a, "meshes": meshes, "mean": mean, "failing": {**a.get("failing", {}), **b.get("failing", {})}}
+
+
 def seeds_summary(paths: list[str | Path]) -> dict:
     """The suite over several draws (``photoreal bench morph --seed K`` results, one file per seed): per mesh its
     figures at each seed, their mean and worst, and at how many seeds it meets every target; per seed the meshes that
-    pass. Files must agree on everything but the seed (cap, truth shading): draws of one experiment. A mesh some
-    files lack is reported over the seeds that have it (``seeds`` says which)."""
+    pass. Files must agree on everything but the seed (cap, truth shading): draws of one experiment. Files of one
+    seed with different meshes are parts of one draw and are merged; a mesh some seeds lack is reported over the
+    seeds that have it (``seeds`` says which)."""
     from foundation.errors import UsageError
     from foundation.files import read_json
 
-    if len(paths) < 2:
-        raise UsageError("the suite over draws needs at least two result files (one per seed)")
     runs: dict[int, dict] = {}
-    where: dict[int, Path] = {}
+    where: dict[int, list[Path]] = {}
     same: dict | None = None
     for p in map(Path, paths):
         data = read_json(p, "bench morph result")
         seed, suite = _suite_of(p, data)
-        if seed in runs:
-            raise UsageError(f"{p}: seed {seed} again (also {where[seed]}): one file per draw")
         s = data["settings"]
         fixed = {k: s.get(k) for k in ("iterations", "truth_normals")}
         fixed["truth_normals"] = fixed["truth_normals"] or "vertex"  # files from before the option: vertex normals
@@ -569,8 +575,18 @@ def seeds_summary(paths: list[str | Path]) -> dict:
             same, first = fixed, p
         elif fixed != same:
             raise UsageError(f"{p}: settings {fixed} differ from {first}'s {same}: not draws of one experiment")
-        runs[seed], where[seed] = suite, p
+        if seed in runs:  # one draw run in parts (e.g. the suite, then the unseen meshes): merged, meshes disjoint
+            again = sorted(set(runs[seed]["meshes"]) & set(suite["meshes"]))
+            if again:
+                raise UsageError(f"{p}: seed {seed} again with {', '.join(again)} (also in "
+                                 f"{', '.join(map(str, where[seed]))}): one result per mesh and draw")
+            runs[seed] = _merged_suites(runs[seed], suite)
+            where[seed].append(p)
+        else:
+            runs[seed], where[seed] = suite, [p]
     seeds = sorted(runs)
+    if len(seeds) < 2:
+        raise UsageError("the suite over draws needs results of at least two seeds")
     names = list(dict.fromkeys(n for k in seeds for n in runs[k]["meshes"]))
     meshes = {}
     for n in names:
@@ -591,7 +607,7 @@ def seeds_summary(paths: list[str | Path]) -> dict:
             "spike_vertices_max": int(max(r["spike_vertices"] for r in at.values())),
             "inverted_triangles_max": int(max(r["inverted_triangles"] for r in at.values())),
             "passes": int(sum(r["passes"] for r in at.values())), "of": len(at)}
-    per_seed = {str(k): {"file": str(where[k]), "passing": sum(r["passes"] for r in runs[k]["meshes"].values()),
+    per_seed = {str(k): {"files": [str(p) for p in where[k]], "passing": sum(r["passes"] for r in runs[k]["meshes"].values()),
                          "of": len(runs[k]["meshes"]), "mean": runs[k]["mean"], "failing": runs[k]["failing"]}
                 for k in seeds}
     return {"seeds": seeds, "settings": same, "targets": TARGETS, "meshes": meshes, "per_seed": per_seed,
@@ -636,4 +652,104 @@ def seeds_chart(summary: dict, path: Path) -> Path:
     n_pass = len(summary["every_seed_pass"])
     fig.suptitle(f"morph suite over {len(summary['seeds'])} draws: {n_pass} of {len(names)} meshes meet every "
                  "target at every draw")
+    return save_figure(fig, path)
+
+
+def _sign_test(wins: int, losses: int) -> float:
+    """Two-sided sign test: the chance of a split at least this uneven if either side were as likely (ties out)."""
+    from math import comb
+
+    n = wins + losses
+    if n == 0:
+        return 1.0
+    k = min(wins, losses)
+    return min(1.0, 2.0 * sum(comb(n, i) for i in range(k + 1)) / 2.0 ** n)
+
+
+def seeds_compare(new: dict, base: dict) -> dict:
+    """Two settings of the suite over the same draws (two :func:`seeds_summary` results), paired by mesh and seed:
+    what one change did, beside how much a draw alone moves a mesh. Per pair the change in Chamfer reduction and PSNR
+    gain (new − base; positive: the new is better) and whether every target holds in each; over the pairs the mean
+    change with its standard error, wins and losses with a two-sided sign test, the targets gained and lost."""
+    from foundation.errors import UsageError
+
+    if new["settings"] != base["settings"]:
+        raise UsageError(f"the two sets differ in {new['settings']} against {base['settings']}: not the same "
+                         "experiment under two settings")
+    pairs, meshes = [], {}
+    for n, m in new["meshes"].items():
+        b = base["meshes"].get(n)
+        common = [k for k in m["per_seed"] if b is not None and k in b["per_seed"]]
+        if not common:
+            continue
+        rows = []
+        for k in sorted(common, key=int):
+            x, y = m["per_seed"][k], b["per_seed"][k]
+            rows.append({"seed": int(k), "chamfer_reduction": {"base": y["chamfer_reduction"],
+                                                               "new": x["chamfer_reduction"]},
+                         "chamfer_delta": x["chamfer_reduction"] - y["chamfer_reduction"],
+                         "psnr_delta_db": x["psnr_gain_db"] - y["psnr_gain_db"],
+                         "passes": {"base": y["passes"], "new": x["passes"]},
+                         "failing": {"base": y["failing"], "new": x["failing"]}})
+        pairs += [(n, r) for r in rows]
+        meshes[n] = {"per_seed": rows, "chamfer_delta_mean": float(np.mean([r["chamfer_delta"] for r in rows])),
+                     "passes": {"base": sum(r["passes"]["base"] for r in rows),
+                                "new": sum(r["passes"]["new"] for r in rows), "of": len(rows)}}
+    if not pairs:
+        raise UsageError("the two sets share no mesh at any seed: nothing to compare")
+    d = np.array([r["chamfer_delta"] for _, r in pairs])
+    g = np.array([r["psnr_delta_db"] for _, r in pairs])
+    wins, losses = int((d > 0).sum()), int((d < 0).sum())
+
+    def spread(x: np.ndarray) -> dict:
+        sd = float(x.std(ddof=1)) if len(x) > 1 else None
+        return {"mean": float(x.mean()), "sd": sd, "se": None if sd is None else sd / np.sqrt(len(x))}
+
+    return {"pairs": len(pairs), "seeds": sorted({r["seed"] for _, r in pairs}), "meshes": meshes,
+            "chamfer_delta": spread(d), "psnr_delta_db": spread(g),
+            "wins": wins, "losses": losses, "sign_test_p": _sign_test(wins, losses),
+            "passes": {"base": sum(r["passes"]["base"] for _, r in pairs),
+                       "new": sum(r["passes"]["new"] for _, r in pairs), "of": len(pairs)},
+            "gained": [f"{n}@{r['seed']}" for n, r in pairs if r["passes"]["new"] and not r["passes"]["base"]],
+            "lost": [f"{n}@{r['seed']}" for n, r in pairs if r["passes"]["base"] and not r["passes"]["new"]],
+            "every_seed_pass": {"base": [n for n, m in meshes.items() if m["passes"]["base"] == m["passes"]["of"]],
+                                "new": [n for n, m in meshes.items() if m["passes"]["new"] == m["passes"]["of"]]}}
+
+
+def compare_chart(comparison: dict, path: Path, labels: tuple[str, str] = ("base", "new")) -> Path:
+    """Per mesh the change in Chamfer reduction at each draw (new − base, points; above zero the new is better):
+    ▲ a draw that now meets every target and did not, ▼ one that no longer does, ● no change of verdict."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from foundation.imageio import save_figure
+
+    names = list(comparison["meshes"])
+    seeds = comparison["seeds"]
+    x = np.arange(len(names))
+    fig, ax = plt.subplots(figsize=(max(7.0, 0.7 * len(names) + 3), 4))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, k in enumerate(seeds):
+        for xi, n in zip(x, names):
+            r = next((r for r in comparison["meshes"][n]["per_seed"] if r["seed"] == k), None)
+            if r is None:
+                continue
+            p = r["passes"]
+            marker = "^" if p["new"] and not p["base"] else "v" if p["base"] and not p["new"] else "o"
+            ax.plot(xi + 0.12 * (i - (len(seeds) - 1) / 2), r["chamfer_delta"] * 100, marker, ms=6,
+                    color=colours[i % len(colours)], label=f"seed {k}")
+    ax.axhline(0.0, color="0.3", lw=0.8)
+    ax.set_xticks(x, names, rotation=45, ha="right", fontsize=8)
+    ax.set_ylabel(f"Chamfer reduction, {labels[1]} − {labels[0]} (points)")
+    ax.grid(alpha=0.3, axis="y")
+    handles, lab = ax.get_legend_handles_labels()
+    ax.legend(dict(zip(lab, handles)).values(), dict(zip(lab, handles)).keys(), fontsize=7,
+              title="▲ gained every target, ▼ lost", title_fontsize=7)
+    c, p = comparison["chamfer_delta"], comparison["passes"]
+    se = f" ± {c['se'] * 100:.2f}" if c["se"] is not None else ""
+    fig.suptitle(f"{labels[1]} against {labels[0]} over {comparison['pairs']} mesh-draws: Chamfer "
+                 f"{c['mean'] * 100:+.2f}{se} points, {comparison['wins']} better / {comparison['losses']} worse; "
+                 f"every target {p['base']} → {p['new']} of {p['of']}", fontsize=9)
     return save_figure(fig, path)
