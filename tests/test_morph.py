@@ -281,13 +281,18 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     assert replace(resumed.light_selection, trial_seconds=light.trial_seconds) == light
     assert resumed.chamfer_morphed == r.chamfer_morphed
     # decision files removed after the run: remade from the trials' figures at the selection point, not from the
-    # winner's later ones (its folder ran on to the end); the light choice, made from the runs' meshes there, stays
-    for f in ("decision.json", "colour_decision.json"):
+    # winner's later ones (its folder ran on to the end); the light choice from the runs' meshes there — the
+    # winner's as kept before it ran on (checkpoint_at_4.npz), the loser's own last state
+    from inverse.morph.run import selection_checkpoint
+    kept = selection_checkpoint(tmp_path / "b" / "lambda_select" / final.folder, 4)
+    assert read_checkpoint(kept).run.step == 4 and not (tmp_path / "b" / kept.name).exists()
+    for f in ("decision.json", "colour_decision.json", "light_decision.json"):
         (tmp_path / "b" / "lambda_select" / f).unlink()
     (tmp_path / "b" / "metrics.json").unlink()
     remade = run_morph(small_armadillo, tmp_path / "b", s, show_progress=False)
     assert remade.lambda_selection.validation_l1 == sel.validation_l1 and remade.lambda_selection.winner == sel.winner
     assert replace(remade.colour_selection, trial_seconds=col.trial_seconds) == col
+    assert replace(remade.light_selection, trial_seconds=light.trial_seconds) == light
     assert remade.chamfer_morphed == r.chamfer_morphed
     # no light choice where the estimate or colour large steps are set, or with it switched off
     from inverse.morph.run import light_select_on

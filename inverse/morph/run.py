@@ -846,6 +846,8 @@ def validation_l1_with_light(bench: MorphBenchmark, folder: Path, s: MorphSettin
     from foundation.loop import read_checkpoint
 
     saved = read_checkpoint(folder / "checkpoint.npz")
+    if saved.run.step > at and selection_checkpoint(folder, at).is_file():  # the winner ran on: its state at ``at``
+        saved = read_checkpoint(selection_checkpoint(folder, at))
     if saved.run.step != at and not (saved.run.done and saved.run.step < at):  # one that ended sooner: as it ended
         raise UsageError(f"{folder}: the light choice compares runs at iteration {at}, this one is at "
                          f"{saved.run.step}; delete {folder.parent} to start over")
@@ -861,6 +863,12 @@ def validation_l1_with_light(bench: MorphBenchmark, folder: Path, s: MorphSettin
 
 def _trial_dir(out: Path, c: Candidate) -> Path:
     return out / "lambda_select" / c.folder
+
+
+def selection_checkpoint(folder: Path, at: int) -> Path:
+    """Where the winner's state at the selection point is kept before it runs on (a light choice remade later, e.g.
+    under another estimate, scores each run's mesh as it was there)."""
+    return folder / f"checkpoint_at_{at}.npz"
 
 
 def _trial_status(ckpt: Path, at: int | None = None) -> tuple[int, bool, float | None, float]:
@@ -1018,11 +1026,15 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
     if budget is not None and budget <= 0:
         return None
     win = _trial_dir(out, winner)
+    kept = selection_checkpoint(win, at)
+    if not kept.is_file() and _trial_status(win / "checkpoint.npz")[0] == at:
+        with atomic_path(kept) as tmp:
+            shutil.copyfile(win / "checkpoint.npz", tmp)
     r = run_morph(bench, win, candidate_settings(s, winner), show_progress, budget_iterations=budget)
     if r is None:
         return None
     for f in sorted(win.iterdir()):
-        if f.is_file() and f.name not in ("checkpoint.npz", "metrics.json") and not f.name.startswith("."):
+        if f.is_file() and not f.name.startswith(("checkpoint", ".")) and f.name != "metrics.json":
             with atomic_path(out / f.name) as tmp:
                 shutil.copyfile(f, tmp)
     r = replace(r, settings=s, lambda_selection=sel, colour_selection=colour, light_selection=light,
