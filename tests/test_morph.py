@@ -596,6 +596,17 @@ def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):
                                              "view00": small_armadillo.photos["view00"] * np.float32(1.01)})
     with pytest.raises(CheckpointError, match=r"other settings or data \(photos: "):
         run_morph(other, tmp_path, MorphSettings(iterations=2, resolution=32), show_progress=False)
+    # a run without the light estimate never reads the estimate's settings: changed, its checkpoint still resumes
+    # (runs made under the old defaults, 64 spp and "direct", go on under the new); with the estimate they count
+    plain = MorphSettings(iterations=2, resolution=32, indirect_spp=64, indirect_reference="direct")
+    assert run_morph(small_armadillo, tmp_path / "p", plain, show_progress=False, budget_iterations=1) is None
+    assert run_morph(small_armadillo, tmp_path / "p", MorphSettings(iterations=2, resolution=32),
+                     show_progress=False).iterations == 2
+    lit = replace(plain, indirect_every=10)
+    assert run_morph(small_armadillo, tmp_path / "q", lit, show_progress=False, budget_iterations=1) is None
+    with pytest.raises(CheckpointError, match=r"settings.indirect_reference \(new\); settings.indirect_spp: 64 → 16"):
+        run_morph(small_armadillo, tmp_path / "q", replace(lit, indirect_spp=16, indirect_reference="depth2"),
+                  show_progress=False)
     (tmp_path / "checkpoint.npz").write_bytes(b"PK\x03\x04 truncated")
     with pytest.raises(CheckpointError, match="checkpoint.npz: damaged checkpoint .* delete it to start over"):
         run_morph(small_armadillo, tmp_path, MorphSettings(iterations=2, resolution=32), show_progress=False)
