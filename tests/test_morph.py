@@ -335,8 +335,17 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     with pytest.raises(UsageError, match="colour_decision.json: made for start_7"):
         run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
     cpath.write_text(cpath.read_text().replace("start_7", sel.winner.folder))
-    with pytest.raises(UsageError, match="light_decision.json: made for .* colour λ 10; not for these settings"):
+    with pytest.raises(UsageError, match="light_decision.json: made for .* colour λ 10, estimate depth2 at 16 spp; "
+                                         "not for these settings"):
         run_morph(small_armadillo, tmp_path / "a", replace(s, light_select_colour_lambda=5.0), show_progress=False)
+    # the estimate the choice was scored with is part of it; one made before it was recorded is taken as made
+    assert (light.spp, light.reference) == (s.indirect_spp, s.indirect_reference) == (16, "depth2")
+    with pytest.raises(UsageError, match="light_decision.json: made for .* estimate depth2 at 16 spp; not for"):
+        run_morph(small_armadillo, tmp_path / "a", replace(s, indirect_spp=64), show_progress=False)
+    lpath = tmp_path / "a" / "lambda_select" / "light_decision.json"
+    old = json.loads(lpath.read_text())
+    lpath.write_text(json.dumps({k: v for k, v in old.items() if k not in ("spp", "reference")}))
+    assert run_morph(small_armadillo, tmp_path / "a", s, show_progress=False).light_selection.spp is None
 
 
 def test_a_prior_continues_only_where_the_photos_prefer_it_by_the_margin():

@@ -357,6 +357,10 @@ class LightSelection:
     every: int  #: ``indirect_every`` of the run with them
     colour_lambda: float
     margin: float = 0.0
+    #: the estimate both were scored with and the run with them used (``indirect_spp``, ``indirect_reference``);
+    #: None in decisions made before they were recorded, which are taken as made
+    spp: int | None = None
+    reference: str | None = None
 
 
 @dataclass
@@ -1019,14 +1023,18 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
             return LightSelection(winner.folder, at, l1[0], l1[1], kept,
                                   _trial_status(lost, at)[3] + time.perf_counter() - t0,
                                   every=s.light_select_every, colour_lambda=s.light_select_colour_lambda,
-                                  margin=s.prior_margin)
+                                  margin=s.prior_margin, spp=s.indirect_spp, reference=s.indirect_reference)
 
+        estimate = (s.indirect_spp, s.indirect_reference)
         light = _decision_file(
             out / "lambda_select" / "light_decision.json", LightSelection, "light selection",
-            lambda d: (d.candidate, d.at_iteration, d.margin, d.every, d.colour_lambda),
-            (winner.folder, at, s.prior_margin, s.light_select_every, s.light_select_colour_lambda),
+            lambda d: (d.candidate, d.at_iteration, d.margin, d.every, d.colour_lambda,
+                       estimate if d.spp is None else (d.spp, d.reference)),
+            (winner.folder, at, s.prior_margin, s.light_select_every, s.light_select_colour_lambda, estimate),
             lambda d: f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}, every {d.every}, "
-                      f"colour λ {d.colour_lambda:g}; not for these settings", decide_light)
+                      f"colour λ {d.colour_lambda:g}" + ("" if d.spp is None else
+                                                         f", estimate {d.reference} at {d.spp} spp") +
+                      "; not for these settings", decide_light)
         if light is None:
             return None
         extra += light.trial_seconds
