@@ -716,7 +716,7 @@ def seeds_compare(new: dict, base: dict) -> dict:
                                 "new": [n for n, m in meshes.items() if m["passes"]["new"] == m["passes"]["of"]]}}
 
 
-def compare_chart(comparison: dict, path: Path, labels: tuple[str, str] = ("base", "new")) -> Path:
+def compare_chart(comparison: dict, path: Path) -> Path:
     """Per mesh the change in Chamfer reduction at each draw (new − base, points; above zero the new is better):
     ▲ a draw that now meets every target and did not, ▼ one that no longer does, ● no change of verdict."""
     import matplotlib
@@ -732,6 +732,7 @@ def compare_chart(comparison: dict, path: Path, labels: tuple[str, str] = ("base
     fig, ax = plt.subplots(figsize=(max(7.0, 0.7 * len(names) + 3), 4))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, k in enumerate(seeds):
+        labelled = False  # one legend entry per seed
         for xi, n in zip(x, names):
             r = next((r for r in comparison["meshes"][n]["per_seed"] if r["seed"] == k), None)
             if r is None:
@@ -739,17 +740,16 @@ def compare_chart(comparison: dict, path: Path, labels: tuple[str, str] = ("base
             p = r["passes"]
             marker = "^" if p["new"] and not p["base"] else "v" if p["base"] and not p["new"] else "o"
             ax.plot(xi + 0.12 * (i - (len(seeds) - 1) / 2), r["chamfer_delta"] * 100, marker, ms=6,
-                    color=colours[i % len(colours)], label=f"seed {k}")
+                    color=colours[i % len(colours)], label=None if labelled else f"seed {k}")
+            labelled = True
     ax.axhline(0.0, color="0.3", lw=0.8)
     ax.set_xticks(x, names, rotation=45, ha="right", fontsize=8)
-    ax.set_ylabel(f"Chamfer reduction, {labels[1]} − {labels[0]} (points)")
+    ax.set_ylabel("Chamfer reduction, new − base (points)")
     ax.grid(alpha=0.3, axis="y")
-    handles, lab = ax.get_legend_handles_labels()
-    ax.legend(dict(zip(lab, handles)).values(), dict(zip(lab, handles)).keys(), fontsize=7,
-              title="▲ gained every target, ▼ lost", title_fontsize=7)
+    ax.legend(fontsize=7, title="▲ gained every target, ▼ lost", title_fontsize=7)
     c, p = comparison["chamfer_delta"], comparison["passes"]
     se = f" ± {c['se'] * 100:.2f}" if c["se"] is not None else ""
-    fig.suptitle(f"{labels[1]} against {labels[0]} over {comparison['pairs']} mesh-draws: Chamfer "
+    fig.suptitle(f"new against base over {comparison['pairs']} mesh-draws: Chamfer "
                  f"{c['mean'] * 100:+.2f}{se} points, {comparison['wins']} better / {comparison['losses']} worse; "
                  f"every target {p['base']} → {p['new']} of {p['of']}", fontsize=9)
     return save_figure(fig, path)
