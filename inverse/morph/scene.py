@@ -64,6 +64,24 @@ def render_views(scene: mi.Scene, params, cameras: list[Camera], ids, res: int, 
     return out
 
 
+def upsample_bilinear(img: np.ndarray, size: int) -> np.ndarray:
+    """(h, w, c) image of a square frame resampled to (size, size, c) by bilinear interpolation between pixel
+    centres (both grids span the same frame; beyond the outermost centres the edge value holds)."""
+    def along(x: np.ndarray, axis: int) -> np.ndarray:
+        n = x.shape[axis]
+        if n == size:
+            return x
+        u = np.clip((np.arange(size) + 0.5) * n / size - 0.5, 0.0, n - 1)
+        i0 = np.floor(u).astype(np.int64)
+        i1 = np.minimum(i0 + 1, n - 1)
+        t = (u - i0).astype(x.dtype)
+        shape = [1] * x.ndim
+        shape[axis] = size
+        t = t.reshape(shape)
+        return np.take(x, i0, axis) * (1 - t) + np.take(x, i1, axis) * t
+    return along(along(np.asarray(img), 0), 1)
+
+
 def photo_at(bench: MorphBenchmark, i: int, res: int) -> np.ndarray:
     """Photo ``i`` at ``res``² (box-filtered when smaller than the benchmark's), float32 (res, res, 3)."""
     img = bench.photo(i)

@@ -410,6 +410,7 @@ def iteration_cost(bench, recipes: dict[str, MorphSettings], iterations: int, ro
             "views": sorted(set.intersection(*pools.values())),
             "recipes": {k: {"boundary_spp": rs.boundary_spp, "spp": rs.spp, "indirect_every": rs.indirect_every,
                             "indirect_spp": rs.indirect_spp, "indirect_reference": rs.indirect_reference,
+                            "indirect_downsample": rs.indirect_downsample,
                             "colour_lambda": rs.colour_lambda,
                             "check_every": rs.check_every if rs.validation_views else None}
                         for k, rs in recipes.items()},
