@@ -335,8 +335,8 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     with pytest.raises(UsageError, match="colour_decision.json: made for start_7"):
         run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
     cpath.write_text(cpath.read_text().replace("start_7", sel.winner.folder))
-    with pytest.raises(UsageError, match="light_decision.json: made for .* colour λ 10, estimate depth2 at 16 spp, 1/2 resolution; "
-                                         "not for these settings"):
+    with pytest.raises(UsageError, match="light_decision.json: made for .* colour λ 10, estimate depth2 at 16 spp, "
+                                         "1/2 resolution; not for these settings"):
         run_morph(small_armadillo, tmp_path / "a", replace(s, light_select_colour_lambda=5.0), show_progress=False)
     # the estimate the choice was scored with is part of it; one made before it was recorded is taken as made
     assert (light.spp, light.reference, light.downsample) == \

@@ -1049,8 +1049,9 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
                        estimate if d.spp is None else (d.spp, d.reference, d.downsample or 1)),
             (winner.folder, at, s.prior_margin, s.light_select_every, s.light_select_colour_lambda, estimate),
             lambda d: f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}, every {d.every}, "
-                      f"colour λ {d.colour_lambda:g}" + ("" if d.spp is None else
-                                                         f", estimate {d.reference} at {d.spp} spp, 1/{d.downsample or 1} resolution") +
+                      f"colour λ {d.colour_lambda:g}" +
+                      ("" if d.spp is None else
+                       f", estimate {d.reference} at {d.spp} spp, 1/{d.downsample or 1} resolution") +
                       "; not for these settings", decide_light)
         if light is None:
             return None
