@@ -268,7 +268,8 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     again = validation_l1_with_light(small_armadillo, tmp_path / "a" / "lambda_select" / lost.folder,
                                      candidate_settings(s, lost), 4)
     assert again == (light.validation_l1_with if lost.light else light.validation_l1_without)
-    with pytest.raises(UsageError, match="at iteration 3, this one is at 4"):
+    with pytest.raises(UsageError, match=r"at iteration 3, this one is at 4 \(no checkpoint_at_3.npz\); delete .*"
+                                         f"{lost.folder} to rerun it, or .*lambda_select to start over"):
         validation_l1_with_light(small_armadillo, tmp_path / "a" / "lambda_select" / lost.folder,
                                  candidate_settings(s, lost), 3)
     saved = json.loads((tmp_path / "a" / "metrics.json").read_text())

@@ -878,8 +878,10 @@ def validation_l1_with_light(bench: MorphBenchmark, folder: Path, s: MorphSettin
     if saved.run.step > at and selection_checkpoint(folder, at).is_file():  # the winner ran on: its state at ``at``
         saved = read_checkpoint(selection_checkpoint(folder, at))
     if saved.run.step != at and not (saved.run.done and saved.run.step < at):  # one that ended sooner: as it ended
+        # a winner that ran on before its state at ``at`` was kept: rerunning that one candidate is enough
         raise UsageError(f"{folder}: the light choice compares runs at iteration {at}, this one is at "
-                         f"{saved.run.step}; delete {folder.parent} to start over")
+                         f"{saved.run.step} (no {selection_checkpoint(folder, at).name}); delete {folder} to rerun "
+                         f"it, or {folder.parent} to start over")
     with tempfile.TemporaryDirectory(prefix=".light_", dir=folder) as tmp:
         stage = MorphStage(bench, Path(tmp), replace(s, indirect_every=s.indirect_every or 1))
         try:
