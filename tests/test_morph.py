@@ -690,7 +690,9 @@ def test_out_of_range_morph_settings_are_named():
                      ({"lambda_": float("nan")}, "lambda_"), ({"planarity_weight": float("nan")}, "planarity_weight"),
                      ({"target_vertices": -5}, "target_vertices"), ({"resolution": 0}, "resolution"),
                      ({"iterations": -1}, "iterations"), ({"spp": 0}, "spp"), ({"boundary_spp": 0}, "boundary_spp"),
-                     ({"indirect_reference": "both"}, "indirect_reference")):
+                     ({"indirect_reference": "both"}, "indirect_reference"),
+                     ({"indirect_downsample": 0}, "indirect_downsample"),
+                     ({"indirect_downsample": 9}, "indirect_downsample")):
         with pytest.raises(UsageError, match=f"^{name} must"):
             MorphSettings(**kw)
 
