@@ -3,7 +3,7 @@
 ``import mi_plugins`` resolves libLLVM and, if no Mitsuba variant is set yet,
 sets one (``cuda_ad_rgb`` when a GPU works, else ``llvm_ad_rgb``;
 ``PHOTOREAL_VARIANT`` overrides), then registers the plugins for the active
-variant: BSDFs ``ggx_uv`` and ``neural_btf``, integrator ``intrinsic``. After switching
+variant: BSDFs ``ggx_uv`` and ``neural_btf``, integrators ``intrinsic`` and ``indirect``. After switching
 variants yourself, call :func:`register` again.
 """
 
@@ -19,11 +19,12 @@ def register() -> str:
     import mitsuba as mi
 
     from .bsdfs import ggx_uv, neural_btf
-    from .integrators import intrinsic
+    from .integrators import indirect, intrinsic
 
     ggx_uv.register()
     neural_btf.register()
     intrinsic.register()
+    indirect.register()
     return mi.variant()
 
 

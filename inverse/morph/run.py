@@ -614,24 +614,30 @@ class MorphStage(DrJitStage):
         direct light (``indirect_reference``), no gradients. With "depth2" the subtrahend is the path tracer at depth
         2 with the same seed: Mitsuba's path tracer draws the same random numbers for the same first bounce at
         either depth, so the first bounce cancels sample for sample and the difference carries the indirect light's
-        own noise only (josie, 128²: RMSE 0.0031 at 16 spp against 0.0050 for "direct" at 64 spp).
+        own noise only (josie, 128²: RMSE 0.0031 at 16 spp against 0.0050 for "direct" at 64 spp); rendered in one
+        pass by the ``indirect`` integrator (since 2026-11-28; before, two renders subtracted).
         Rendered at 1/``indirect_downsample`` of the fitting resolution (rounded up) and upsampled bilinearly."""
         meta = self.bench.meta
         if not self.s.indirect_every or self.s.mode != "lit":
             return
         depth = meta.settings.photo_max_depth
+        depth2 = self.s.indirect_reference == "depth2"
         with dr.suspend_grad(), mitsuba_log_level(mi.LogLevel.Error):
-            path = mi.load_dict({"type": "path", "max_depth": depth})
-            direct = mi.load_dict({"type": "path", "max_depth": 2} if self.s.indirect_reference == "depth2"
-                                  else {"type": "direct"})
+            # "depth2" in one render: the ``indirect`` integrator draws the path tracer's random numbers and keeps
+            # only paths of 3 segments or more, i.e. the difference of the two renders to rounding (tested)
+            path = mi.load_dict({"type": "indirect", "max_depth": depth, "min_depth": 3} if depth2
+                                else {"type": "path", "max_depth": depth})
+            direct = None if depth2 else mi.load_dict({"type": "direct"})
             res = -(-self.res // self.s.indirect_downsample)
             for i in (meta.train if views is None else views):
                 sensor = mi.load_dict(sensor_dict(meta.cameras[int(i)], res, meta.fov))
                 seed = 9_000_011 + int(i)
-                a = mi.render(self.scene, self.params, sensor=sensor, integrator=path, spp=self.s.indirect_spp, seed=seed)
-                b = mi.render(self.scene, self.params, sensor=sensor, integrator=direct, spp=self.s.indirect_spp,
-                              seed=seed)
-                diff = upsample_bilinear(np.array(a)[..., :3] - np.array(b)[..., :3], self.res)
+                a = np.array(mi.render(self.scene, self.params, sensor=sensor, integrator=path,
+                                       spp=self.s.indirect_spp, seed=seed))[..., :3]
+                if direct is not None:
+                    a = a - np.array(mi.render(self.scene, self.params, sensor=sensor, integrator=direct,
+                                               spp=self.s.indirect_spp, seed=seed))[..., :3]
+                diff = upsample_bilinear(a, self.res)
                 self.indirect[int(i)] = mi.TensorXf(np.ascontiguousarray(diff, np.float32))
 
     def _check(self, run: RunState) -> None:
