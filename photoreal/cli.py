@@ -229,6 +229,21 @@ def _cmd_bench_morph_seeds(a) -> int:
     return 0
 
 
+def _cmd_bench_morph_light_draws(a) -> int:
+    from foundation.files import write_json
+
+    from .benchmarks.morph import light_draws, light_draws_chart
+
+    out = _bench_out(a)
+    result = light_draws(a.results, a.draws)
+    result["chart"] = str(light_draws_chart(result, out.with_name(out.stem + ".png")))
+    write_json(out, result)
+    _print({"light_choices": len(result["rows"]), "draws": result["draws"],
+            "draw0_vs_stored_max": result["draw0_vs_stored_max"], "advantage_sd": result["advantage_sd"],
+            "overturned_by_a_draw": result["overturned_by_a_draw"]})
+    return 0
+
+
 def _cmd_bench_btf(a) -> int:
     from foundation.files import write_json
 
@@ -876,6 +891,13 @@ def build_parser() -> argparse.ArgumentParser:
                           "the change per draw, its mean and standard error, wins and losses (sign test), targets "
                           "gained and lost, and a chart OUT_against.png")
     bms.set_defaults(func=_cmd_bench_morph_seeds)
+    bld = bsub.add_parser("morph-light-draws", help="every light choice of `bench morph --parts suite --keep-work` "
+                                                    "results scored again under other draws of the light estimate: "
+                                                    "how much of each choice the estimate's own noise decides")
+    bld.add_argument("results", nargs="+", help="bench morph JSON files with a suite, their work folders kept")
+    bld.add_argument("--draws", type=int, default=4, help="draws of the estimate per run, the choice's own first "
+                                                         "(default: 4)")
+    bld.set_defaults(func=_cmd_bench_morph_light_draws)
     bb = bsub.add_parser("btf", help="neural BTF: universal vs NeuMIP, width × texture sweep, render time")
     _pool_opts(bb)
     bb.set_defaults(func=_cmd_bench_btf)
@@ -944,7 +966,7 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bs, ScaleBenchSettings, "ray", "--no-ray", help="leave out the Ray configuration")
     _opt(bs, ScaleBenchSettings, "material_item", "--no-material", help="leave out timing one BTF material")
     bs.set_defaults(func=_cmd_bench_scale)
-    for q in (bp, bm, bms, bb, bf, bg, bd, bmd, bfl, bs):
+    for q in (bp, bm, bms, bld, bb, bf, bg, bd, bmd, bfl, bs):
         q.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
 
     f = sub.add_parser("face", help="face material fitting in UV space (seed 003)")

@@ -268,6 +268,21 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     again = validation_l1_with_light(small_armadillo, tmp_path / "a" / "lambda_select" / lost.folder,
                                      candidate_settings(s, lost), 4)
     assert again == (light.validation_l1_with if lost.light else light.validation_l1_without)
+    # the choice under other draws of the estimate: the first draw is the choice's own, the others move the scores
+    from inverse.morph.run import light_choice_draws
+    redo = light_choice_draws(small_armadillo, tmp_path / "a", s, draws=3)
+    assert (redo["validation_l1_without"][0], redo["validation_l1_with"][0]) == \
+        (light.validation_l1_without, light.validation_l1_with)
+    assert redo["keeps"][0] == light.kept and redo["stored_advantage"] == redo["advantage"][0]
+    assert redo["draws_against_stored"] == sum(k != light.kept for k in redo["keeps"])
+    assert len(set(redo["validation_l1_with"])) == 3 and redo["advantage_sd"] > 0
+    np.testing.assert_allclose(redo["validation_l1_with"], light.validation_l1_with, rtol=0.1)  # the same runs
+    assert light_choice_draws(small_armadillo, tmp_path / "alone", s) is None  # no choice made there
+    with pytest.raises(UsageError, match="scored with the estimate depth2 at 16 spp, 1/2 resolution; these settings "
+                                         "estimate depth2 at 64 spp"):
+        light_choice_draws(small_armadillo, tmp_path / "a", replace(s, indirect_spp=64))
+    with pytest.raises(UsageError, match="draws"):
+        light_choice_draws(small_armadillo, tmp_path / "a", s, draws=0)
     with pytest.raises(UsageError, match=r"at iteration 3, this one is at 4 \(no checkpoint_at_3.npz\); delete .*"
                                          f"{lost.folder} to rerun it, or .*lambda_select to start over"):
         validation_l1_with_light(small_armadillo, tmp_path / "a" / "lambda_select" / lost.folder,
@@ -546,6 +561,29 @@ def test_suite_over_draws_sums_up_each_mesh(tmp_path, capsys):
         assert main(["bench", "morph-seeds", *map(str, files), "--json", str(out2)]) == 2
         assert re.search(msg, capsys.readouterr().err)
         assert not out2.exists() and not (tmp_path / "refused.png").exists()
+
+
+def test_light_draws_refuses_results_without_their_runs(tmp_path, capsys):
+    """``photoreal bench morph-light-draws`` rescores light choices from the runs a suite kept: a result whose work
+    folder is gone, or whose runs made no light choice, is refused by name with nothing written; a bad --draws too.
+    (The rescoring itself: ``light_choice_draws`` in the λ-selection test; its figures in the README.)"""
+    from photoreal.cli import main
+
+    r = _suite_file(tmp_path / "r.json", 0, {"josie": (0.3, 3.0, 0.01, 0.01)})
+    out = tmp_path / "draws.json"
+    assert main(["bench", "morph-light-draws", str(r), "--json", str(out)]) == 2
+    assert re.search(r"r.json: its work folder .*morph_work is gone \(run the bench with --keep-work\)",
+                     capsys.readouterr().err)
+    (tmp_path / "morph_work" / "suite_josie" / "lambda_select").mkdir(parents=True)
+    assert main(["bench", "morph-light-draws", str(r), "--json", str(out)]) == 2
+    assert "no light choice in these results' work folders" in capsys.readouterr().err
+    r1 = _suite_file(tmp_path / "s1" / "r1.json", 1, {"josie": (0.3, 3.0, 0.01, 0.01)})
+    (r1.parent / "morph_work_seed1").mkdir()  # seed K's work folder is morph_work_seedK
+    assert main(["bench", "morph-light-draws", str(r1), "--json", str(out)]) == 2
+    assert "no light choice" in capsys.readouterr().err
+    assert main(["bench", "morph-light-draws", str(r), "--draws", "0", "--json", str(out)]) == 2
+    assert "draws" in capsys.readouterr().err
+    assert not out.exists() and not (tmp_path / "draws.png").exists()
 
 
 def test_two_settings_compared_draw_by_draw(tmp_path, capsys):
@@ -1162,6 +1200,28 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
         "given: light estimate every 50 iterations, colour λ 0"
 
 
+def _assert_depth2_is_two_renders(stage, images) -> None:
+    """The estimate as it was made before the ``indirect`` integrator: the path tracer at the photos' depth minus the
+    path tracer at depth 2, one seed, subtracted (the same random numbers for the first bounce). Float32 rounding
+    apart (1e-6 × the brightest pixel) they agree pixel for pixel."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from inverse.morph.benchmark import sensor_dict
+    from inverse.morph.scene import upsample_bilinear
+
+    meta = stage.bench.meta
+    res = -(-stage.res // stage.s.indirect_downsample)
+    with dr.suspend_grad():
+        for img, i in zip(images, meta.train):
+            sensor = mi.load_dict(sensor_dict(meta.cameras[int(i)], res, meta.fov))
+            a, b = (np.array(mi.render(stage.scene, stage.params, sensor=sensor, spp=stage.s.indirect_spp,
+                                       seed=9_000_011 + int(i), integrator=mi.load_dict({"type": "path", "max_depth": d})))
+                    for d in (meta.settings.photo_max_depth, 2))
+            np.testing.assert_allclose(img, upsample_bilinear(a[..., :3] - b[..., :3], stage.res), rtol=0,
+                                       atol=1e-6 * max(float(a.max()), 1.0))
+
+
 def _indirect_estimate(tmp_path, name, v, f, **kw) -> tuple[float, float]:
     """Mean and largest magnitude of the stage's indirect-light estimate over a tiny benchmark's training views."""
     from inverse.morph.run import MorphStage
@@ -1176,6 +1236,8 @@ def _indirect_estimate(tmp_path, name, v, f, **kw) -> tuple[float, float]:
     try:
         stage.estimate_indirect()
         images = [np.array(stage.indirect[i]) for i in bench.meta.train]
+        if s.indirect_reference == "depth2":  # one render of the `indirect` integrator is the two renders' difference
+            _assert_depth2_is_two_renders(stage, images)
     finally:
         stage.close()
     assert len(images) == len(bench.meta.train) and all(np.isfinite(x).all() for x in images)

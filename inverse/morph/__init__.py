@@ -27,7 +27,7 @@ from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import PleatReport, RepairReport, SpikeReport, iron_spikes, remesh, repair_flips, unfold_pleats
 from .batch import load_result, run_item
 from .run import (MORPH_SEED_MAX, Candidate, ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, MorphStage,
-                  PlanarityDecision, TracePoint, candidate_settings, run_morph, start_mesh)
+                  PlanarityDecision, TracePoint, candidate_settings, light_choice_draws, run_morph, start_mesh)
 from .suite import SUITE, KINDS, UNSEEN, suite_mesh
 from .scene import MODES, morph_scene, photo_at, projective_integrator, render_views
 

@@ -70,6 +70,8 @@ MORPH_SEED_MAX = 200_000
 #: the ``indirect_spp`` a run without the light estimate records in its checkpoint's fingerprint (the default when
 #: those runs were first made): it never reads it, and a changed default must not make its checkpoints "other settings"
 PLAIN_RUN_INDIRECT_SPP = 64
+#: the light estimate's render seeds are 9_000_011 + view (+ this × the draw, for :func:`light_choice_draws`)
+ESTIMATE_DRAW_STRIDE = 1_000_003
 
 
 @dataclass
@@ -609,14 +611,15 @@ class MorphStage(DrJitStage):
         extra = self.indirect.get(int(i))
         return img[..., :3] if extra is None else img[..., :3] + extra
 
-    def estimate_indirect(self, views: list[int] | None = None) -> None:
+    def estimate_indirect(self, views: list[int] | None = None, draw: int = 0) -> None:
         """Per photo (of ``views``; None: every training photo): a path-traced render at the photos' depth minus
         direct light (``indirect_reference``), no gradients. With "depth2" the subtrahend is the path tracer at depth
         2 with the same seed: Mitsuba's path tracer draws the same random numbers for the same first bounce at
         either depth, so the first bounce cancels sample for sample and the difference carries the indirect light's
         own noise only (josie, 128²: RMSE 0.0031 at 16 spp against 0.0050 for "direct" at 64 spp); rendered in one
         pass by the ``indirect`` integrator (since 2026-11-28; before, two renders subtracted).
-        Rendered at 1/``indirect_downsample`` of the fitting resolution (rounded up) and upsampled bilinearly."""
+        Rendered at 1/``indirect_downsample`` of the fitting resolution (rounded up) and upsampled bilinearly.
+        ``draw``: another draw of the estimate's random numbers (0: the one every run and choice uses)."""
         meta = self.bench.meta
         if not self.s.indirect_every or self.s.mode != "lit":
             return
@@ -631,7 +634,7 @@ class MorphStage(DrJitStage):
             res = -(-self.res // self.s.indirect_downsample)
             for i in (meta.train if views is None else views):
                 sensor = mi.load_dict(sensor_dict(meta.cameras[int(i)], res, meta.fov))
-                seed = 9_000_011 + int(i)
+                seed = 9_000_011 + int(i) + ESTIMATE_DRAW_STRIDE * int(draw)
                 a = np.array(mi.render(self.scene, self.params, sensor=sensor, integrator=path,
                                        spp=self.s.indirect_spp, seed=seed))[..., :3]
                 if direct is not None:
@@ -873,9 +876,11 @@ def light_select_on(s: MorphSettings) -> bool:
     return s.light_select_every > 0 and not s.indirect_every and not s.colour_lambda and s.mode == "lit"
 
 
-def validation_l1_with_light(bench: MorphBenchmark, folder: Path, s: MorphSettings, at: int) -> float | None:
+def validation_l1_with_light(bench: MorphBenchmark, folder: Path, s: MorphSettings, at: int,
+                             draws: int = 1) -> list[float] | float | None:
     """Validation L1 of the run in ``folder`` (settings ``s``, checkpoint at iteration ``at``) after a fresh estimate
-    of the light its direct renders miss, on its own mesh and colours (fixed seeds: runs compare like with like)."""
+    of the light its direct renders miss, on its own mesh and colours (fixed seeds: runs compare like with like).
+    ``draws`` > 1: a list, one L1 per draw of the estimate's random numbers (the first is the one-draw value)."""
     import tempfile
 
     from foundation.loop import read_checkpoint
@@ -892,10 +897,45 @@ def validation_l1_with_light(bench: MorphBenchmark, folder: Path, s: MorphSettin
         stage = MorphStage(bench, Path(tmp), replace(s, indirect_every=s.indirect_every or 1))
         try:
             stage.load_state(saved.stage)
-            stage.estimate_indirect(stage.val_ids)
-            return stage.validation_l1()
+            out = []
+            for k in range(draws):
+                stage.estimate_indirect(stage.val_ids, draw=k)
+                out.append(stage.validation_l1())
+            return out[0] if draws == 1 else out
         finally:
             stage.close()
+
+
+def light_choice_draws(bench: MorphBenchmark, out: Path, s: MorphSettings, draws: int = 4) -> dict | None:
+    """The stored light choice of the run in ``out`` (settings ``s``) scored again under ``draws`` draws of the
+    estimate's random numbers (draw 0: the choice's own, which reproduces its stored scores): how much of the
+    decision the estimate's draw decides. None where no light choice was made. Per draw the L1 of both runs at the
+    selection point, the light run's advantage 1 − with / without, whether that draw keeps the light run."""
+    validate.integer("draws", draws, 1, 64)
+    path = Path(out) / "lambda_select" / "light_decision.json"
+    if not path.is_file():
+        return None
+    from foundation.files import read_json
+
+    d = from_json(LightSelection, read_json(path, "light selection"), str(path))
+    estimate = (s.indirect_spp, s.indirect_reference, s.indirect_downsample)
+    if d.spp is not None and (d.spp, d.reference, d.downsample or 1) != estimate:
+        raise UsageError(f"{path}: scored with the estimate {d.reference} at {d.spp} spp, 1/{d.downsample or 1} "
+                         f"resolution; these settings estimate {estimate[1]} at {estimate[0]} spp, 1/{estimate[2]}")
+    plain = replace(s, indirect_every=0, colour_lambda=0.0)
+    light = replace(s, indirect_every=d.every, colour_lambda=d.colour_lambda)
+    folder = Path(out) / "lambda_select" / d.candidate
+    without = validation_l1_with_light(bench, folder, plain, d.at_iteration, draws)
+    with_ = validation_l1_with_light(bench, folder.with_name(d.candidate + "_light"), light, d.at_iteration, draws)
+    without, with_ = (x if isinstance(x, list) else [x] for x in (without, with_))
+    adv = [1.0 - w / o for w, o in zip(with_, without)]
+    keeps = [w < (1.0 - d.margin) * o for w, o in zip(with_, without)]
+    return {"candidate": d.candidate, "at_iteration": d.at_iteration, "margin": d.margin, "kept": d.kept,
+            "stored_advantage": 1.0 - d.validation_l1_with / d.validation_l1_without
+            if d.validation_l1_with and d.validation_l1_without else None,
+            "validation_l1_without": without, "validation_l1_with": with_, "advantage": adv,
+            "advantage_sd": float(np.std(adv, ddof=1)) if draws > 1 else None,
+            "keeps": keeps, "draws_against_stored": int(sum(k != d.kept for k in keeps))}
 
 
 def _trial_dir(out: Path, c: Candidate) -> Path:

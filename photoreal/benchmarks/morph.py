@@ -14,7 +14,7 @@ from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
 from inverse.morph import (KINDS, MORPH_SEED_MAX, SUITE, TRUTH_NORMALS, UNSEEN, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
-                           candidate_settings, load_morph_benchmark, make_morph_benchmark, run_morph, silhouette_margins,
+                           candidate_settings, light_choice_draws, load_morph_benchmark, make_morph_benchmark, run_morph, silhouette_margins,
                            start_mesh, suite_mesh, benchmark_surface_errors, truth_start_benchmark)
 
 
@@ -653,6 +653,77 @@ def seeds_chart(summary: dict, path: Path) -> Path:
     n_pass = len(summary["every_seed_pass"])
     fig.suptitle(f"morph suite over {len(summary['seeds'])} draws: {n_pass} of {len(names)} meshes meet every "
                  "target at every draw")
+    return save_figure(fig, path)
+
+
+def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True) -> dict:
+    """Every light choice of ``bench morph --parts suite --keep-work`` results (their work folders beside them)
+    scored again under ``draws`` draws of the light estimate (:func:`inverse.morph.run.light_choice_draws`; draw 0
+    is the choice's own): per mesh-draw the light run's advantage at each draw and its spread, and the choices
+    another draw of the estimate would overturn."""
+    from tqdm import tqdm
+
+    from foundation.errors import UsageError
+    from foundation.files import read_json
+
+    validate.integer("draws", draws, 1, 64)
+    todo = []
+    for p in map(Path, paths):
+        data = read_json(p, "bench morph result")
+        seed, suite = _suite_of(p, data)
+        bs = MorphBenchSettings(seed=seed, truth_normals=data["settings"].get("truth_normals") or "vertex")
+        work, tag = work_folder(bs, p.parent), _normals_tag(bs)
+        if not work.is_dir():
+            raise UsageError(f"{p}: its work folder {work} is gone (run the bench with --keep-work)")
+        s = MorphSettings(iterations=data["settings"].get("iterations", MorphSettings.iterations), seed=seed)
+        todo += [(f"{n}@{seed}", work / f"bench_{n}{tag}", work / f"suite_{n}{tag}", s) for n in suite["meshes"]]
+    rows = {}
+    todo = [t for t in todo if (t[2] / "lambda_select" / "light_decision.json").is_file()]
+    for key, bench, out, s in tqdm(todo, desc="light choices", disable=not show_progress):
+        r = light_choice_draws(load_morph_benchmark(bench), out, s, draws)
+        if r is not None:
+            rows[key] = r
+    if not rows:
+        raise UsageError("no light choice in these results' work folders (made where the photos were asked, "
+                         "light_select_every > 0)")
+    sd = np.array([r["advantage_sd"] for r in rows.values() if r["advantage_sd"] is not None])
+    return {"draws": draws, "rows": rows,
+            # draw 0 is the choice's own: equal to its stored score up to the threads' summation order (~1e-7)
+            "draw0_vs_stored_max": max((abs(r["advantage"][0] - r["stored_advantage"]) for r in rows.values()
+                                        if r["stored_advantage"] is not None), default=None),
+            "advantage_sd": {"min": float(sd.min()), "median": float(np.median(sd)), "max": float(sd.max())}
+            if len(sd) else None,
+            "margin": sorted({r["margin"] for r in rows.values()}),
+            "overturned_by_a_draw": {k: r["draws_against_stored"] for k, r in rows.items()
+                                     if r["draws_against_stored"]}}
+
+
+def light_draws_chart(result: dict, path: Path) -> Path:
+    """Per mesh-draw, the light run's validation advantage at each draw of the estimate (the choice's own filled),
+    the margin it had to clear as a line: how close each choice sits to the line against the draws' spread."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from foundation.imageio import save_figure
+
+    keys = list(result["rows"])
+    fig, ax = plt.subplots(figsize=(max(8.0, 0.32 * len(keys) + 2), 4))
+    for x, k in enumerate(keys):
+        adv = np.array(result["rows"][k]["advantage"]) * 100
+        ax.plot([x] * (len(adv) - 1), adv[1:], "o", ms=4, mfc="none", color="tab:blue")
+        ax.plot([x], adv[:1], "o", ms=5, color="tab:blue" if result["rows"][k]["kept"] else "0.4")
+    for m in result["margin"]:
+        ax.axhline(m * 100, color="tab:red", ls="--", lw=0.8, label=f"margin {m * 100:g} %")
+    ax.axhline(0, color="0.5", lw=0.5)
+    ax.set_xticks(range(len(keys)), keys, rotation=60, ha="right", fontsize=7)
+    ax.set_ylabel("light run's validation advantage (%)")
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=7)
+    sd = result["advantage_sd"]
+    fig.suptitle(f"light choices under {result['draws']} draws of the estimate (filled: the choice's own; blue: kept)"
+                 + (f"; SD {sd['min'] * 100:.2f}–{sd['max'] * 100:.2f} points" if sd else ""), fontsize=9)
     return save_figure(fig, path)
 
 
