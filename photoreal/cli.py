@@ -193,7 +193,8 @@ def _cmd_bench_morph(a) -> int:
         shown.update(suite_mean=result["suite"]["mean"], suite_failing=result["suite"]["failing"])
     if "iteration_cost" in result:
         c = result["iteration_cost"]
-        shown.update(s_per_iteration=c["s_per_iteration"], iteration_cost_ratio=c["ratio"])
+        shown.update(s_per_iteration=c["s_per_iteration"], iteration_cost_ratio=c["ratio"],
+                     iteration_cost_ratio_by_round={k: round(v["median"], 4) for k, v in c["ratio_by_round"].items()})
     _print(shown)
     return 0
 

@@ -1376,6 +1376,12 @@ def test_the_iteration_cost_bench_times_the_recipes_at_the_same_vertices(small_a
     assert all("validation" in b and "light_estimate" not in b for b in out["blocks"]["defaults"])
     assert not any("light_estimate" in b or "validation" in b for b in out["blocks"]["issue_recipe"])
     assert not list(tmp_path.glob("*/.morph_work.ply"))  # each block's scene freed with its work file
+    # the ratio taken round by round: each block over the issue's block of the same round (closed form)
+    from photoreal.benchmarks.morph import ratio_by_round
+    paired = ratio_by_round({"issue_recipe": [{"total": 0.3}, {"total": 0.4}, {"total": 0.5}],
+                             "light": [{"total": 0.33}, {"total": 0.4}, {"total": 0.45}]}, "issue_recipe")
+    assert list(paired) == ["light"] and paired["light"]["per_round"] == pytest.approx([1.1, 1.0, 0.9])
+    assert (paired["light"]["median"], paired["light"]["min"], paired["light"]["max"]) == pytest.approx((1.0, 0.9, 1.1))
 
 
 def _outward_sphere(n=40):

@@ -427,7 +427,20 @@ def bench_iteration_cost(work: Path, s: MorphBenchSettings, show_progress: bool)
         out = iteration_cost(bench, cost_recipes(s), s.cost_iterations, s.cost_rounds, Path(tmp), show_progress)
     med = out["s_per_iteration"]
     return {"mesh": s.cost_mesh, **out,
-            "ratio": {k: v / med["issue_recipe"] for k, v in med.items() if k != "issue_recipe"}}
+            "ratio": {k: v / med["issue_recipe"] for k, v in med.items() if k != "issue_recipe"},
+            "ratio_by_round": ratio_by_round(out["blocks"], "issue_recipe")}
+
+
+def ratio_by_round(blocks: dict[str, list[dict]], ref: str) -> dict:
+    """Each recipe's block total over the ``ref`` recipe's block of the same round (the two ran minutes apart, so
+    the machine's slow drifts cancel): per round, and their median, min and max."""
+    base = [b["total"] for b in blocks[ref]]
+    out = {}
+    for k, v in blocks.items():
+        if k != ref:
+            r = [b["total"] / x for b, x in zip(v, base)]
+            out[k] = {"per_round": r, "median": float(np.median(r)), "min": float(min(r)), "max": float(max(r))}
+    return out
 
 
 def work_folder(s: MorphBenchSettings, out_dir: str | Path) -> Path:
