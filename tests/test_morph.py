@@ -345,6 +345,12 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
         run_morph(small_armadillo, tmp_path / "a", replace(s, planarity_select=(0.3,)), show_progress=False)
     with pytest.raises(UsageError, match="decision.json: made for .* with prior_margin 0.015, .* with 0"):
         run_morph(small_armadillo, tmp_path / "a", replace(s, prior_margin=0.0), show_progress=False)
+    with pytest.raises(UsageError, match=r"decision.json: made for .* with prior_margin 0.015, not .* with 0.015, "
+                                         r"ties keep; delete"):
+        run_morph(small_armadillo, tmp_path / "a", replace(s, prior_ties="keep"), show_progress=False)
+    assert json.loads((tmp_path / "a" / "lambda_select" / "decision.json").read_text())["ties"] == "drop"
+    with pytest.raises(UsageError, match="prior_ties"):
+        MorphSettings(prior_ties="sometimes")
     (tmp_path / "a" / "metrics.json").unlink()
     cpath = tmp_path / "a" / "lambda_select" / "colour_decision.json"
     cpath.write_text(cpath.read_text().replace(sel.winner.folder, "start_7"))
@@ -383,6 +389,17 @@ def test_a_prior_continues_only_where_the_photos_prefer_it_by_the_margin():
     assert choose_with_margin([0.012643, 0.013031, 0.012211], prior, 0.015) == 2
     # the cow again, in a 2-thread run of the bench: 1.01 % ahead — over a 1 % margin, inside 1.5 %
     assert choose_with_margin([0.009993, 0.010267, 0.009892], prior, 0.01) == 2
+    # ties "keep": the prior continues unless the best run without it is 1.5 % below. The seed-2 suite's josie
+    # (λ 2 0.01424, 25 → 2 0.01536, λ 2 + planarity 0.01428) and the seed-0 cow (above) keep the planarity candidate;
+    # the seed-0 armadillo (0.01260, 0.01297, 0.01328: λ 2 5.1 % below) does not; a clear prior win stays
+    assert choose_with_margin([0.01424, 0.01536, 0.01428], prior, 0.015) == 0
+    assert choose_with_margin([0.01424, 0.01536, 0.01428], prior, 0.015, "keep") == 2
+    assert choose_with_margin([0.009968, 0.010472, 0.009888], prior, 0.015, "keep") == 2
+    assert choose_with_margin([0.01260, 0.01297, 0.01328], prior, 0.015, "keep") == 0
+    assert choose_with_margin([0.012643, 0.013031, 0.012211], prior, 0.015, "keep") == 2
+    assert choose_with_margin([0.0133, 0.0129], [False, True], 0.015, "keep") == 1  # (without, with): a tie
+    assert choose_with_margin([0.0129, 0.0133], [False, True], 0.015, "keep") == 0  # without 3 % below: dropped
+    assert choose_with_margin([0.0129, None], [False, True], 0.015, "keep") == 0  # no scores: the first
     assert choose_with_margin([0.009993, 0.010267, 0.009892], prior, 0.015) == 0
     assert choose_with_margin([0.013, 0.012, 0.0119], prior, 0.015) == 1  # the best plain candidate, not the first
     assert choose_with_margin([0.013, 0.012, 0.0119], [False, False, False], 0.5) == 2  # no prior: no margin

@@ -169,6 +169,12 @@ class MorphSettings:
     #: cow's planarity advantage 0.80, 0.37, −0.65 % (SD 0.74 %; a 2-thread run of the bench: 1.01 %), the bunny's
     #: colour-prior advantage 1.07, 0.70, 1.46 % (SD 0.38 %); 0.015 ≈ 2 × the cow's SD. 0 = the lower L1 wins.
     prior_margin: float = 0.015
+    #: where the two sides of a prior's choice lie within ``prior_margin`` of each other (a tie): "drop" — the run
+    #: without the prior continues (it must be beaten by the margin); "keep" — the run with it continues (the one
+    #: without must beat it by the margin). The planarity and colour-prior choices; the light choice always needs
+    #: its margin (it models more). Stored trials (README: "Priors dropped on ties") found the prior's geometry
+    #: better on six of seven ties
+    prior_ties: Literal["drop", "keep"] = "drop"
     #: the light the morph's direct-only renders miss (interreflections; the photos are path traced) is estimated
     #: per photo at iteration 0 and every ``indirect_every`` iterations — a path-traced render at the photos' depth
     #: minus direct light (``indirect_reference``), ``indirect_spp`` each, no gradients — and added to that view's
@@ -232,6 +238,7 @@ class MorphSettings:
         validate.non_negative("colour_prior_auto_weight", self.colour_prior_auto_weight)
         validate.non_negative("colour_prior_auto_threshold", self.colour_prior_auto_threshold)
         validate.in_range("prior_margin", self.prior_margin, 0.0, 0.5)
+        validate.one_of("prior_ties", self.prior_ties, ("drop", "keep"))
         validate.integer("indirect_every", self.indirect_every, 0)
         validate.integer("indirect_spp", self.indirect_spp, 1, 1 << 16)
         validate.one_of("indirect_reference", self.indirect_reference, ("direct", "depth2"))
@@ -325,6 +332,7 @@ class LambdaSelection:
     planarity: list[float | None] = field(default_factory=list)  #: each candidate's weight (None: the rule's)
     chosen_planarity: float | None = None  #: the winner's planarity weight (None: the rule's)
     margin: float = 0.0  #: :attr:`MorphSettings.prior_margin` the choice was made with
+    ties: str = "drop"  #: :attr:`MorphSettings.prior_ties` the choice was made with (decisions before it: "drop")
 
     def candidate_list(self) -> list[Candidate]:
         w = self.planarity or [None] * len(self.candidates)
@@ -349,6 +357,7 @@ class ColourSelection:
     trial_seconds: float  #: time of the run not continued, to the selection point (included in ``seconds``)
     _: KW_ONLY
     margin: float = 0.0  #: :attr:`MorphSettings.prior_margin` the choice was made with
+    ties: str = "drop"  #: :attr:`MorphSettings.prior_ties` the choice was made with (decisions before it: "drop")
 
 
 @dataclass
@@ -560,7 +569,7 @@ class MorphStage(DrJitStage):
 
     def fingerprint(self) -> dict:
         # these only decide between runs (the decision files record them); a run's own steps do not read them
-        between = ("prior_margin", "light_select_every", "light_select_colour_lambda")
+        between = ("prior_margin", "prior_ties", "light_select_every", "light_select_colour_lambda")
         # fields added later, at the value that computes what runs made before them did (bit for bit): those runs'
         # checkpoints still match
         same = (("boundary_spp",) if self.shared_spp else ()) + \
@@ -848,13 +857,21 @@ def selection_candidates(s: MorphSettings, prior_on: bool) -> list[Candidate]:
     return out
 
 
-def choose_with_margin(scores: list[float | None], with_prior: list[bool], margin: float) -> int:
+def choose_with_margin(scores: list[float | None], with_prior: list[bool], margin: float, ties: str = "drop") -> int:
     """Index of the candidate that continues: the lowest score, except that a candidate with a prior wins only where
-    it is below (1 − ``margin``) × the best score without one; no scores (no validation photos): the first."""
+    it is below (1 − ``margin``) × the best score without one; no scores (no validation photos): the first.
+    ``ties`` "keep": the other way round — the best candidate with a prior continues unless the best one without is
+    below (1 − ``margin``) × its score."""
     if any(x is None for x in scores):
         return 0
     best = min(range(len(scores)), key=lambda i: scores[i])
     plain = [i for i in range(len(scores)) if not with_prior[i]]
+    if ties == "keep":
+        prior = [i for i in range(len(scores)) if with_prior[i]]
+        if not prior or not plain:
+            return best
+        simplest, modelled = (min(c, key=lambda i: scores[i]) for c in (plain, prior))
+        return simplest if scores[simplest] < (1.0 - margin) * scores[modelled] else modelled
     if with_prior[best] and plain:
         simplest = min(plain, key=lambda i: scores[i])
         if not scores[best] < (1.0 - margin) * scores[simplest]:
@@ -985,6 +1002,10 @@ def colour_rule_on(bench: MorphBenchmark, s: MorphSettings) -> bool:
     return decide_colour_prior(c, f, s).weight > 0
 
 
+def _ties(ties: str) -> str:
+    return "" if ties == "drop" else f", ties {ties}"
+
+
 def _decision_file(path: Path, cls: type, what: str, made_for, wanted: tuple, describe, make):
     """One choice of the selection (λ and planarity, colour prior, light): read from ``path`` — refused, naming the
     file, where ``made_for(decision) != wanted`` (``describe`` says what it was made for) — or made by ``make``
@@ -1026,17 +1047,19 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
         status = {c: _trial_status(_trial_dir(out, c) / "checkpoint.npz", at) for c in cands}
         scores = [status[c][2] for c in cands]
         # planarity candidates carry a prior the λ candidates do not (those take the rule's weight, off here)
-        chosen = cands[choose_with_margin(scores, [c.planarity is not None for c in cands], s.prior_margin)]
+        chosen = cands[choose_with_margin(scores, [c.planarity is not None for c in cands], s.prior_margin,
+                                          s.prior_ties)]
         return LambdaSelection([c.lambda_start for c in cands], at, scores, chosen.lambda_start,
                                float(sum(status[c][3] for c in cands if c != chosen)),
                                planarity=[c.planarity for c in cands], chosen_planarity=chosen.planarity,
-                               margin=s.prior_margin)
+                               margin=s.prior_margin, ties=s.prior_ties)
 
     sel = _decision_file(
         out / "lambda_select" / "decision.json", LambdaSelection, "λ selection",
-        lambda d: (d.candidate_list(), d.at_iteration, d.margin), (cands, at, s.prior_margin),
+        lambda d: (d.candidate_list(), d.at_iteration, d.margin, d.ties), (cands, at, s.prior_margin, s.prior_ties),
         lambda d: f"candidates {[c.folder for c in d.candidate_list()]} at iteration {d.at_iteration} with "
-                  f"prior_margin {d.margin:g}, not {[c.folder for c in cands]} at {at} with {s.prior_margin:g}",
+                  f"prior_margin {d.margin:g}{_ties(d.ties)}, not {[c.folder for c in cands]} at {at} with "
+                  f"{s.prior_margin:g}{_ties(s.prior_ties)}",
         decide_lambda)
     if sel is None:
         return None
@@ -1054,16 +1077,16 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
             _, _, without_l1, _ = _trial_status(_trial_dir(out, twin) / "checkpoint.npz", at)
             # no scores (no validation photos): the rule's choice stands
             kept = without_l1 is None or with_l1 is None or \
-                choose_with_margin([without_l1, with_l1], [False, True], s.prior_margin) == 1
+                choose_with_margin([without_l1, with_l1], [False, True], s.prior_margin, s.prior_ties) == 1
             lost = _trial_dir(out, twin if kept else winner) / "checkpoint.npz"
             return ColourSelection(winner.folder, at, with_l1, without_l1, kept, _trial_status(lost, at)[3],
-                                   margin=s.prior_margin)
+                                   margin=s.prior_margin, ties=s.prior_ties)
 
         colour = _decision_file(
             out / "lambda_select" / "colour_decision.json", ColourSelection, "colour-prior selection",
-            lambda d: (d.candidate, d.at_iteration, d.margin), (winner.folder, at, s.prior_margin),
-            lambda d: f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}, not "
-                      f"{winner.folder} at {at} with {s.prior_margin:g}", decide_colour)
+            lambda d: (d.candidate, d.at_iteration, d.margin, d.ties), (winner.folder, at, s.prior_margin, s.prior_ties),
+            lambda d: f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}{_ties(d.ties)}, "
+                      f"not {winner.folder} at {at} with {s.prior_margin:g}{_ties(s.prior_ties)}", decide_colour)
         if colour is None:
             return None
         extra += colour.trial_seconds

@@ -54,9 +54,12 @@ class MorphBenchSettings:
     #: the suite's and the floor's benchmarks photograph their truth with these shading normals
     #: (:attr:`~inverse.morph.MorphBenchmarkSettings.truth_normals`; "face": folders ``*_face``, beside the others)
     truth_normals: str = "vertex"
+    #: the suite's runs decide tied prior choices this way (:attr:`~inverse.morph.MorphSettings.prior_ties`)
+    prior_ties: str = "drop"
 
     def __post_init__(self):
         validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
+        validate.one_of("prior_ties", self.prior_ties, ("drop", "keep"))
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
                      "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
@@ -252,7 +255,7 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
     """Every suite mesh morphed with the same defaults (the pool runs them side by side)."""
     tag = _normals_tag(s)
     benches = {n: _suite_bench(n, work, _suite_benchmark_settings(s), tag) for n in s.suite}
-    settings = MorphSettings(iterations=s.iterations, seed=s.seed)
+    settings = MorphSettings(iterations=s.iterations, seed=s.seed, prior_ties=s.prior_ties)
     for b in benches.values():  # the start remeshes made here, once, before the workers read them (stored_remesh)
         start_mesh(load_morph_benchmark(b), settings)
     items = [_item(n, benches[n], work / f"suite_{n}{tag}", settings) for n in s.suite]
