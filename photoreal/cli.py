@@ -870,8 +870,8 @@ def build_parser() -> argparse.ArgumentParser:
          help="shading of the suite's and floor's photographed truths (face: flat, as the Chamfer measures them; "
               "their folders get _face)")
     _opt(bm, MorphBenchSettings, "prior_ties", choices=["drop", "keep"],
-         help="the suite's tied prior choices: drop (the run without continues unless beaten by the margin) or keep "
-              "(the run with it continues unless beaten by the margin)")
+         help="the suite's tied prior choices: keep (the run with the prior continues unless beaten by the margin) "
+              "or drop (the run without continues unless beaten by the margin)")
     _opt(bm, MorphBenchSettings, "seed", help="another draw of every benchmark (photos' noise, views) and of every "
                                                "morph's render seeds (work folder: OUT/morph_work_seed<k>)")
     _opt(bm, MorphBenchSettings, "cost_mesh", help="the mesh of --parts iteration")
@@ -1101,8 +1101,8 @@ def build_parser() -> argparse.ArgumentParser:
          help="a prior those choices ask the photos about (planarity candidate, colour prior) is kept only where its "
               "validation L1 is this fraction below the best run without it (0: the lower L1 wins)")
     _opt(mr, MorphSettings, "prior_ties", choices=["drop", "keep"],
-         help="within that margin: drop the prior (default) or keep it (the run without must then beat it by the "
-              "margin)")
+         help="within that margin: keep the prior (the run without must beat it by the margin) or drop it (the "
+              "prior must win by the margin)")
     _opt(mr, MorphSettings, "indirect_every", type=int,
          help="re-estimate the light the direct-only renders miss (path traced at the photos' depth minus direct "
               "light, per photo) every N iterations and add it to the renders (0: off)")

@@ -225,15 +225,16 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     sel = r.lambda_selection
     assert sel.at_iteration == 4 and sel.candidates == [2.0, 25.0, 2.0] and sel.planarity == [None, None, 0.1]
     assert all(v > 0 for v in sel.validation_l1) and len(set(sel.validation_l1)) == 3
-    best = choose_with_margin(sel.validation_l1, [False, False, True], s.prior_margin)
+    best = choose_with_margin(sel.validation_l1, [False, False, True], s.prior_margin, s.prior_ties)
     assert sel.winner == sel.candidate_list()[best] and sel.margin == s.prior_margin == 0.015
+    assert sel.ties == s.prior_ties == "keep"
     # The armadillo's input colours are smooth, so the colour rule switched the prior on: the winner also ran
     # without it to the same point, and the lower validation L1 continued.
     col = r.colour_selection
     assert col is not None and col.candidate == sel.winner.folder and col.at_iteration == 4
     assert col.validation_l1_with == sel.validation_l1[best] and col.validation_l1_without > 0
-    assert col.kept == (col.validation_l1_with < (1 - s.prior_margin) * col.validation_l1_without)
-    assert col.trial_seconds > 0 and col.margin == s.prior_margin
+    assert col.kept == (not col.validation_l1_without < (1 - s.prior_margin) * col.validation_l1_with)  # ties kept
+    assert col.trial_seconds > 0 and col.margin == s.prior_margin and col.ties == "keep"
     final = sel.winner if col.kept else replace(sel.winner, colour=0.0)
     # the light estimate and colour large steps off (the defaults): that winner also ran with them to the same point,
     # each scored after a fresh light estimate on its own mesh, and the one the photos prefer by the margin went on
@@ -345,10 +346,18 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
         run_morph(small_armadillo, tmp_path / "a", replace(s, planarity_select=(0.3,)), show_progress=False)
     with pytest.raises(UsageError, match="decision.json: made for .* with prior_margin 0.015, .* with 0"):
         run_morph(small_armadillo, tmp_path / "a", replace(s, prior_margin=0.0), show_progress=False)
+    with pytest.raises(UsageError, match=r"decision.json: made for .* with prior_margin 0.015, ties keep, not .* with "
+                                         r"0.015; delete"):
+        run_morph(small_armadillo, tmp_path / "a", replace(s, prior_ties="drop"), show_progress=False)
+    dpath = tmp_path / "a" / "lambda_select" / "decision.json"
+    assert json.loads(dpath.read_text())["ties"] == "keep"
+    # a decision written before the rule was recorded was made with "drop": refused under today's "keep"
+    kept_text = dpath.read_text()
+    dpath.write_text(json.dumps({k: v for k, v in json.loads(kept_text).items() if k != "ties"}))
     with pytest.raises(UsageError, match=r"decision.json: made for .* with prior_margin 0.015, not .* with 0.015, "
                                          r"ties keep; delete"):
-        run_morph(small_armadillo, tmp_path / "a", replace(s, prior_ties="keep"), show_progress=False)
-    assert json.loads((tmp_path / "a" / "lambda_select" / "decision.json").read_text())["ties"] == "drop"
+        run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
+    dpath.write_text(kept_text)
     with pytest.raises(UsageError, match="prior_ties"):
         MorphSettings(prior_ties="sometimes")
     (tmp_path / "a" / "metrics.json").unlink()

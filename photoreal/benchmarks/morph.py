@@ -55,7 +55,7 @@ class MorphBenchSettings:
     #: (:attr:`~inverse.morph.MorphBenchmarkSettings.truth_normals`; "face": folders ``*_face``, beside the others)
     truth_normals: str = "vertex"
     #: the suite's runs decide tied prior choices this way (:attr:`~inverse.morph.MorphSettings.prior_ties`)
-    prior_ties: str = "drop"
+    prior_ties: str = MorphSettings.prior_ties
 
     def __post_init__(self):
         validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
