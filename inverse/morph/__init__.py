@@ -34,7 +34,7 @@ from .scene import MODES, morph_scene, photo_at, projective_integrator, render_v
 __all__ = [
     "MORPH_SEED_MAX", "TRUTH_NORMALS", "ARTIFACT_REGIONS", "Camera", "ErrorReport", "SurfaceErrors", "benchmark_errors", "benchmark_surface_errors", "surface_errors", "Candidate", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
     "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "MorphStage", "PlanarityDecision",
-    "RepairReport", "artifact_masks", "candidate_settings", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
+    "RepairReport", "artifact_masks", "candidate_settings", "light_choice_draws", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",
     "render_views", "repair_flips", "run_gcn_morph", "run_item", "run_morph", "sensor_dict", "start_mesh",
     "KINDS", "UNSEEN", "PleatReport", "SpikeReport", "iron_spikes", "SUITE", "TracePoint", "silhouette_margins", "suite_mesh", "truth_scene",
