@@ -41,6 +41,9 @@ MARKER = "morph_benchmark.json"  #: written last: a folder holding it is a compl
 #: start remeshes of the coarse input that runs store in the benchmark (``run.stored_remesh``): caches, remade with it
 STORED_STARTS = "start_remesh_*.ply"
 FORMAT = "photoreal-morph-benchmark/1"
+#: renders of one view with other seeds before a photo with non-finite pixels is refused (the first seed is the
+#: view's own: benchmarks without such pixels are unchanged)
+PHOTO_TRIES = 4
 
 
 #: shadings of the photographed truth (:attr:`MorphBenchmarkSettings.truth_normals`)
@@ -529,7 +532,14 @@ def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkS
         with progress_bar(total=len(cams), desc=f"photos {kind}", unit="view", disable=not show_progress) as bar:
             for i, cam in enumerate(cams):
                 sensor = mi.load_dict(sensor_dict(cam, s.resolution, fov))
-                photos[f"view{i:02d}"] = np.array(mi.render(scene, sensor=sensor, spp=s.spp, seed=s.seed + i))[..., :3]
+                for k in range(PHOTO_TRIES):  # a rare path sample can come back NaN (bracket, seed 3: 3 pixels)
+                    img = np.array(mi.render(scene, sensor=sensor, spp=s.spp, seed=s.seed + i + 1_000_003 * k))[..., :3]
+                    if np.isfinite(img).all():
+                        break
+                else:
+                    raise UsageError(f"{source}: view {i}'s photo has non-finite pixels in {PHOTO_TRIES} renders "
+                                     f"(a degenerate part of the mesh?)")
+                photos[f"view{i:02d}"] = img
                 bar.update(1)
         del scene
         imageio.write_exr(tmp / "photos.exr", photos, half=True)
@@ -601,6 +611,11 @@ def load_morph_benchmark(path: str | Path) -> MorphBenchmark:
     res = meta.settings.resolution
     if any(photos[f"view{i:02d}"].shape[:2] != (res, res) for i in range(n)):
         raise UsageError(f"{path / 'photos.exr'}: photos are not {res}×{res} as the benchmark says")
+    bad = [f"view{i:02d} ({int((~np.isfinite(photos[f'view{i:02d}'])).sum())})" for i in range(n)
+           if not np.isfinite(photos[f"view{i:02d}"]).all()]
+    if bad:
+        raise UsageError(f"{path / 'photos.exr'}: non-finite pixels in {', '.join(bad[:5])}; remake the benchmark "
+                         f"(photoreal morph make-benchmark re-renders such a view)")
     return MorphBenchmark(path, meta, photos)
 
 
