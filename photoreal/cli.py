@@ -823,7 +823,7 @@ def build_parser() -> argparse.ArgumentParser:
     from foundation.scene import RenderSettings
     from inverse.btf import BTFRenderSettings, OptimSettings, fit_settings, render_dataset, split_slices
     from inverse.face import FaceBenchmarkSettings, FaceFitSettings, PhotoFitSettings, RenderRefineSettings
-    from inverse.morph import TRUTH_NORMALS, MorphBenchmarkSettings, MorphSettings
+    from inverse.morph import PRIOR_TIES, TRUTH_NORMALS, MorphBenchmarkSettings, MorphSettings
     from mi_plugins.neural_basis import BasisConfig
 
     from .benchmarks.face import FaceBenchSettings
@@ -869,7 +869,7 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bm, MorphBenchSettings, "truth_normals", choices=list(TRUTH_NORMALS),
          help="shading of the suite's and floor's photographed truths (face: flat, as the Chamfer measures them; "
               "their folders get _face)")
-    _opt(bm, MorphBenchSettings, "prior_ties", choices=["drop", "keep"],
+    _opt(bm, MorphBenchSettings, "prior_ties", choices=list(PRIOR_TIES),
          help="the suite's tied prior choices: keep (the run with the prior continues unless beaten by the margin) "
               "or drop (the run without continues unless beaten by the margin)")
     _opt(bm, MorphBenchSettings, "seed", help="another draw of every benchmark (photos' noise, views) and of every "
@@ -1100,7 +1100,7 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "prior_margin", type=float,
          help="a prior those choices ask the photos about (planarity candidate, colour prior) is kept only where its "
               "validation L1 is this fraction below the best run without it (0: the lower L1 wins)")
-    _opt(mr, MorphSettings, "prior_ties", choices=["drop", "keep"],
+    _opt(mr, MorphSettings, "prior_ties", choices=list(PRIOR_TIES),
          help="within that margin: keep the prior (the run without must beat it by the margin) or drop it (the "
               "prior must win by the margin)")
     _opt(mr, MorphSettings, "indirect_every", type=int,

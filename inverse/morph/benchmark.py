@@ -611,8 +611,8 @@ def load_morph_benchmark(path: str | Path) -> MorphBenchmark:
     res = meta.settings.resolution
     if any(photos[f"view{i:02d}"].shape[:2] != (res, res) for i in range(n)):
         raise UsageError(f"{path / 'photos.exr'}: photos are not {res}×{res} as the benchmark says")
-    bad = [f"view{i:02d} ({int((~np.isfinite(photos[f'view{i:02d}'])).sum())})" for i in range(n)
-           if not np.isfinite(photos[f"view{i:02d}"]).all()]
+    nonfinite = {k: int((~np.isfinite(v)).sum()) for k, v in photos.items()}
+    bad = [f"{k} ({c})" for k, c in sorted(nonfinite.items()) if c]
     if bad:
         raise UsageError(f"{path / 'photos.exr'}: non-finite pixels in {', '.join(bad[:5])}; remake the benchmark "
                          f"(photoreal morph make-benchmark re-renders such a view)")

@@ -70,6 +70,8 @@ MORPH_SEED_MAX = 200_000
 #: the ``indirect_spp`` a run without the light estimate records in its checkpoint's fingerprint (the default when
 #: those runs were first made): it never reads it, and a changed default must not make its checkpoints "other settings"
 PLAIN_RUN_INDIRECT_SPP = 64
+#: how a tied prior choice goes (:attr:`MorphSettings.prior_ties`)
+PRIOR_TIES = ("keep", "drop")
 #: the light estimate's render seeds are 9_000_011 + view (+ this × the draw, for :func:`light_choice_draws`)
 ESTIMATE_DRAW_STRIDE = 1_000_003
 
@@ -175,7 +177,7 @@ class MorphSettings:
     #: light choice always needs its margin (it models more). Over the suite at seeds 0, 1, 2 "keep" changed 13 of
     #: 36 runs, Chamfer +3.9 points on those (10 better, 3 worse), held-out PSNR −0.3 dB, every target met on the
     #: same 28 of 36 (README: "Priors kept on ties")
-    prior_ties: Literal["drop", "keep"] = "keep"
+    prior_ties: Literal["keep", "drop"] = "keep"
     #: the light the morph's direct-only renders miss (interreflections; the photos are path traced) is estimated
     #: per photo at iteration 0 and every ``indirect_every`` iterations — a path-traced render at the photos' depth
     #: minus direct light (``indirect_reference``), ``indirect_spp`` each, no gradients — and added to that view's
@@ -239,7 +241,7 @@ class MorphSettings:
         validate.non_negative("colour_prior_auto_weight", self.colour_prior_auto_weight)
         validate.non_negative("colour_prior_auto_threshold", self.colour_prior_auto_threshold)
         validate.in_range("prior_margin", self.prior_margin, 0.0, 0.5)
-        validate.one_of("prior_ties", self.prior_ties, ("drop", "keep"))
+        validate.one_of("prior_ties", self.prior_ties, PRIOR_TIES)
         validate.integer("indirect_every", self.indirect_every, 0)
         validate.integer("indirect_spp", self.indirect_spp, 1, 1 << 16)
         validate.one_of("indirect_reference", self.indirect_reference, ("direct", "depth2"))
@@ -894,11 +896,15 @@ def light_select_on(s: MorphSettings) -> bool:
     return s.light_select_every > 0 and not s.indirect_every and not s.colour_lambda and s.mode == "lit"
 
 
-def validation_l1_with_light(bench: MorphBenchmark, folder: Path, s: MorphSettings, at: int,
-                             draws: int = 1) -> list[float] | float | None:
+def validation_l1_with_light(bench: MorphBenchmark, folder: Path, s: MorphSettings, at: int) -> float | None:
     """Validation L1 of the run in ``folder`` (settings ``s``, checkpoint at iteration ``at``) after a fresh estimate
-    of the light its direct renders miss, on its own mesh and colours (fixed seeds: runs compare like with like).
-    ``draws`` > 1: a list, one L1 per draw of the estimate's random numbers (the first is the one-draw value)."""
+    of the light its direct renders miss, on its own mesh and colours (fixed seeds: runs compare like with like)."""
+    return _validation_l1s_with_light(bench, folder, s, at, 1)[0]
+
+
+def _validation_l1s_with_light(bench: MorphBenchmark, folder: Path, s: MorphSettings, at: int,
+                               draws: int) -> list[float | None]:
+    """:func:`validation_l1_with_light` under ``draws`` draws of the estimate's random numbers (the first: its own)."""
     import tempfile
 
     from foundation.loop import read_checkpoint
@@ -919,7 +925,7 @@ def validation_l1_with_light(bench: MorphBenchmark, folder: Path, s: MorphSettin
             for k in range(draws):
                 stage.estimate_indirect(stage.val_ids, draw=k)
                 out.append(stage.validation_l1())
-            return out[0] if draws == 1 else out
+            return out
         finally:
             stage.close()
 
@@ -943,9 +949,8 @@ def light_choice_draws(bench: MorphBenchmark, out: Path, s: MorphSettings, draws
     plain = replace(s, indirect_every=0, colour_lambda=0.0)
     light = replace(s, indirect_every=d.every, colour_lambda=d.colour_lambda)
     folder = Path(out) / "lambda_select" / d.candidate
-    without = validation_l1_with_light(bench, folder, plain, d.at_iteration, draws)
-    with_ = validation_l1_with_light(bench, folder.with_name(d.candidate + "_light"), light, d.at_iteration, draws)
-    without, with_ = (x if isinstance(x, list) else [x] for x in (without, with_))
+    without = _validation_l1s_with_light(bench, folder, plain, d.at_iteration, draws)
+    with_ = _validation_l1s_with_light(bench, folder.with_name(d.candidate + "_light"), light, d.at_iteration, draws)
     adv = [1.0 - w / o for w, o in zip(with_, without)]
     keeps = [w < (1.0 - d.margin) * o for w, o in zip(with_, without)]
     return {"candidate": d.candidate, "at_iteration": d.at_iteration, "margin": d.margin, "kept": d.kept,

@@ -13,7 +13,7 @@ from foundation import validate
 from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
-from inverse.morph import (KINDS, MORPH_SEED_MAX, SUITE, TRUTH_NORMALS, UNSEEN, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
+from inverse.morph import (KINDS, MORPH_SEED_MAX, PRIOR_TIES, SUITE, TRUTH_NORMALS, UNSEEN, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
                            candidate_settings, light_choice_draws, load_morph_benchmark, make_morph_benchmark, run_morph, silhouette_margins,
                            start_mesh, suite_mesh, benchmark_surface_errors, truth_start_benchmark)
 
@@ -59,7 +59,7 @@ class MorphBenchSettings:
 
     def __post_init__(self):
         validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
-        validate.one_of("prior_ties", self.prior_ties, ("drop", "keep"))
+        validate.one_of("prior_ties", self.prior_ties, PRIOR_TIES)
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
                      "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
@@ -693,12 +693,9 @@ def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True)
             raise UsageError(f"{p}: its work folder {work} is gone (run the bench with --keep-work)")
         s = MorphSettings(iterations=data["settings"].get("iterations", MorphSettings.iterations), seed=seed)
         todo += [(f"{n}@{seed}", work / f"bench_{n}{tag}", work / f"suite_{n}{tag}", s) for n in suite["meshes"]]
-    rows = {}
-    todo = [t for t in todo if (t[2] / "lambda_select" / "light_decision.json").is_file()]
-    for key, bench, out, s in tqdm(todo, desc="light choices", disable=not show_progress):
-        r = light_choice_draws(load_morph_benchmark(bench), out, s, draws)
-        if r is not None:
-            rows[key] = r
+    todo = [t for t in todo if (t[2] / "lambda_select" / "light_decision.json").is_file()]  # others made none
+    rows = {key: light_choice_draws(load_morph_benchmark(bench), out, s, draws)
+            for key, bench, out, s in tqdm(todo, desc="light choices", disable=not show_progress)}
     if not rows:
         raise UsageError("no light choice in these results' work folders (made where the photos were asked, "
                          "light_select_every > 0)")
