@@ -872,6 +872,10 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bm, MorphBenchSettings, "prior_ties", choices=list(PRIOR_TIES),
          help="the suite's tied prior choices: keep (the run with the prior continues unless beaten by the margin) "
               "or drop (the run without continues unless beaten by the margin)")
+    _opt(bm, MorphBenchSettings, "adam_quantile", type=float,
+         help="the suite's runs: MorphSettings.adam_quantile (use a fresh --json folder: trials of another value "
+              "are refused by name)")
+    _opt(bm, MorphBenchSettings, "lr", type=float, help="the suite's runs' position learning rate (MorphSettings.lr)")
     _opt(bm, MorphBenchSettings, "seed", help="another draw of every benchmark (photos' noise, views) and of every "
                                                "morph's render seeds (work folder: OUT/morph_work_seed<k>)")
     _opt(bm, MorphBenchSettings, "cost_mesh", help="the mesh of --parts iteration")
@@ -1103,6 +1107,9 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "prior_ties", choices=list(PRIOR_TIES),
          help="within that margin: keep the prior (the run without must beat it by the margin) or drop it (the "
               "prior must win by the margin)")
+    _opt(mr, MorphSettings, "adam_quantile", type=float,
+         help="large steps: the quantile of Adam's second moments that scales every step (1: their maximum, "
+              "uniform Adam; lower: the silhouettes' noisy gradient no longer sets the step of the whole surface)")
     _opt(mr, MorphSettings, "indirect_every", type=int,
          help="re-estimate the light the direct-only renders miss (path traced at the photos' depth minus direct "
               "light, per photo) every N iterations and add it to the renders (0: off)")

@@ -56,10 +56,16 @@ class MorphBenchSettings:
     truth_normals: str = "vertex"
     #: the suite's runs decide tied prior choices this way (:attr:`~inverse.morph.MorphSettings.prior_ties`)
     prior_ties: str = MorphSettings.prior_ties
+    #: the suite's runs scale their steps by this quantile of Adam's second moments
+    #: (:attr:`~inverse.morph.MorphSettings.adam_quantile`)
+    adam_quantile: float = MorphSettings.adam_quantile
+    lr: float = MorphSettings.lr  #: the suite's runs' position learning rate (:attr:`~inverse.morph.MorphSettings.lr`)
 
     def __post_init__(self):
         validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
         validate.one_of("prior_ties", self.prior_ties, PRIOR_TIES)
+        validate.in_range("adam_quantile", self.adam_quantile, 0.0, 1.0, lo_open=True)
+        validate.positive("lr", self.lr)
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
                      "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
@@ -255,7 +261,8 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
     """Every suite mesh morphed with the same defaults (the pool runs them side by side)."""
     tag = _normals_tag(s)
     benches = {n: _suite_bench(n, work, _suite_benchmark_settings(s), tag) for n in s.suite}
-    settings = MorphSettings(iterations=s.iterations, seed=s.seed, prior_ties=s.prior_ties)
+    settings = MorphSettings(iterations=s.iterations, seed=s.seed, prior_ties=s.prior_ties,
+                             adam_quantile=s.adam_quantile, lr=s.lr)
     for b in benches.values():  # the start remeshes made here, once, before the workers read them (stored_remesh)
         start_mesh(load_morph_benchmark(b), settings)
     items = [_item(n, benches[n], work / f"suite_{n}{tag}", settings) for n in s.suite]
@@ -586,8 +593,10 @@ def seeds_summary(paths: list[str | Path]) -> dict:
         data = read_json(p, "bench morph result")
         seed, suite = _suite_of(p, data)
         s = data["settings"]
-        fixed = {k: s.get(k) for k in ("iterations", "truth_normals")}
+        fixed = {k: s.get(k) for k in ("iterations", "truth_normals", "adam_quantile", "lr")}
         fixed["truth_normals"] = fixed["truth_normals"] or "vertex"  # files from before the option: vertex normals
+        fixed["adam_quantile"] = fixed["adam_quantile"] or 1.0  # and before this one: uniform Adam's maximum
+        fixed["lr"] = fixed["lr"] or MorphSettings.lr
         if same is None:
             same, first = fixed, p
         elif fixed != same:
