@@ -693,6 +693,11 @@ def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):
                   show_progress=False)
     with pytest.raises(CheckpointError, match=r"other settings or data \(settings.indirect_downsample \(new\)\)"):
         run_morph(small_armadillo, tmp_path / "q", replace(lit, indirect_downsample=2), show_progress=False)
+    # the step's scale: at quantile 1 (Dr.Jit's uniform Adam, the runs before the setting) the field is not in the
+    # fingerprint; another quantile is, so a checkpoint is not resumed under another optimiser
+    with pytest.raises(CheckpointError, match=r"other settings or data \(settings.adam_quantile \(new\)\)"):
+        run_morph(small_armadillo, tmp_path / "p", MorphSettings(iterations=2, resolution=32, adam_quantile=0.9),
+                  show_progress=False)
     (tmp_path / "checkpoint.npz").write_bytes(b"PK\x03\x04 truncated")
     with pytest.raises(CheckpointError, match="checkpoint.npz: damaged checkpoint .* delete it to start over"):
         run_morph(small_armadillo, tmp_path, MorphSettings(iterations=2, resolution=32), show_progress=False)
@@ -756,7 +761,8 @@ def test_out_of_range_morph_settings_are_named():
                      ({"iterations": -1}, "iterations"), ({"spp": 0}, "spp"), ({"boundary_spp": 0}, "boundary_spp"),
                      ({"indirect_reference": "both"}, "indirect_reference"),
                      ({"indirect_downsample": 0}, "indirect_downsample"),
-                     ({"indirect_downsample": 9}, "indirect_downsample")):
+                     ({"indirect_downsample": 9}, "indirect_downsample"), ({"adam_quantile": 0.0}, "adam_quantile"),
+                     ({"adam_quantile": 1.5}, "adam_quantile")):
         with pytest.raises(UsageError, match=f"^{name} must"):
             MorphSettings(**kw)
 
