@@ -700,7 +700,9 @@ def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True)
         work, tag = work_folder(bs, p.parent), _normals_tag(bs)
         if not work.is_dir():
             raise UsageError(f"{p}: its work folder {work} is gone (run the bench with --keep-work)")
-        s = MorphSettings(iterations=data["settings"].get("iterations", MorphSettings.iterations), seed=seed)
+        got = data["settings"]
+        s = MorphSettings(iterations=got.get("iterations", MorphSettings.iterations), seed=seed,
+                          adam_quantile=got.get("adam_quantile") or 1.0, lr=got.get("lr") or MorphSettings.lr)
         todo += [(f"{n}@{seed}", work / f"bench_{n}{tag}", work / f"suite_{n}{tag}", s) for n in suite["meshes"]]
     todo = [t for t in todo if (t[2] / "lambda_select" / "light_decision.json").is_file()]  # others made none
     rows = {key: light_choice_draws(load_morph_benchmark(bench), out, s, draws)
