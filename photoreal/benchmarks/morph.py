@@ -577,6 +577,13 @@ def _merged_suites(a: dict, b: dict) -> dict:
     return {**a, "meshes": meshes, "mean": mean, "failing": {**a.get("failing", {}), **b.get("failing", {})}}
 
 
+def recorded_run_settings(settings: dict) -> dict:
+    """The settings of a ``bench morph`` result that change its runs, as the file recorded them; a file written
+    before a field existed ran at what is now its default (vertex normals, uniform Adam's maximum, lr 0.05)."""
+    d = MorphBenchSettings()
+    return {k: settings.get(k) or getattr(d, k) for k in ("iterations", "truth_normals", "adam_quantile", "lr")}
+
+
 def seeds_summary(paths: list[str | Path]) -> dict:
     """The suite over several draws (``photoreal bench morph --seed K`` results, one file per seed): per mesh its
     figures at each seed, their mean and worst, and at how many seeds it meets every target; per seed the meshes that
@@ -593,10 +600,7 @@ def seeds_summary(paths: list[str | Path]) -> dict:
         data = read_json(p, "bench morph result")
         seed, suite = _suite_of(p, data)
         s = data["settings"]
-        fixed = {k: s.get(k) for k in ("iterations", "truth_normals", "adam_quantile", "lr")}
-        fixed["truth_normals"] = fixed["truth_normals"] or "vertex"  # files from before the option: vertex normals
-        fixed["adam_quantile"] = fixed["adam_quantile"] or 1.0  # and before this one: uniform Adam's maximum
-        fixed["lr"] = fixed["lr"] or MorphSettings.lr
+        fixed = recorded_run_settings(s)
         if same is None:
             same, first = fixed, p
         elif fixed != same:
@@ -696,13 +700,12 @@ def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True)
     for p in map(Path, paths):
         data = read_json(p, "bench morph result")
         seed, suite = _suite_of(p, data)
-        bs = MorphBenchSettings(seed=seed, truth_normals=data["settings"].get("truth_normals") or "vertex")
+        got = recorded_run_settings(data["settings"])
+        bs = MorphBenchSettings(seed=seed, truth_normals=got["truth_normals"])
         work, tag = work_folder(bs, p.parent), _normals_tag(bs)
         if not work.is_dir():
             raise UsageError(f"{p}: its work folder {work} is gone (run the bench with --keep-work)")
-        got = data["settings"]
-        s = MorphSettings(iterations=got.get("iterations", MorphSettings.iterations), seed=seed,
-                          adam_quantile=got.get("adam_quantile") or 1.0, lr=got.get("lr") or MorphSettings.lr)
+        s = MorphSettings(iterations=got["iterations"], seed=seed, adam_quantile=got["adam_quantile"], lr=got["lr"])
         todo += [(f"{n}@{seed}", work / f"bench_{n}{tag}", work / f"suite_{n}{tag}", s) for n in suite["meshes"]]
     todo = [t for t in todo if (t[2] / "lambda_select" / "light_decision.json").is_file()]  # others made none
     rows = {key: light_choice_draws(load_morph_benchmark(bench), out, s, draws)
