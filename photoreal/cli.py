@@ -876,6 +876,9 @@ def build_parser() -> argparse.ArgumentParser:
          help="the suite's runs: MorphSettings.adam_quantile (use a fresh --json folder: trials of another value "
               "are refused by name)")
     _opt(bm, MorphBenchSettings, "lr", type=float, help="the suite's runs' position learning rate (MorphSettings.lr)")
+    _opt(bm, MorphBenchSettings, "step_select_quantile", type=float,
+         help="the suite's runs ask the validation photos about this quantile step (MorphSettings.step_select_quantile; "
+              "1: no such choice)")
     _opt(bm, MorphBenchSettings, "seed", help="another draw of every benchmark (photos' noise, views) and of every "
                                                "morph's render seeds (work folder: OUT/morph_work_seed<k>)")
     _opt(bm, MorphBenchSettings, "cost_mesh", help="the mesh of --parts iteration")
@@ -1132,6 +1135,11 @@ def build_parser() -> argparse.ArgumentParser:
               "candidate)")
     _opt(mr, MorphSettings, "light_select_colour_lambda", type=float,
          help="colour λ of that candidate")
+    _opt(mr, MorphSettings, "step_select_quantile", type=float,
+         help="where --adam-quantile is 1, the winner of the λ and colour choices also runs with this quantile step "
+              "and --step-select-lr to the selection point, and the validation photos decide by --prior-margin "
+              "(1: no such candidate)")
+    _opt(mr, MorphSettings, "step_select_lr", type=float, help="position learning rate of that candidate")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

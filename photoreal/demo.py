@@ -259,6 +259,17 @@ def _light_why(mr) -> str:
             f"without (kept only {c.margin:.1%} or more below)")
 
 
+def _step_why(mr) -> str:
+    """Which step the morph's positions took (uniform or quantile Adam), and why, in words."""
+    c = getattr(mr, "step_selection", None)
+    if c is None:
+        q = mr.settings.adam_quantile
+        return "uniform Adam (given)" if q == 1.0 else f"quantile {q:g} of Adam's second moments (given)"
+    return (f"{f'quantile {c.quantile:g}, lr {c.lr:g}' if c.kept else 'uniform Adam'}: at iteration {c.at_iteration} "
+            f"the validation photos gave L1 {c.validation_l1_quantile:.4f} with the quantile step, "
+            f"{c.validation_l1_uniform:.4f} with uniform Adam (kept only {c.margin:.1%} or more below)")
+
+
 def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: Path | None = None) -> dict:
     """Armadillo morph benchmark: degraded input vs morphed vs photo, metrics; bench tables if present."""
     import shutil
@@ -291,7 +302,7 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
             f"locally and counted (inverted_before_repair). Planarity prior weight {mr.planarity.weight:g} "
             f"(auto: the input's largest plane holds {mr.planarity.dominant_plane_fraction or 0:.0%} of its area; "
             f"on from 20%, as on the village). Colour prior weight {mr.colour_prior.weight:g} "
-            f"({_colour_why(mr)}). Light estimate and colour large steps {_light_why(mr)}.</p><div>{figs}</div>" + _table(rows, ["metric", "value"])
+            f"({_colour_why(mr)}). Light estimate and colour large steps {_light_why(mr)}. Step {_step_why(mr)}.</p><div>{figs}</div>" + _table(rows, ["metric", "value"])
             + "<p>Where the error sits (<code>photoreal morph errors</code>): signed distance to the truth, blue "
               "behind it, red in front, coarse input above, morphed below; the input's error left is the slope of "
               "the result's signed distance on the input's (1: kept, 0: gone), the new error what that leaves.</p>"

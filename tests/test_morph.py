@@ -236,6 +236,18 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     assert col.kept == (not col.validation_l1_without < (1 - s.prior_margin) * col.validation_l1_with)  # ties kept
     assert col.trial_seconds > 0 and col.margin == s.prior_margin and col.ties == "keep"
     final = sel.winner if col.kept else replace(sel.winner, colour=0.0)
+    # uniform Adam (the default): that winner also ran with the quantile step to the same point, and it continued
+    # only where the photos preferred it by the margin
+    step = r.step_selection
+    assert step is not None and step.candidate == final.folder and step.at_iteration == 4
+    assert step.validation_l1_uniform == (sel.validation_l1[best] if col.kept else col.validation_l1_without)
+    assert step.validation_l1_quantile > 0 and step.validation_l1_quantile != step.validation_l1_uniform
+    assert step.kept == (step.validation_l1_quantile < (1 - s.prior_margin) * step.validation_l1_uniform)
+    assert (step.quantile, step.lr, step.margin) == (0.9, 0.0125, s.prior_margin) and step.trial_seconds > 0
+    stepped = candidate_settings(s, replace(final, step=True))
+    assert (stepped.adam_quantile, stepped.lr) == (0.9, 0.0125) and candidate_settings(s, final).adam_quantile == 1
+    unstepped = final
+    final = replace(final, step=True) if step.kept else final
     # the light estimate and colour large steps off (the defaults): that winner also ran with them to the same point,
     # each scored after a fresh light estimate on its own mesh, and the one the photos prefer by the margin went on
     light = r.light_selection
@@ -258,12 +270,14 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     np.testing.assert_array_equal(v_sel, v_alone)
     # the candidates not chosen stopped at the selection point, each in its own folder
     from foundation.loop import read_checkpoint
-    for c in sel.candidate_list() + [replace(sel.winner, colour=0.0), replace(plain, light=True)]:
+    for c in sel.candidate_list() + [replace(sel.winner, colour=0.0), replace(unstepped, step=True),
+                                     replace(plain, light=True)]:
         if c != final:
             assert read_checkpoint(tmp_path / "a" / "lambda_select" / c.folder / "checkpoint.npz").run.step == 4
     assert {c.folder for c in sel.candidate_list()} == {"start_2", "start_25", "start_2_planarity_0.1"}
     assert replace(sel.winner, colour=0.0).folder == sel.winner.folder + "_colour_0"
     assert replace(plain, light=True).folder == plain.folder + "_light"
+    assert replace(unstepped, step=True, light=True).folder == unstepped.folder + "_step_light"
     # the stored score is the measurement's, made again from the run's checkpoint at the selection point
     lost = replace(plain, light=True) if not light.kept else plain
     again = validation_l1_with_light(small_armadillo, tmp_path / "a" / "lambda_select" / lost.folder,
@@ -298,6 +312,7 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     assert replace(resumed.lambda_selection, trial_seconds=sel.trial_seconds) == sel  # all but the clock
     assert replace(resumed.colour_selection, trial_seconds=col.trial_seconds) == col
     assert replace(resumed.light_selection, trial_seconds=light.trial_seconds) == light
+    assert replace(resumed.step_selection, trial_seconds=step.trial_seconds) == step
     assert resumed.chamfer_morphed == r.chamfer_morphed
     # decision files removed after the run: remade from the trials' figures at the selection point, not from the
     # winner's later ones (its folder ran on to the end); the light choice from the runs' meshes there — the
@@ -305,13 +320,14 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     from inverse.morph.run import selection_checkpoint
     kept = selection_checkpoint(tmp_path / "b" / "lambda_select" / final.folder, 4)
     assert read_checkpoint(kept).run.step == 4 and not (tmp_path / "b" / kept.name).exists()
-    for f in ("decision.json", "colour_decision.json", "light_decision.json"):
+    for f in ("decision.json", "colour_decision.json", "step_decision.json", "light_decision.json"):
         (tmp_path / "b" / "lambda_select" / f).unlink()
     (tmp_path / "b" / "metrics.json").unlink()
     remade = run_morph(small_armadillo, tmp_path / "b", s, show_progress=False)
     assert remade.lambda_selection.validation_l1 == sel.validation_l1 and remade.lambda_selection.winner == sel.winner
     assert replace(remade.colour_selection, trial_seconds=col.trial_seconds) == col
     assert replace(remade.light_selection, trial_seconds=light.trial_seconds) == light
+    assert replace(remade.step_selection, trial_seconds=step.trial_seconds) == step
     assert remade.chamfer_morphed == r.chamfer_morphed
     # no light choice where the estimate or colour large steps are set, or with it switched off
     from inverse.morph.run import light_select_on
@@ -383,6 +399,45 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
         run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
     lpath.write_text(json.dumps({k: v for k, v in old.items() if k not in ("spp", "reference", "downsample")}))
     assert run_morph(small_armadillo, tmp_path / "a", s, show_progress=False).light_selection.spp is None
+
+
+def test_a_kept_quantile_step_runs_on_and_carries_into_the_light_choice(small_armadillo, tmp_path):
+    # The step choice where the photos prefer the quantile step: at margin 0 and lr 0.1 its validation L1 at the
+    # selection point (iteration 2) is below uniform Adam's (measured: 0.02298 against 0.02338, 1 thread). The
+    # light choice then runs with that step, the winner equals a standalone run of its settings bit for bit, and
+    # rescoring the light choice under other draws reads the step back from the decision file.
+    from inverse.morph.run import candidate_settings, light_choice_draws
+
+    s = MorphSettings(iterations=6, checkpoint_every=2, resolution=32, min_vertices=None, check_every=2,
+                      validation_fraction=0.5, early_stop=False, lambda_select=(2.0, 25.0), planarity_select=(),
+                      prior_margin=0.0, step_select_lr=0.1)
+    r = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
+    step, light = r.step_selection, r.light_selection
+    assert step.kept and step.validation_l1_quantile < step.validation_l1_uniform and step.at_iteration == 2
+    assert (step.quantile, step.lr) == (0.9, 0.1) and step.candidate.endswith("_colour_0")  # the photos dropped it
+    assert light.candidate == step.candidate + "_step"
+    final = r.lambda_selection.winner
+    final = replace(final, colour=0.0, step=True, light=light.kept)
+    assert final.folder == light.candidate + ("_light" if light.kept else "")
+    ran = candidate_settings(s, final)
+    assert (ran.adam_quantile, ran.lr) == (0.9, 0.1)
+    alone = run_morph(small_armadillo, tmp_path / "alone", ran, show_progress=False)
+    assert r.chamfer_morphed == alone.chamfer_morphed and r.settings == s
+    redo = light_choice_draws(small_armadillo, tmp_path / "a", s, draws=2)
+    assert (redo["validation_l1_without"][0], redo["validation_l1_with"][0]) == \
+        (light.validation_l1_without, light.validation_l1_with)
+    # the choice remade for another quantile or lr is refused by name; at quantile 1 (or a run's own quantile
+    # step) no choice is made
+    with pytest.raises(UsageError, match=r"step_decision.json: made for .* quantile 0.9, lr 0.1; not for"):
+        run_morph(small_armadillo, tmp_path / "a", replace(s, step_select_lr=0.05), show_progress=False)
+    assert run_morph(small_armadillo, tmp_path / "q1", replace(s, step_select_quantile=1.0),
+                     show_progress=False).step_selection is None
+    from inverse.morph.run import step_select_on
+    assert step_select_on(s) and not step_select_on(replace(s, adam_quantile=0.9))
+    for bad in ({"step_select_quantile": 0.0}, {"step_select_quantile": 1.5}, {"step_select_lr": 0.0},
+                {"step_select_lr": float("nan")}):
+        with pytest.raises(UsageError, match=next(iter(bad))):
+            MorphSettings(**bad)
 
 
 def test_a_prior_continues_only_where_the_photos_prefer_it_by_the_margin():
@@ -1230,6 +1285,14 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
     assert _light_why(off) == "off"
     assert _light_why(SimpleNamespace(light_selection=None, settings=MorphSettings(indirect_every=50))) == \
         "given: light estimate every 50 iterations, colour λ 0"
+    from photoreal.demo import _step_why
+    from inverse.morph.run import StepSelection
+    kept = SimpleNamespace(step_selection=StepSelection("start_2", 200, 0.0120, 0.0108, True, 9.0, quantile=0.9,
+                                                        lr=0.0125, margin=0.015))
+    assert _step_why(kept) == ("quantile 0.9, lr 0.0125: at iteration 200 the validation photos gave L1 0.0108 with the "
+                               "quantile step, 0.0120 with uniform Adam (kept only 1.5% or more below)")
+    assert _step_why(SimpleNamespace(step_selection=replace(kept.step_selection, kept=False))).startswith("uniform Adam:")
+    assert _step_why(SimpleNamespace(step_selection=None, settings=MorphSettings())) == "uniform Adam (given)"
 
 
 def _assert_depth2_is_two_renders(stage, images) -> None:

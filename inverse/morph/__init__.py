@@ -27,14 +27,14 @@ from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import PleatReport, RepairReport, SpikeReport, iron_spikes, remesh, repair_flips, unfold_pleats
 from .batch import load_result, run_item
 from .run import (MORPH_SEED_MAX, PRIOR_TIES, Candidate, ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, MorphStage,
-                  PlanarityDecision, TracePoint, candidate_settings, light_choice_draws, run_morph, start_mesh)
+                  PlanarityDecision, StepSelection, TracePoint, candidate_settings, light_choice_draws, run_morph, start_mesh)
 from .suite import SUITE, KINDS, UNSEEN, suite_mesh
 from .scene import MODES, morph_scene, photo_at, projective_integrator, render_views
 
 __all__ = [
     "MORPH_SEED_MAX", "PRIOR_TIES", "TRUTH_NORMALS", "ARTIFACT_REGIONS", "Camera", "ErrorReport", "SurfaceErrors", "benchmark_errors", "benchmark_surface_errors", "surface_errors", "Candidate", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
     "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "MorphStage", "PlanarityDecision",
-    "RepairReport", "artifact_masks", "candidate_settings", "light_choice_draws", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
+    "RepairReport", "StepSelection", "artifact_masks", "candidate_settings", "light_choice_draws", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",
     "render_views", "repair_flips", "run_gcn_morph", "run_item", "run_morph", "sensor_dict", "start_mesh",
     "KINDS", "UNSEEN", "PleatReport", "SpikeReport", "iron_spikes", "SUITE", "TracePoint", "silhouette_margins", "suite_mesh", "truth_scene",

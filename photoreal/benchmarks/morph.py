@@ -60,12 +60,16 @@ class MorphBenchSettings:
     #: (:attr:`~inverse.morph.MorphSettings.adam_quantile`)
     adam_quantile: float = MorphSettings.adam_quantile
     lr: float = MorphSettings.lr  #: the suite's runs' position learning rate (:attr:`~inverse.morph.MorphSettings.lr`)
+    #: the suite's runs ask the photos about this quantile step (:attr:`~inverse.morph.MorphSettings.step_select_quantile`;
+    #: 1: no such choice, the suite before 2026-11-28)
+    step_select_quantile: float = MorphSettings.step_select_quantile
 
     def __post_init__(self):
         validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
         validate.one_of("prior_ties", self.prior_ties, PRIOR_TIES)
         validate.in_range("adam_quantile", self.adam_quantile, 0.0, 1.0, lo_open=True)
         validate.positive("lr", self.lr)
+        validate.in_range("step_select_quantile", self.step_select_quantile, 0.0, 1.0, lo_open=True)
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
                      "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
@@ -198,11 +202,13 @@ def suite_row(name: str, m: MorphResult) -> dict:
            # per iteration of the run that finished (the candidates not chosen are in ``seconds``, not in this)
            "s_per_iteration": (m.seconds - (m.lambda_selection.trial_seconds if m.lambda_selection else 0.0)
                                - (m.colour_selection.trial_seconds if m.colour_selection else 0.0)
-                               - (m.light_selection.trial_seconds if m.light_selection else 0.0))
+                               - (m.light_selection.trial_seconds if m.light_selection else 0.0)
+                               - (m.step_selection.trial_seconds if m.step_selection else 0.0))
            / max(m.iterations, 1), "validation_seconds": m.validation_seconds,
            "lambda_selection": asdict(m.lambda_selection) if m.lambda_selection else None,
            "colour_selection": asdict(m.colour_selection) if m.colour_selection else None,
            "light_selection": asdict(m.light_selection) if m.light_selection else None,
+           "step_selection": asdict(m.step_selection) if m.step_selection else None,
            "planarity_weight": m.planarity.weight if m.planarity else None,
            "trace": [{"iteration": t.iteration, "seconds": t.seconds, "validation_l1": t.validation_l1,
                       "chamfer": t.chamfer} for t in m.trace]}
@@ -262,7 +268,7 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
     tag = _normals_tag(s)
     benches = {n: _suite_bench(n, work, _suite_benchmark_settings(s), tag) for n in s.suite}
     settings = MorphSettings(iterations=s.iterations, seed=s.seed, prior_ties=s.prior_ties,
-                             adam_quantile=s.adam_quantile, lr=s.lr)
+                             adam_quantile=s.adam_quantile, lr=s.lr, step_select_quantile=s.step_select_quantile)
     for b in benches.values():  # the start remeshes made here, once, before the workers read them (stored_remesh)
         start_mesh(load_morph_benchmark(b), settings)
     items = [_item(n, benches[n], work / f"suite_{n}{tag}", settings) for n in s.suite]
@@ -579,9 +585,11 @@ def _merged_suites(a: dict, b: dict) -> dict:
 
 def recorded_run_settings(settings: dict) -> dict:
     """The settings of a ``bench morph`` result that change its runs, as the file recorded them; a file written
-    before a field existed ran at what is now its default (vertex normals, uniform Adam's maximum, lr 0.05)."""
+    before a field existed ran at what is now its default (vertex normals, uniform Adam's maximum, lr 0.05), except
+    the step choice: files before it ran without one (quantile 1)."""
     d = MorphBenchSettings()
-    return {k: settings.get(k) or getattr(d, k) for k in ("iterations", "truth_normals", "adam_quantile", "lr")}
+    got = {k: settings.get(k) or getattr(d, k) for k in ("iterations", "truth_normals", "adam_quantile", "lr")}
+    return {**got, "step_select_quantile": settings.get("step_select_quantile") or 1.0}
 
 
 def seeds_summary(paths: list[str | Path]) -> dict:
@@ -705,7 +713,8 @@ def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True)
         work, tag = work_folder(bs, p.parent), _normals_tag(bs)
         if not work.is_dir():
             raise UsageError(f"{p}: its work folder {work} is gone (run the bench with --keep-work)")
-        s = MorphSettings(iterations=got["iterations"], seed=seed, adam_quantile=got["adam_quantile"], lr=got["lr"])
+        s = MorphSettings(iterations=got["iterations"], seed=seed, adam_quantile=got["adam_quantile"], lr=got["lr"],
+                          step_select_quantile=got["step_select_quantile"])
         todo += [(f"{n}@{seed}", work / f"bench_{n}{tag}", work / f"suite_{n}{tag}", s) for n in suite["meshes"]]
     todo = [t for t in todo if (t[2] / "lambda_select" / "light_decision.json").is_file()]  # others made none
     rows = {key: light_choice_draws(load_morph_benchmark(bench), out, s, draws)
