@@ -1052,6 +1052,16 @@ def _advance(bench: MorphBenchmark, folder: Path, s: MorphSettings, at: int, sho
     return n == todo, None if budget is None else budget - n
 
 
+def _advance_each(bench: MorphBenchmark, out: Path, s: MorphSettings, cands, at: int, show_progress: bool,
+                  budget: int | None) -> tuple[bool, int | None]:
+    """:func:`_advance` for each candidate of the selection in turn, each in its own folder with its own settings."""
+    for c in cands:
+        reached, budget = _advance(bench, _trial_dir(out, c), candidate_settings(s, c), at, show_progress, budget)
+        if not reached:
+            return False, budget
+    return True, budget
+
+
 def colour_rule_on(bench: MorphBenchmark, s: MorphSettings) -> bool:
     """Whether the rule (not a given weight) switches the colour prior on for this benchmark's input."""
     if s.colour_prior_weight is not None:
@@ -1098,10 +1108,9 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
 
     def decide_lambda() -> LambdaSelection | None:
         nonlocal budget
-        for c in cands:
-            reached, budget = _advance(bench, _trial_dir(out, c), candidate_settings(s, c), at, show_progress, budget)
-            if not reached:
-                return None
+        reached, budget = _advance_each(bench, out, s, cands, at, show_progress, budget)
+        if not reached:
+            return None
         status = {c: _trial_status(_trial_dir(out, c) / "checkpoint.npz", at) for c in cands}
         scores = [status[c][2] for c in cands]
         # planarity candidates carry a prior the λ candidates do not (those take the rule's weight, off here)
@@ -1156,11 +1165,9 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
 
         def decide_step() -> StepSelection | None:
             nonlocal budget
-            for c in (winner, twin):
-                reached, budget = _advance(bench, _trial_dir(out, c), candidate_settings(s, c), at, show_progress,
-                                           budget)
-                if not reached:
-                    return None
+            reached, budget = _advance_each(bench, out, s, (winner, twin), at, show_progress, budget)
+            if not reached:
+                return None
             l1 = [_trial_status(_trial_dir(out, c) / "checkpoint.npz", at)[2] for c in (winner, twin)]
             kept = None not in l1 and choose_with_margin(l1, [False, True], s.prior_margin) == 1
             lost = _trial_dir(out, winner if kept else twin) / "checkpoint.npz"
@@ -1183,11 +1190,9 @@ def _run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progr
 
         def decide_light() -> LightSelection | None:
             nonlocal budget
-            for c in (winner, twin):
-                reached, budget = _advance(bench, _trial_dir(out, c), candidate_settings(s, c), at, show_progress,
-                                           budget)
-                if not reached:
-                    return None
+            reached, budget = _advance_each(bench, out, s, (winner, twin), at, show_progress, budget)
+            if not reached:
+                return None
             t0 = time.perf_counter()
             l1 = [validation_l1_with_light(bench, _trial_dir(out, c), candidate_settings(s, c), at)
                   for c in (winner, twin)]
