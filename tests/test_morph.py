@@ -426,6 +426,15 @@ def test_a_kept_quantile_step_runs_on_and_carries_into_the_light_choice(small_ar
     redo = light_choice_draws(small_armadillo, tmp_path / "a", s, draws=2)
     assert (redo["validation_l1_without"][0], redo["validation_l1_with"][0]) == \
         (light.validation_l1_without, light.validation_l1_with)
+    assert r.trial_seconds == pytest.approx(r.lambda_selection.trial_seconds + r.colour_selection.trial_seconds
+                                            + step.trial_seconds + light.trial_seconds)
+    spath = tmp_path / "a" / "lambda_select" / "step_decision.json"
+    kept = spath.read_bytes()
+    spath.unlink()
+    with pytest.raises(UsageError, match=r"light_decision.json: made on .*_step, but step_decision.json \(its step\) "
+                                         r"is missing"):
+        light_choice_draws(small_armadillo, tmp_path / "a", s, draws=1)
+    spath.write_bytes(kept)
     # the choice remade for another quantile or lr is refused by name; at quantile 1 (or a run's own quantile
     # step) no choice is made
     with pytest.raises(UsageError, match=r"step_decision.json: made for .* quantile 0.9, lr 0.1; not for"):

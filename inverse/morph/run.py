@@ -452,6 +452,12 @@ class MorphResult(MorphEvaluation):
     light_selection: LightSelection | None = None  #: when they decided the light estimate and colour large steps
     step_selection: StepSelection | None = None  #: when they decided the step (uniform or quantile Adam)
 
+    @property
+    def trial_seconds(self) -> float:
+        """Time of the selection's runs not continued (in ``seconds``, not in the finished run's iterations)."""
+        return sum(c.trial_seconds for c in (self.lambda_selection, self.colour_selection, self.light_selection,
+                                             self.step_selection) if c is not None)
+
 
 def start_mesh(bench: MorphBenchmark, s: MorphSettings) -> tuple[tuple, tuple]:
     """The coarse input (v, f, c) and the mesh the optimisation starts from (remeshed unless disabled)."""
@@ -996,7 +1002,10 @@ def light_choice_draws(bench: MorphBenchmark, out: Path, s: MorphSettings, draws
                          f"resolution; these settings estimate {estimate[1]} at {estimate[0]} spp, 1/{estimate[2]}")
     plain = replace(s, indirect_every=0, colour_lambda=0.0)
     step = path.with_name("step_decision.json")
-    if d.candidate.endswith("_step") and step.is_file():  # both runs took the quantile step the photos chose
+    if d.candidate.endswith("_step"):  # both runs took the quantile step the photos chose
+        if not step.is_file():
+            raise UsageError(f"{path}: made on {d.candidate}, but {step.name} (its step) is missing; delete "
+                             f"{path.parent} to start over")
         st = from_json(StepSelection, read_json(step, "step selection"), str(step))
         plain = replace(plain, adam_quantile=st.quantile, lr=st.lr)
     light = replace(plain, indirect_every=d.every, colour_lambda=d.colour_lambda)

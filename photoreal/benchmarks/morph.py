@@ -200,11 +200,8 @@ def suite_row(name: str, m: MorphResult) -> dict:
            "spike_ironing": asdict(m.spike_ironing) if m.spike_ironing else None,
            "iterations": m.iterations, "stopped_early": m.stopped_early, "trace_chamfer_input": m.trace_chamfer_input,
            # per iteration of the run that finished (the candidates not chosen are in ``seconds``, not in this)
-           "s_per_iteration": (m.seconds - (m.lambda_selection.trial_seconds if m.lambda_selection else 0.0)
-                               - (m.colour_selection.trial_seconds if m.colour_selection else 0.0)
-                               - (m.light_selection.trial_seconds if m.light_selection else 0.0)
-                               - (m.step_selection.trial_seconds if m.step_selection else 0.0))
-           / max(m.iterations, 1), "validation_seconds": m.validation_seconds,
+           "s_per_iteration": (m.seconds - m.trial_seconds) / max(m.iterations, 1),
+           "validation_seconds": m.validation_seconds,
            "lambda_selection": asdict(m.lambda_selection) if m.lambda_selection else None,
            "colour_selection": asdict(m.colour_selection) if m.colour_selection else None,
            "light_selection": asdict(m.light_selection) if m.light_selection else None,
