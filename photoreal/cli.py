@@ -1063,6 +1063,9 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mm, MorphBenchmarkSettings, "truth_normals", choices=list(TRUTH_NORMALS),
          help="shading of the photographed truth: interpolated vertex normals (smooth) or each triangle flat, the "
               "geometry the Chamfer measures (they disagree for truths with few vertices)")
+    _opt(mm, MorphBenchmarkSettings, "photo_max_depth",
+         help="path length of the photos; 2 = direct light only, what the morph renders (no interreflections to "
+              "explain)")
     mm.set_defaults(func=_cmd_morph_make_benchmark)
     mr = msub.add_parser("run", help="morph benchmarks' coarse meshes (resumes from their checkpoints)")
     mr.add_argument("benchmark", nargs="+", help="benchmark folder(s), or a folder of them")

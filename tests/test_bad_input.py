@@ -92,7 +92,7 @@ def test_neural_material_of_another_basis_is_refused(tmp_path, capsys):
     (["--views", "2"], "--views must be ≥ 4"), (["--views", "0"], "--views must be ≥ 4"),
     (["--views", "-3"], "--views must be ≥ 4"), (["--spp", "0"], "--spp must be ≥ 1"),
     (["--spp", "-4"], "--spp must be ≥ 1"), (["--resolution", "0"], "--resolution must be ≥ 16"),
-    (["--resolution", "-8"], "--resolution must be ≥ 16")])
+    (["--resolution", "-8"], "--resolution must be ≥ 16"), (["--photo-max-depth", "1"], "--photo-max-depth must be ≥ 2")])
 def test_morph_benchmark_settings_are_checked_before_any_work(argv, flag, tmp_path, capsys):
     code, err = run(["morph", "make-benchmark", "--mesh", ARMADILLO, "--out", tmp_path / "b", *argv], capsys)
     assert code == 2 and flag in err and not (tmp_path / "b").exists()
