@@ -880,6 +880,37 @@ def test_iron_spikes_brings_a_needle_back_to_its_neighbours_and_nothing_else():
     assert rep0 == SpikeReport(0, 0, 0, 0.0)
 
 
+def test_iron_spikes_smooths_a_triangle_the_ironing_would_flip():
+    """face000's ragged border (a patch of a real result, tests/data): ironing its two spikes alone turns a triangle
+    against the start, and the earlier all-or-nothing rule then kept both spikes. With the flipped triangle's
+    vertices smoothed as well, none is left, nothing is flipped, and only the few vertices involved move."""
+    from foundation.mesh import edge_lengths, face_normals
+    from foundation.mesh_metrics import spike_mask, spikes, vertex_neighbours_mean
+    from inverse.morph import iron_spikes
+
+    d = np.load(Path(__file__).parent / "data" / "face000_border_spikes.npz")
+    v, v0, f = d["v"].astype(np.float64), d["v_start"].astype(np.float64), d["f"].astype(np.int64)
+    bad = spike_mask(v0, v, f, 3.0, edge_lengths(v0, f))
+    assert bad.sum() == 2 and spikes(v0, v, f)["inverted_triangles"] == 0
+    n0 = face_normals(v0, f)
+    # the spikes alone, halfway to their rings' mean displacement until none is left: one triangle turns over
+    alone = v.copy()
+    for _ in range(30):
+        b = spike_mask(v0, alone, f, 3.0, edge_lengths(v0, f))
+        if not b.any():
+            break
+        dd = alone - v0
+        alone[b] = v0[b] + 0.5 * dd[b] + 0.5 * vertex_neighbours_mean(dd, f)[b]
+    assert (np.sum(face_normals(alone, f) * n0, 1) < 0).sum() >= 1
+    fixed, rep = iron_spikes(v, f, v0)
+    assert rep.spikes_before == 2 and rep.spikes_after == 0
+    assert spikes(v0, fixed, f)["spike_vertices"] == 0 and spikes(v0, fixed, f)["inverted_triangles"] == 0
+    moved = np.linalg.norm(fixed - v, axis=1) > 0
+    assert moved.sum() == rep.moved_vertices and 2 < rep.moved_vertices <= 8
+    assert moved[bad].all()
+    assert rep.max_move == pytest.approx(np.linalg.norm(fixed - v, axis=1).max())
+
+
 def _box(n=8):
     """Closed unit cube [-1, 1]³, each side an n×n grid, outward winding, shared corner/edge vertices."""
     g = np.linspace(-1, 1, n + 1)

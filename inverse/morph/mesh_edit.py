@@ -199,8 +199,11 @@ def iron_spikes(v: np.ndarray, f: np.ndarray, v_ref: np.ndarray, k: float = 3.0,
                 rounds: int = 30) -> tuple[np.ndarray, SpikeReport]:
     """Bring back vertices that left their neighbours (:func:`~foundation.mesh_metrics.spikes` against ``v_ref``):
     each round, the displacement from ``v_ref`` of every such vertex moves halfway to its 1-ring's mean
-    displacement; only they move. A result with more spikes, or with a triangle flipped against ``v_ref`` that was
-    not flipped before, is not returned.
+    displacement. Where that turns a triangle against ``v_ref`` that was not turned before, its three vertices are
+    smoothed the same way in the next rounds (a spike pulled back across a neighbour that had moved with it: face000's
+    ragged border, seed 0, where ironing only the two spikes flipped one triangle and the whole ironing was refused).
+    Only those vertices move. A result with more spikes, or with a triangle flipped against ``v_ref`` that was not
+    flipped before, is not returned.
 
     Why it exists: the flip repair's last resort blends the vertices of a stubborn fold back towards the start
     while neighbours that moved with them keep their move. On an unseen range scan's ragged border (pymeshlab's
@@ -221,11 +224,13 @@ def iron_spikes(v: np.ndarray, f: np.ndarray, v_ref: np.ndarray, k: float = 3.0,
     before, flips_before = int(bad.sum()), flipped(v)
     moved = np.zeros(len(v), bool)
     for _ in range(rounds):
-        if not bad.any():
+        active = bad.copy()
+        active[f[flipped(v) & ~flips_before].ravel()] = True
+        if not active.any():
             break
         d = v - v_ref
-        v[bad] = v_ref[bad] + 0.5 * d[bad] + 0.5 * vertex_neighbours_mean(d, f)[bad]
-        moved |= bad
+        v[active] = v_ref[active] + 0.5 * d[active] + 0.5 * vertex_neighbours_mean(d, f)[active]
+        moved |= active
         bad = flagged(v)
     if bad.sum() > before or (flipped(v) & ~flips_before).any():
         v, bad, moved = v0, flagged(v0), np.zeros(len(v), bool)
