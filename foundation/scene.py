@@ -120,41 +120,38 @@ def prepare_scene_xml(path: Path, settings: RenderSettings) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
-_PFM_CACHE: dict[tuple[str, float], str] = {}
+_EXR_CACHE: dict[tuple[str, float, int], "mi.Bitmap"] = {}
 
 
-def _exr_as_pfm(exr: Path) -> str:
-    """A lossless float32 PFM copy of an EXR (read by Mitsuba itself), cached for this process.
+def _exr_as_pfm(exr: Path, folder: Path) -> str:
+    """Write a lossless float32 PFM copy of an EXR (read by Mitsuba itself) into ``folder``; the decoded EXR
+    is cached for this process.
 
     Mitsuba's EXR reader hangs with one Dr.Jit thread (:mod:`foundation.assets`), and loading a scene with more
     threads is not reproducible: under load, 2 of ~100 loads of the armadillo scene rendered differently
     (the parser instantiates objects in parallel). PFM goes through no thread pool, so scenes load with the
-    caller's thread count; the radiance is bit-identical (tested).
+    caller's thread count; the radiance is bit-identical (tested). The copy lives only while the scene loads
+    (:func:`load_scene`): a process-long temporary folder leaked 6 MB per worker process, since pool workers
+    end without running ``atexit``.
     """
-    import atexit
-    import shutil
-    import tempfile
-
-    key = (str(exr.resolve()), exr.stat().st_mtime)
-    if key not in _PFM_CACHE or not Path(_PFM_CACHE[key]).is_file():
+    st = exr.stat()
+    key = (str(exr.resolve()), st.st_mtime, st.st_size)
+    if key not in _EXR_CACHE:
         with exr_safe():
-            bmp = mi.Bitmap(str(exr))
-        folder = tempfile.mkdtemp(prefix="photoreal-pfm-")
-        atexit.register(shutil.rmtree, folder, True)
-        target = Path(folder) / (exr.stem + ".pfm")
-        bmp.write(str(target))
-        _PFM_CACHE[key] = str(target)
-    return _PFM_CACHE[key]
+            _EXR_CACHE[key] = mi.Bitmap(str(exr))
+    target = folder / f"{len(list(folder.iterdir()))}_{exr.stem}.pfm"
+    _EXR_CACHE[key].write(str(target))
+    return str(target)
 
 
-def _substitute_exr(root: ET.Element, folder: Path) -> None:
-    """Point every ``filename`` ending in .exr at its PFM copy (see :func:`_exr_as_pfm`)."""
+def _substitute_exr(root: ET.Element, folder: Path, tmp: Path) -> None:
+    """Point every ``filename`` ending in .exr at a PFM copy in ``tmp`` (see :func:`_exr_as_pfm`)."""
     for el in root.iter("string"):
         value = el.get("value", "")
         if el.get("name") == "filename" and value.lower().endswith(".exr"):
             exr = Path(value) if Path(value).is_absolute() else folder / value
             if exr.is_file():
-                el.set("value", _exr_as_pfm(exr))
+                el.set("value", _exr_as_pfm(exr, tmp))
 
 
 def load_scene(path: str | os.PathLike, settings: RenderSettings | None = None) -> mi.Scene:
@@ -162,26 +159,29 @@ def load_scene(path: str | os.PathLike, settings: RenderSettings | None = None) 
     path = Path(path)
     settings = settings or RenderSettings()
     root = ET.fromstring(prepare_scene_xml(path, settings))
-    try:
-        _substitute_exr(root, path.parent.resolve())
-    except Exception as exc:  # a damaged EXR: name it
-        raise SceneError(f"{path}: {' '.join(str(exc).split())[:200]}") from None
-    xml = ET.tostring(root, encoding="unicode")
-    resolver = mi.file_resolver()
-    saved = [resolver[i] for i in range(len(resolver))]
-    resolver.prepend(str(path.parent.resolve()))
-    try:
-        scene = mi.load_string(xml)
-    except Exception as exc:
-        msg = str(exc).strip()
-        # Python plugin constructors report through a traceback; keep its last line.
-        last = msg.splitlines()[-1] if msg else type(exc).__name__
-        detail = last if "Traceback" in msg else msg
-        raise SceneError(f"{path}: {detail}") from exc
-    finally:
-        resolver.clear()
-        for p in saved:
-            resolver.append(p)
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="photoreal-pfm-") as tmp:
+        try:
+            _substitute_exr(root, path.parent.resolve(), Path(tmp))
+        except Exception as exc:  # a damaged EXR: name it
+            raise SceneError(f"{path}: {' '.join(str(exc).split())[:200]}") from None
+        xml = ET.tostring(root, encoding="unicode")
+        resolver = mi.file_resolver()
+        saved = [resolver[i] for i in range(len(resolver))]
+        resolver.prepend(str(path.parent.resolve()))
+        try:
+            scene = mi.load_string(xml)
+        except Exception as exc:
+            msg = str(exc).strip()
+            # Python plugin constructors report through a traceback; keep its last line.
+            last = msg.splitlines()[-1] if msg else type(exc).__name__
+            detail = last if "Traceback" in msg else msg
+            raise SceneError(f"{path}: {detail}") from exc
+        finally:
+            resolver.clear()
+            for p in saved:
+                resolver.append(p)
     if not scene.sensors():
         raise SceneError(f"{path}: the scene has no <sensor> (a camera to render from)")
     if scene.integrator() is None:
