@@ -680,13 +680,17 @@ def seeds_chart(summary: dict, path: Path) -> Path:
             # a draw that misses any target (not only this panel's): hollow
             a.plot(xs[~ok], ys[~ok], "o", ms=5, mfc="none", color=line.get_color())
         a.axhline(target, color="tab:red", ls="--", lw=0.8, label="target")
-        a.set_xticks(x, names, rotation=45, ha="right", fontsize=8)
+        # how many draws each mesh ran and passed: a mesh run at one draw only is not "held at every draw"
+        a.set_xticks(x, [f"{n} {summary['meshes'][n]['passes']}/{summary['meshes'][n]['of']}" for n in names],
+                     rotation=45, ha="right", fontsize=8)
         a.set_ylabel(label)
         a.grid(alpha=0.3, axis="y")
     ax[0].legend(fontsize=7, title="hollow: a target missed", title_fontsize=7)
     n_pass = len(summary["every_seed_pass"])
+    fewer = sum(m["of"] < len(summary["seeds"]) for m in summary["meshes"].values())
     fig.suptitle(f"morph suite over {len(summary['seeds'])} draws: {n_pass} of {len(names)} meshes meet every "
-                 "target at every draw")
+                 "target at every draw they ran" + (f" ({fewer} ran at fewer draws)" if fewer else "")
+                 + "; ticks: draws passed / run")
     return save_figure(fig, path)
 
 
