@@ -142,7 +142,11 @@ def test_a_worker_ends_when_its_driver_is_killed(tmp_path):
     code = ("from foundation.pool import Item, PoolSettings, run_items\n"
             f"run_items([Item('slow', 'tests.test_pool:_sleeper', ({str(pid_file)!r}, {str(done_file)!r}, 30.0))], "
             "PoolSettings(workers=1, threads=1), show_progress=False)\n")
-    driver = subprocess.Popen([sys.executable, "-c", code], cwd=Path(__file__).resolve().parent.parent)
+    import os
+
+    # the killed driver cannot remove its temporary folders: keep them under tmp_path
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    driver = subprocess.Popen([sys.executable, "-c", code], cwd=Path(__file__).resolve().parent.parent, env=env)
     try:
         t0 = time.time()
         while not pid_file.exists() and time.time() - t0 < 120 and driver.poll() is None:
@@ -158,7 +162,6 @@ def test_a_worker_ends_when_its_driver_is_killed(tmp_path):
         time.sleep(0.1)
     gone = not _alive(worker)
     if not gone:
-        import os
         import signal
 
         os.kill(worker, signal.SIGKILL)
