@@ -879,6 +879,9 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bm, MorphBenchSettings, "step_select_quantile", type=float,
          help="the suite's runs ask the validation photos about this quantile step (MorphSettings.step_select_quantile; "
               "1: no such choice)")
+    _opt(bm, MorphBenchSettings, "saturation", type=float,
+         help="the suite's runs leave pixels brighter than this × the photos' 99th percentile out of the loss "
+              "(MorphSettings.saturation; 0: every pixel counts)")
     _opt(bm, MorphBenchSettings, "seed", help="another draw of every benchmark (photos' noise, views) and of every "
                                                "morph's render seeds (work folder: OUT/morph_work_seed<k>)")
     _opt(bm, MorphBenchSettings, "cost_mesh", help="the mesh of --parts iteration")
@@ -1143,6 +1146,10 @@ def build_parser() -> argparse.ArgumentParser:
               "and --step-select-lr to the selection point, and the validation photos decide by --prior-margin "
               "(1: no such candidate)")
     _opt(mr, MorphSettings, "step_select_lr", type=float, help="position learning rate of that candidate")
+    _opt(mr, MorphSettings, "saturation", type=float,
+         help="pixels brighter than this × the training photos' 99th percentile, in a photo or its render, and their "
+              "neighbours stay out of the loss, as a camera clips them (a silhouette against the sun otherwise "
+              "swamps every step); 0: every pixel counts")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

@@ -45,7 +45,7 @@ from foundation.scene import mitsuba_log_level
 from .benchmark import MorphBenchmark
 from .evaluate import evaluate_morph
 from .run import MorphResult, MorphSettings, photos_digest
-from .scene import morph_scene, photo_tensors, render_views
+from .scene import morph_scene, photo_l1, photo_saturation, photo_tensors, render_views
 
 
 def adjacency(n: int, faces: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -160,6 +160,7 @@ class GCNMorphStage(TorchStage):
         meta = bench.meta
         self.res = s.resolution or meta.resolution
         self.photos = photo_tensors(bench, self.res)
+        self.saturation_level, self.photo_hot = photo_saturation(self.photos, meta.train, s.saturation)
         self.v_in, self.f_in, self.c_in = read_ply_colours(bench.coarse)
         self.digest = file_digest(bench.coarse)
         self.photos_digest = photos_digest(bench)
@@ -190,7 +191,7 @@ class GCNMorphStage(TorchStage):
         imgs = render_views(self.scene, self.params, meta.cameras, views, self.res, meta.fov, s.spp, self.batch["seed"])
         loss = 0
         for img, i in zip(imgs, views):
-            loss += dr.mean(dr.abs(img[..., :3] - self.photos[int(i)]), axis=None)
+            loss += photo_l1(img[..., :3], self.photos[int(i)], self.photo_hot.get(int(i)), self.saturation_level)
         return loss / len(views)
 
     def fingerprint(self) -> dict:
@@ -227,7 +228,8 @@ class GCNMorphStage(TorchStage):
                             self.res, self.out)
         return MorphResult(**vars(ev), seconds=seconds, iterations=self.s.iterations, vertices=int(len(v_out)),
                            method="gcn", settings=self.s, training=run.summary(),
-                           pretrain_loss_last=self.pretrain[-1] if self.pretrain else None)
+                           pretrain_loss_last=self.pretrain[-1] if self.pretrain else None,
+                           saturation_level=self.saturation_level)
 
     def close(self) -> None:
         self.scene = self.params = None

@@ -62,7 +62,8 @@ from .evaluate import MorphEvaluation, evaluate_morph
 from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (PleatReport, RepairReport, SpikeReport, iron_spikes, remesh, repair_flips, undo_flips,
                         unfold_pleats)
-from .scene import MODES, morph_scene, photo_tensors, projective_integrator, render_views, upsample_bilinear
+from .scene import (MODES, morph_scene, photo_l1, photo_saturation, photo_tensors, projective_integrator,
+                    render_views, upsample_bilinear)
 
 #: largest run seed: render seeds are seed·7919 + step·101 + view and must stay below 2³¹
 MORPH_SEED_MAX = 200_000
@@ -229,6 +230,11 @@ class MorphSettings:
     #: the validation L1 was 10 % lower for the cow and 11 % higher for josie. 1 = no such candidate.
     step_select_quantile: float = 0.9
     step_select_lr: float = 0.0125
+    #: pixels brighter than ``saturation`` × the training photos' 99th percentile, in the photo or the render, and
+    #: their neighbours stay out of the loss (a camera clips there: :func:`~inverse.morph.scene.unsaturated_mask`).
+    #: A silhouette against the sun otherwise froze uniform Adam (paul at seed 1: one view's gradient 2,700 times
+    #: the others'). 0 = every pixel counts (runs before 2026-11-28).
+    saturation: float = 4.0
     seed: int = 0
 
     def __post_init__(self):
@@ -240,6 +246,7 @@ class MorphSettings:
         validate.non_negative("lr", self.lr)
         validate.non_negative("lr_colour", self.lr_colour)
         validate.in_range("adam_quantile", self.adam_quantile, 0.0, 1.0, lo_open=True)
+        validate.non_negative("saturation", self.saturation)
         validate.in_range("lr_final", self.lr_final, 0.0, 1.0)
         validate.integer("spp", self.spp, 1)
         validate.optional(validate.integer, "boundary_spp", self.boundary_spp, 1, 1 << 16)
@@ -451,6 +458,8 @@ class MorphResult(MorphEvaluation):
     colour_selection: ColourSelection | None = None  #: when the validation photos decided the colour prior
     light_selection: LightSelection | None = None  #: when they decided the light estimate and colour large steps
     step_selection: StepSelection | None = None  #: when they decided the step (uniform or quantile Adam)
+    #: radiance above which pixels stayed out of the loss (``settings.saturation`` × the photos' 99th percentile)
+    saturation_level: float = 0.0
 
     @property
     def trial_seconds(self) -> float:
@@ -542,6 +551,7 @@ class MorphStage(DrJitStage):
         self.res = s.resolution or meta.resolution
         self.size = meta.scene_size
         self.photos = photo_tensors(bench, self.res)
+        self.saturation_level, self.photo_hot = photo_saturation(self.photos, meta.train, s.saturation)
         (self.v_in, self.f_in, self.c_in), (v0, f0, c0) = start_mesh(bench, s)
         self.v_start, self.f_start = v0, f0
         self.digest = file_digest(bench.coarse)
@@ -624,7 +634,8 @@ class MorphStage(DrJitStage):
         same = (("boundary_spp",) if self.shared_spp else ()) + \
             (("indirect_reference",) if self.s.indirect_reference == "direct" else ()) + \
             (("indirect_downsample",) if self.s.indirect_downsample == 1 else ()) + \
-            (("adam_quantile",) if self.s.adam_quantile == 1.0 else ())
+            (("adam_quantile",) if self.s.adam_quantile == 1.0 else ()) + \
+            (("saturation",) if self.s.saturation == 0 else ())
         settings = {k: v for k, v in asdict(self.s).items() if k not in between + same}
         if not self.s.indirect_every:  # no estimate: its settings unread, kept as runs before their defaults changed
             settings["indirect_spp"] = PLAIN_RUN_INDIRECT_SPP
@@ -662,9 +673,12 @@ class MorphStage(DrJitStage):
         with dr.suspend_grad():
             imgs = render_views(self.scene, self.params, meta.cameras, self.val_ids, self.res, meta.fov,
                                 max(self.s.spp, 8), 7_000_003)
-            return float(np.mean([np.asarray(dr.mean(dr.abs(self._with_indirect(img, i) - self.photos[int(i)]),
-                                                     axis=None)).item()
-                                  for img, i in zip(imgs, self.val_ids)]))
+            return float(np.mean([np.asarray(self._l1(img, i)).item() for img, i in zip(imgs, self.val_ids)]))
+
+    def _l1(self, img, i):
+        """L1 against photo ``i`` without its saturated pixels (:func:`~inverse.morph.scene.photo_l1`)."""
+        return photo_l1(self._with_indirect(img, i), self.photos[int(i)], self.photo_hot.get(int(i)),
+                        self.saturation_level)
 
     def _with_indirect(self, img, i):
         extra = self.indirect.get(int(i))
@@ -769,7 +783,7 @@ class MorphStage(DrJitStage):
                             s.seed * 7919 + it * 101, integrator_spp=not self.shared_spp)
         loss = 0
         for img, i in zip(imgs, views):
-            loss += dr.mean(dr.abs(self._with_indirect(img, i) - self.photos[int(i)]), axis=None)  # eq. 4.3, L1
+            loss += self._l1(img, i)  # eq. 4.3, L1
         loss = loss / len(views)
         if self.planarity.weight > 0:
             loss += self.planarity.weight * planarity_prior(dr.unravel(mi.Point3f, flat), self.f_mi, self.pairs,
@@ -838,7 +852,7 @@ class MorphStage(DrJitStage):
                            pleats=pleat_report, spike_ironing=spike_report, trace=self.trace,
                            stopped_early=run.stopped,
                            validation_views=list(self.val_ids), validation_seconds=self.validation_seconds,
-                           trace_chamfer_input=trace_in)
+                           trace_chamfer_input=trace_in, saturation_level=self.saturation_level)
 
     def close(self) -> None:
         """Free the scene (Mitsuba traces every live plugin instance in every render) and the work file."""

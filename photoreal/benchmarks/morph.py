@@ -63,6 +63,9 @@ class MorphBenchSettings:
     #: the suite's runs ask the photos about this quantile step (:attr:`~inverse.morph.MorphSettings.step_select_quantile`;
     #: 1: no such choice, the suite before 2026-11-28)
     step_select_quantile: float = MorphSettings.step_select_quantile
+    #: the suite's runs leave pixels brighter than this × the photos' 99th percentile out of the loss
+    #: (:attr:`~inverse.morph.MorphSettings.saturation`; 0: every pixel, the suite before 2026-11-28 evening)
+    saturation: float = MorphSettings.saturation
 
     def __post_init__(self):
         validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
@@ -70,6 +73,7 @@ class MorphBenchSettings:
         validate.in_range("adam_quantile", self.adam_quantile, 0.0, 1.0, lo_open=True)
         validate.positive("lr", self.lr)
         validate.in_range("step_select_quantile", self.step_select_quantile, 0.0, 1.0, lo_open=True)
+        validate.non_negative("saturation", self.saturation)
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
                      "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
@@ -265,7 +269,8 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
     tag = _normals_tag(s)
     benches = {n: _suite_bench(n, work, _suite_benchmark_settings(s), tag) for n in s.suite}
     settings = MorphSettings(iterations=s.iterations, seed=s.seed, prior_ties=s.prior_ties,
-                             adam_quantile=s.adam_quantile, lr=s.lr, step_select_quantile=s.step_select_quantile)
+                             adam_quantile=s.adam_quantile, lr=s.lr, step_select_quantile=s.step_select_quantile,
+                             saturation=s.saturation)
     for b in benches.values():  # the start remeshes made here, once, before the workers read them (stored_remesh)
         start_mesh(load_morph_benchmark(b), settings)
     items = [_item(n, benches[n], work / f"suite_{n}{tag}", settings) for n in s.suite]
@@ -583,10 +588,11 @@ def _merged_suites(a: dict, b: dict) -> dict:
 def recorded_run_settings(settings: dict) -> dict:
     """The settings of a ``bench morph`` result that change its runs, as the file recorded them; a file written
     before a field existed ran at what is now its default (vertex normals, uniform Adam's maximum, lr 0.05), except
-    the step choice: files before it ran without one (quantile 1)."""
+    the step choice and the saturation mask: files before them ran without (quantile 1, saturation 0)."""
     d = MorphBenchSettings()
     got = {k: settings.get(k) or getattr(d, k) for k in ("iterations", "truth_normals", "adam_quantile", "lr")}
-    return {**got, "step_select_quantile": settings.get("step_select_quantile") or 1.0}
+    return {**got, "step_select_quantile": settings.get("step_select_quantile") or 1.0,
+            "saturation": settings.get("saturation") or 0.0}
 
 
 def seeds_summary(paths: list[str | Path]) -> dict:
@@ -715,7 +721,7 @@ def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True)
         if not work.is_dir():
             raise UsageError(f"{p}: its work folder {work} is gone (run the bench with --keep-work)")
         s = MorphSettings(iterations=got["iterations"], seed=seed, adam_quantile=got["adam_quantile"], lr=got["lr"],
-                          step_select_quantile=got["step_select_quantile"])
+                          step_select_quantile=got["step_select_quantile"], saturation=got["saturation"])
         todo += [(f"{n}@{seed}", work / f"bench_{n}{tag}", work / f"suite_{n}{tag}", s) for n in suite["meshes"]]
     todo = [t for t in todo if (t[2] / "lambda_select" / "light_decision.json").is_file()]  # others made none
     rows = {key: light_choice_draws(load_morph_benchmark(bench), out, s, draws)
