@@ -1744,3 +1744,62 @@ def test_a_photo_with_non_finite_pixels_is_rendered_again_or_refused(tmp_path, m
     imageio.write_exr(tmp_path / "clean" / "photos.exr", photos, half=True)
     with pytest.raises(UsageError, match=r"photos.exr: non-finite pixels in view02 \(1\); remake the benchmark"):
         load_morph_benchmark(tmp_path / "clean")
+
+
+def test_a_silhouette_against_the_sun_leaves_the_loss_with_the_saturated_pixels():
+    """A mesh edge in front of a light 10⁴ times brighter than the rest carries a silhouette gradient scaled by
+    that radiance (paul at seed 1: one view's 2,700 times the others', which froze uniform Adam). Saturated
+    pixels and their neighbours leave the L1 (:func:`inverse.morph.scene.photo_l1`): the gradient falls to the
+    size the same edge has against the sky, and a view with no saturated pixel keeps the plain L1 exactly."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from inverse.morph.scene import photo_l1, photo_saturation, unsaturated_mask
+
+    def scene(sun: float):
+        sq = mi.Mesh("sq", 4, 2)
+        p = mi.traverse(sq)
+        p["vertex_positions"] = mi.Float(np.array([[-.5, -.5, 0], [.5, -.5, 0], [.5, .5, 0], [-.5, .5, 0]],
+                                                  np.float32).ravel())
+        p["faces"] = mi.UInt32(np.array([0, 1, 2, 0, 2, 3], np.uint32))
+        p.update()
+        sq.set_bsdf(mi.load_dict({"type": "diffuse", "reflectance": 0.5}))
+        return mi.load_dict({"type": "scene", "integrator": {"type": "direct_projective", "sppi": 0},
+                             "env": {"type": "constant", "radiance": 1.0}, "sq": sq,
+                             # behind the square's left edge as the camera sees it
+                             "sun": {"type": "rectangle", "emitter": {"type": "area", "radiance": sun},
+                                     "to_world": mi.ScalarTransform4f().translate([-0.667, 0, -1]).scale(0.1)}})
+
+    sensor = mi.load_dict({"type": "perspective", "fov": 45,
+                           "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0]),
+                           "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"},
+                                    "sample_border": True}})
+
+    def grad(sun: float, factor: float) -> tuple[float, bool]:
+        sc = scene(sun)
+        params = mi.traverse(sc)
+        v0 = np.asarray(params["sq.vertex_positions"]).reshape(-1, 3)
+        photo = mi.TensorXf(np.asarray(mi.render(sc, sensor=sensor, spp=16, seed=1))[..., :3])
+        level, hot = photo_saturation({0: photo}, [0], factor)
+        x = mi.Float((v0 + [0.03, 0.0, 0.0]).ravel().astype(np.float32))  # the fit: off by 1/3 pixel
+        dr.enable_grad(x)
+        params["sq.vertex_positions"] = x
+        params.update()
+        img = mi.render(sc, params, sensor=sensor, spp=4, seed=2)[..., :3]
+        masked = level > 0 and unsaturated_mask(hot[0], dr.detach(img), level) is not None
+        dr.backward(photo_l1(img, photo, hot.get(0), level))
+        return float(np.abs(np.asarray(dr.grad(x))).max()), masked
+
+    sky, sky_masked = grad(1.0, 4.0)  # the same edge against a light as bright as the sky
+    sun_plain, _ = grad(1e4, 0.0)
+    sun_masked, masked = grad(1e4, 4.0)
+    assert not sky_masked and masked
+    assert sun_plain > 100 * sky, (sun_plain, sky)
+    assert sun_masked < 3 * sky, (sun_masked, sky)
+    assert grad(1.0, 0.0)[0] == sky  # nothing saturated: exactly the plain L1
+
+    hot = np.zeros((6, 6), bool)
+    hot[0, 0] = True
+    keep = unsaturated_mask(hot, np.zeros((6, 6, 3), np.float32), 10.0)
+    assert keep.shape == (6, 6, 3) and keep[:2, :2].sum() == 0 and keep.sum() == 3 * (36 - 4)
+    assert unsaturated_mask(np.zeros((6, 6), bool), np.zeros((6, 6, 3), np.float32), 10.0) is None
