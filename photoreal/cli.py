@@ -503,6 +503,22 @@ def _cmd_morph_run(a) -> int:
     return 0
 
 
+def _cmd_morph_saturation(a) -> int:
+    from foundation.files import check_output_file, write_json
+    from inverse.morph import load_morph_benchmark, saturated_silhouette
+
+    if a.json:
+        check_output_file(a.json, "--json")
+    if not a.factor > 0:
+        raise _usage(f"--factor must be > 0, got {a.factor}")
+    benches = [load_morph_benchmark(b) for b in a.benchmarks]  # every folder checked before any render
+    out = {str(b.path): saturated_silhouette(b, a.factor) for b in benches}
+    if a.json:
+        write_json(a.json, out)
+    _print(out)
+    return 0
+
+
 def _cmd_morph_errors(a) -> int:
     from foundation.files import check_output_file, write_json
     from foundation.records import to_json
@@ -1164,6 +1180,15 @@ def build_parser() -> argparse.ArgumentParser:
     me.add_argument("--band", type=float, default=None,
                     help="width of the truth's border band (default 2.5%% of its bounding-box diagonal)")
     me.set_defaults(func=_cmd_morph_errors)
+
+    ms_ = msub.add_parser("saturation", help="per training view, the pixels where the lighting is saturated (as "
+                                            "`morph run --saturation` sees it) and how many lie at the truth's "
+                                            "silhouette, where an edge's gradient is scaled by that light")
+    ms_.add_argument("benchmarks", nargs="+", help="folders made by `photoreal morph make-benchmark`")
+    ms_.add_argument("--factor", type=float, default=4.0, help="the saturation level: this × the training photos' "
+                                                                "99th percentile (MorphSettings.saturation)")
+    ms_.add_argument("--json", default=None, help="also write the report here")
+    ms_.set_defaults(func=_cmd_morph_saturation)
 
     t = sub.add_parser("btf", help="universal neural BTF: data, basis training, per-material fitting (seed 002)")
     tsub = t.add_subparsers(dest="btf_cmd", required=True)

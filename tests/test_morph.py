@@ -826,7 +826,8 @@ def test_out_of_range_morph_settings_are_named():
                      ({"indirect_reference": "both"}, "indirect_reference"),
                      ({"indirect_downsample": 0}, "indirect_downsample"),
                      ({"indirect_downsample": 9}, "indirect_downsample"), ({"adam_quantile": 0.0}, "adam_quantile"),
-                     ({"adam_quantile": 1.5}, "adam_quantile")):
+                     ({"adam_quantile": 1.5}, "adam_quantile"), ({"saturation": -1.0}, "saturation"),
+                     ({"saturation": float("nan")}, "saturation")):
         with pytest.raises(UsageError, match=f"^{name} must"):
             MorphSettings(**kw)
 
@@ -1803,3 +1804,25 @@ def test_a_silhouette_against_the_sun_leaves_the_loss_with_the_saturated_pixels(
     keep = unsaturated_mask(hot, np.zeros((6, 6, 3), np.float32), 10.0)
     assert keep.shape == (6, 6, 3) and keep[:2, :2].sum() == 0 and keep.sum() == 3 * (36 - 4)
     assert unsaturated_mask(np.zeros((6, 6), bool), np.zeros((6, 6, 3), np.float32), 10.0) is None
+
+
+def test_morph_saturation_reports_the_lighting_behind_the_silhouette(small_armadillo, tmp_path, capsys):
+    """``photoreal morph saturation``: the level the morph uses, and per view the saturated light and the part of
+    it at the truth's silhouette; bad input named, nothing written."""
+    from inverse.morph.scene import saturation_level
+    from photoreal.cli import main
+
+    out = tmp_path / "sat.json"
+    assert main(["morph", "saturation", str(small_armadillo.path), "--json", str(out)]) == 0
+    r = json.loads(out.read_text())[str(small_armadillo.path)]
+    b = small_armadillo
+    assert r["level"] == saturation_level([b.photo(i) for i in b.meta.train], 4.0) > 0
+    assert set(map(int, r["views"])) <= set(b.meta.train)
+    assert all(0 <= v["at_silhouette"] <= v["saturated"] for v in r["views"].values())
+    assert r["at_silhouette"] == sum(v["at_silhouette"] for v in r["views"].values())
+    capsys.readouterr()
+    assert main(["morph", "saturation", str(b.path), "--factor", "0", "--json", str(tmp_path / "x.json")]) == 2
+    assert "--factor must be > 0" in capsys.readouterr().err
+    assert main(["morph", "saturation", str(tmp_path / "nope")]) == 2
+    assert "nope" in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()

@@ -142,3 +142,30 @@ def photo_saturation(photos: dict[int, mi.TensorXf], train: list[int], factor: f
     saturated pixels (empty when the level is 0)."""
     level = saturation_level([np.asarray(photos[i]) for i in train], factor)
     return level, ({i: np.asarray(p).max(axis=-1) > level for i, p in photos.items()} if level else {})
+
+
+def saturated_silhouette(bench: MorphBenchmark, factor: float = 4.0, spp: int = 4) -> dict:
+    """Where a benchmark's lighting is saturated behind its truth's silhouette: per training view with saturated
+    light (the environment alone, brighter than :func:`saturation_level` of ``factor``), how many of those pixels
+    there are and how many lie within one pixel of the truth's silhouette — an edge there carries a gradient scaled
+    by that radiance (:func:`unsaturated_mask`). The truth's coverage is rendered at ``spp``."""
+    from scipy import ndimage
+
+    from foundation.assets import envmap
+
+    meta = bench.meta
+    level = saturation_level([bench.photo(i) for i in meta.train], factor)
+    env = mi.load_dict({"type": "scene", "integrator": {"type": "direct"}, "env": envmap(meta.hdri)})
+    truth = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "d:depth"},
+                          "gt": {"type": "ply", "filename": str(bench.ground_truth)}})
+    views = {}
+    for i in meta.train:
+        sensor = mi.load_dict(sensor_dict(meta.cameras[i], meta.resolution, meta.fov))
+        hot = np.asarray(mi.render(env, sensor=sensor, spp=spp, seed=int(i)))[..., :3].max(axis=-1) > level
+        if not level or not hot.any():
+            continue
+        hit = np.asarray(mi.render(truth, sensor=sensor, spp=spp, seed=int(i)))[..., 0] > 0
+        border = ndimage.binary_dilation(hit, np.ones((3, 3), bool)) & ~ndimage.binary_erosion(hit, np.ones((3, 3), bool))
+        views[int(i)] = {"saturated": int(hot.sum()), "at_silhouette": int((hot & border).sum())}
+    return {"level": level, "factor": factor, "views": views,
+            "at_silhouette": int(sum(v["at_silhouette"] for v in views.values()))}
