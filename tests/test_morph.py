@@ -1749,8 +1749,8 @@ def test_a_photo_with_non_finite_pixels_is_rendered_again_or_refused(tmp_path, m
 
 def test_a_silhouette_against_the_sun_leaves_the_loss_with_the_saturated_pixels():
     """A mesh edge in front of a light 10⁴ times brighter than the rest carries a silhouette gradient scaled by
-    that radiance (paul at seed 1: one view's 2,700 times the others', which froze uniform Adam). Saturated
-    pixels and their neighbours leave the L1 (:func:`inverse.morph.scene.photo_l1`): the gradient falls to the
+    that radiance (paul at seed 1: one view's largest gradient 3,000 times the others', which froze uniform
+    Adam). Saturated pixels and their neighbours leave the L1 (:func:`inverse.morph.scene.photo_l1`): the gradient falls to the
     size the same edge has against the sky, and a view with no saturated pixel keeps the plain L1 exactly."""
     import drjit as dr
     import mitsuba as mi

@@ -232,8 +232,8 @@ class MorphSettings:
     step_select_lr: float = 0.0125
     #: pixels brighter than ``saturation`` × the training photos' 99th percentile, in the photo or the render, and
     #: their neighbours stay out of the loss (a camera clips there: :func:`~inverse.morph.scene.unsaturated_mask`).
-    #: A silhouette against the sun otherwise froze uniform Adam (paul at seed 1: one view's gradient 2,700 times
-    #: the others'). 0 = every pixel counts (runs before 2026-11-28).
+    #: A silhouette against the sun otherwise froze uniform Adam (paul at seed 1: one view's largest gradient
+    #: 3,000 times the others'). 0 = every pixel counts (runs before 2026-11-28, evening).
     saturation: float = 4.0
     seed: int = 0
 
