@@ -1185,8 +1185,9 @@ def build_parser() -> argparse.ArgumentParser:
                                             "`morph run --saturation` sees it) and how many lie at the truth's "
                                             "silhouette, where an edge's gradient is scaled by that light")
     ms_.add_argument("benchmarks", nargs="+", help="folders made by `photoreal morph make-benchmark`")
-    ms_.add_argument("--factor", type=float, default=4.0, help="the saturation level: this × the training photos' "
-                                                                "99th percentile (MorphSettings.saturation)")
+    ms_.add_argument("--factor", type=float, default=MorphSettings.saturation,
+                     help="the saturation level: this × the training photos' 99th percentile (default: the morph's "
+                          "MorphSettings.saturation, %(default)s)")
     ms_.add_argument("--json", default=None, help="also write the report here")
     ms_.set_defaults(func=_cmd_morph_saturation)
 
