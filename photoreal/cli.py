@@ -1095,6 +1095,8 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "views_per_step")
     _opt(mr, MorphSettings, "mode", choices=["lit", "unlit"])
     _opt(mr, MorphSettings, "lambda_", "--lambda", help="large-steps λ")
+    _opt(mr, MorphSettings, "lr", type=float,
+         help="position learning rate, × the scene size / 10 (0: positions frozen, a colour-only fit)")
     mr.add_argument("--plain-adam", action="store_true", help="per-vertex Adam instead of large steps")
     _opt(mr, MorphSettings, "target_vertices", type=int,
          help="remesh the input to about this many vertices (default: see --min-vertices)")

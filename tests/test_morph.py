@@ -827,7 +827,7 @@ def test_out_of_range_morph_settings_are_named():
                      ({"indirect_downsample": 0}, "indirect_downsample"),
                      ({"indirect_downsample": 9}, "indirect_downsample"), ({"adam_quantile": 0.0}, "adam_quantile"),
                      ({"adam_quantile": 1.5}, "adam_quantile"), ({"saturation": -1.0}, "saturation"),
-                     ({"saturation": float("nan")}, "saturation")):
+                     ({"saturation": float("nan")}, "saturation"), ({"lr": -0.1}, "lr"), ({"lr": float("nan")}, "lr")):
         with pytest.raises(UsageError, match=f"^{name} must"):
             MorphSettings(**kw)
 
