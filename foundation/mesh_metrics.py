@@ -112,10 +112,15 @@ def facing_against_truth(v: np.ndarray, f: np.ndarray, truth: TruthSurface) -> d
     triangles), and the nearest centroid then belongs to another wall. Orientation is judged against the
     truth, not against the starting mesh: a morph that *unfolds* a fold of its input does not count as flipping.
     """
-    idx = truth.tree.query(v[f].mean(axis=1))[1]
-    against = np.sum(face_normals(v, f) * truth.normals[idx], axis=1) < 0
+    against = facing_mask(v, f, truth)
     area = triangle_areas(v, f)
     return {"count": int(against.sum()), "area_fraction": float(area[against].sum() / max(area.sum(), 1e-30))}
+
+
+def facing_mask(v: np.ndarray, f: np.ndarray, truth: TruthSurface) -> np.ndarray:
+    """Per triangle: whether it faces against the truth (:func:`facing_against_truth`)."""
+    idx = truth.tree.query(v[f].mean(axis=1))[1]
+    return np.sum(face_normals(v, f) * truth.normals[idx], axis=1) < 0
 
 
 def vertex_neighbours_mean(x: np.ndarray, f: np.ndarray) -> np.ndarray:

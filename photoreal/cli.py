@@ -550,7 +550,9 @@ def _cmd_morph_errors(a) -> int:
                 "from_truth_border": e.from_truth_border, "from_truth_interior": e.from_truth_interior,
                 "input_error_left": e.input_error_left, "new_error_rms": e.new_error_rms,
                 "input_error_left_by_scale": None if e.input_error_left_by_scale is None else
-                {b.band: None if b.slope is None else round(b.slope, 3) for b in e.input_error_left_by_scale}})
+                {b.band: None if b.slope is None else round(b.slope, 3) for b in e.input_error_left_by_scale},
+                "facing_area": e.facing_area, "facing_area_by_views": e.facing_area_by_views,
+                "unseen_area": e.unseen_area})
     print(f"maps: {a.out}/errors_*.ply, figure: {r.files['figure']}")
     return 0
 

@@ -1640,6 +1640,39 @@ def test_surface_errors_find_what_a_result_misses_at_an_open_border():
     assert r["cropped"].from_truth_border > 3 * floor and r["cropped"].from_truth_interior < 1.2 * floor
 
 
+def test_views_seeing_a_sphere_is_the_spherical_cap_the_camera_sees():
+    """Closed form: a camera at distance d from a unit sphere sees the cap above z = 1/d, (1 − 1/d)/2 of the area;
+    either side of a triangle counts; a sphere in front hides part of the one behind; a narrow view sees no centroid
+    outside its frustum."""
+    from foundation.mesh_metrics import triangle_areas
+    from inverse.morph.benchmark import Camera
+    from inverse.morph.errors import views_seeing
+
+    v, f = _sphere(1.0, 60)
+    a = triangle_areas(v, f)
+    front, back = Camera((0.0, 0.0, 3.0), (0.0, 0.0, 0.0)), Camera((0.0, 0.0, -3.0), (0.0, 0.0, 0.0))
+    seen = views_seeing(v, f, [front], 60.0)
+    assert a[seen == 1].sum() / a.sum() == pytest.approx(1 / 3, abs=0.01)
+    flipped = views_seeing(v, f[:, ::-1], [front], 60.0)  # seen the same, but for grazing rays at the rim
+    assert a[flipped != seen].sum() / a.sum() < 0.002
+    both = views_seeing(v, f, [front, back], 60.0)
+    assert both.max() == 1 and a[both == 1].sum() / a.sum() == pytest.approx(2 / 3, abs=0.02)
+    # a half-size sphere at z = 2 between the camera (now at z = 4) and the unit sphere
+    vs, fs = _sphere(0.5, 40)
+    vv, ff = np.r_[v, vs + [0.0, 0.0, 2.0]], np.r_[f, fs + len(v)]
+    cam = Camera((0.0, 0.0, 4.0), (0.0, 0.0, 0.0))
+    alone = a[views_seeing(v, f, [cam], 60.0) == 1].sum() / a.sum()
+    seen2 = views_seeing(vv, ff, [cam], 60.0)
+    big, small = seen2[:len(f)], seen2[len(f):]
+    a_small = triangle_areas(vs, fs)
+    assert alone == pytest.approx((1 - 1 / 4) / 2, abs=0.01)
+    assert a[big == 1].sum() / a.sum() < alone - 0.05  # the small sphere hides a part of the big one's cap
+    assert a_small[small == 1].sum() / a_small.sum() == pytest.approx((1 - 0.5 / 2) / 2, abs=0.015)
+    narrow = views_seeing(v, f, [front], 10.0)
+    c = v[f].mean(axis=1)[narrow == 1]
+    assert len(c) > 0 and np.all(np.abs(c[:, :2]) <= np.tan(np.radians(5.0)) * (3.0 - c[:, 2:3]) + 1e-9)
+
+
 def test_morph_errors_cli_writes_maps_a_figure_and_a_report(small_armadillo, tmp_path, capsys):
     """The command on the small benchmark with its coarse input as a 'result' (what a run that changed nothing
     leaves): the report's input and result rows agree, keeping all of the input's error (slope 1), the maps carry
@@ -1659,6 +1692,11 @@ def test_morph_errors_cli_writes_maps_a_figure_and_a_report(small_armadillo, tmp
     assert set(rows) == {"input", "coarse"}
     assert abs(rows["coarse"]["input_error_left"] - 1.0) < 1e-6 and rows["coarse"]["new_error_rms"] < 1e-9
     assert rows["coarse"]["chamfer"] == pytest.approx(rows["input"]["chamfer"], rel=0.05)
+    # orientation against the truth, split by how many training views see it: the same mesh, the same figures
+    assert rows["coarse"]["facing_area"] == rows["input"]["facing_area"] > 0
+    assert rows["coarse"]["facing_area_by_views"] == rows["input"]["facing_area_by_views"]
+    assert sum(rows["input"]["facing_area_by_views"].values()) == pytest.approx(rows["input"]["facing_area"])
+    assert 0 <= rows["input"]["unseen_area"] < 0.5
     v, f, c = read_ply_colours(out / "errors_coarse.ply")
     assert len(c) == len(v) and c.std() > 0
     assert (out / "errors.png").stat().st_size > 10_000

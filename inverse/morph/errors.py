@@ -55,6 +55,12 @@ class SurfaceErrors:
     #: the input's error kept, per spatial scale (:func:`error_left_by_scale`): which sizes of the input's flaws a
     #: result fixed (the fine bumps, the broad undulations) and which it left; None for the reference itself
     input_error_left_by_scale: list[ScaleBand] | None = None
+    #: share of the mesh's area facing against the truth (:func:`~foundation.mesh_metrics.facing_against_truth`)
+    facing_area: float | None = None
+    #: that share split by how many training views see the triangle (:func:`views_seeing`): "0", "1-2", "3+" — whether
+    #: the photos observe the surface that is wrong, or only the priors decide it there
+    facing_area_by_views: dict[str, float] | None = None
+    unseen_area: float | None = None  #: share of the mesh's area no training view sees
 
 
 def _border_points(gv: np.ndarray, gf: np.ndarray, spacing: float) -> np.ndarray | None:
@@ -275,6 +281,58 @@ class ErrorReport:
     files: dict[str, str]
 
 
+def views_seeing(v: np.ndarray, f: np.ndarray, cameras: list, fov: float) -> np.ndarray:
+    """Per triangle, how many of ``cameras`` (look-at, y up, square images, ``fov`` degrees) see its centroid: inside
+    the view and the first thing the ray from the eye meets (either side of it: a flipped triangle is seen too)."""
+    import mi_plugins  # noqa: F401  (the Dr.Jit backend)
+    import drjit as dr
+    import mitsuba as mi
+
+    v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
+    mesh = mi.Mesh("visibility", len(v), len(f))
+    p = mi.traverse(mesh)
+    p["vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
+    p["faces"] = mi.UInt32(f.astype(np.uint32).ravel())
+    p.update()
+    scene = mi.load_dict({"type": "scene", "mesh": mesh})
+    c = v[f].mean(axis=1)
+    ids = np.arange(len(f))
+    tan_half = np.tan(np.radians(fov / 2))
+    count = np.zeros(len(f), np.int64)
+    for cam in cameras:
+        eye, target = np.asarray(cam.eye, np.float64), np.asarray(cam.target, np.float64)
+        fwd = (target - eye) / np.linalg.norm(target - eye)
+        right = np.cross(fwd, [0.0, 1.0, 0.0])
+        right /= np.linalg.norm(right)
+        up = np.cross(right, fwd)
+        d = c - eye
+        depth = d @ fwd
+        inside = (depth > 0) & (np.abs(d @ right) <= tan_half * depth) & (np.abs(d @ up) <= tan_half * depth)
+        dist = np.linalg.norm(d, axis=1)
+        d = d / np.maximum(dist, 1e-30)[:, None]
+        o = [mi.Float(np.full(len(c), x, np.float32)) for x in eye]
+        ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*[mi.Float(d[:, k].astype(np.float32)) for k in range(3)]))
+        si = scene.ray_intersect(ray)
+        valid, t, prim = np.array(si.is_valid()), np.array(si.t), np.array(si.prim_index)
+        first = ~valid | (prim == ids) | (t >= dist * (1.0 - 1e-5))
+        count += inside & first
+        dr.eval()
+    return count
+
+
+def facing_by_views(v: np.ndarray, f: np.ndarray, truth, seen: np.ndarray) -> tuple[float, dict[str, float], float]:
+    """The area share facing against the truth, that share by the number of views seeing each triangle ``seen``
+    ("0", "1-2", "3+"), and the share no view sees."""
+    from foundation.mesh_metrics import facing_mask, triangle_areas
+
+    against = facing_mask(np.asarray(v, np.float64), f, truth)
+    area = triangle_areas(v, f)
+    total = max(float(area.sum()), 1e-30)
+    groups = {"0": seen == 0, "1-2": (seen >= 1) & (seen <= 2), "3+": seen >= 3}
+    by = {k: float(area[against & m].sum() / total) for k, m in groups.items()}
+    return float(area[against].sum() / total), by, float(area[seen == 0].sum() / total)
+
+
 def _benchmark_meshes(bench, results: dict[str, Path]) -> tuple[tuple[np.ndarray, np.ndarray], dict]:
     """The benchmark's truth, and its coarse input (``input``) with ``results`` (name → mesh file), loaded."""
     from foundation.mesh import load_mesh_any
@@ -304,6 +362,13 @@ def benchmark_errors(bench, results: dict[str, Path], out: Path, band: float | N
     out.mkdir(parents=True, exist_ok=True)
     meta = bench.meta
     errs = surface_errors(gv, gf, meshes, reference="input", band=band)
+    truth = truth_surface(np.asarray(gv, np.float64), gf)
+    train = [meta.cameras[i] for i in meta.train]
+    for name, (v, f) in meshes.items():
+        v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
+        e = errs[name]
+        e.facing_area, e.facing_area_by_views, e.unseen_area = facing_by_views(v, f, truth,
+                                                                               views_seeing(v, f, train, meta.fov))
     scale, files = error_maps(gv, gf, meshes, out)
     # the first held-out view and the held-out view farthest from it (the other side, for an open sheet its back)
     eyes = {i: np.asarray(meta.cameras[i].eye, np.float64) for i in meta.test}
