@@ -1176,7 +1176,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     me = msub.add_parser("errors", help="where meshes lie against a benchmark's truth: both Chamfer directions, its "
                                         "open border against its interior, the input's error a result kept (in all "
-                                        "and per spatial scale); signed-distance PLYs and a figure")
+                                        "and per spatial scale), the area facing against the truth by how many "
+                                        "training views see it; signed-distance PLYs and a figure")
     me.add_argument("benchmark", help="folder made by `photoreal morph make-benchmark`")
     me.add_argument("results", nargs="+", help="result meshes (OBJ/PLY/OFF) or morph output folders (their morphed.ply)")
     me.add_argument("--out", required=True, help="folder for errors.json, errors_<name>.ply and errors.png")
