@@ -1721,6 +1721,13 @@ def test_the_suite_bench_row_says_where_the_error_sits(small_armadillo):
     ch = chamfer(*load_mesh_any(b.coarse), *load_mesh_any(b.ground_truth))["chamfer"]
     assert 0.5 * (e["to_truth"] + e["from_truth"]) == pytest.approx(ch, rel=0.05)
     assert e["from_truth_border"] is None  # the armadillo is closed
+    # the facing split: the input as its own result has the input's, and it adds up to the area the run reports
+    from foundation.mesh_metrics import facing_against_truth, truth_surface
+
+    assert e["facing_area_by_views"] == e["facing_area_by_views_input"] and e["unseen_area"] == e["unseen_area_input"]
+    gv, gf = load_mesh_any(b.ground_truth)[:2]
+    fa = facing_against_truth(*load_mesh_any(b.coarse)[:2], truth_surface(gv, gf))["area_fraction"]
+    assert sum(e["facing_area_by_views"].values()) == pytest.approx(fa, rel=1e-9)
 
 
 def test_a_benchmark_can_photograph_its_truth_flat_as_the_chamfer_measures_it(tmp_path):

@@ -347,7 +347,20 @@ def benchmark_surface_errors(bench, results: dict[str, Path], band: float | None
     """:func:`surface_errors` of ``results`` (name → mesh file) against a morph benchmark's truth, its coarse input
     (``input``) the reference."""
     (gv, gf), meshes = _benchmark_meshes(bench, results)
-    return surface_errors(gv, gf, meshes, reference="input", band=band)
+    return _with_facing(bench, gv, gf, meshes, surface_errors(gv, gf, meshes, reference="input", band=band))
+
+
+def _with_facing(bench, gv, gf, meshes: dict, errs: dict[str, SurfaceErrors]) -> dict[str, SurfaceErrors]:
+    """``errs`` with each mesh's facing area, split by the benchmark's training views that see it."""
+    meta = bench.meta
+    truth = truth_surface(np.asarray(gv, np.float64), gf)
+    train = [meta.cameras[i] for i in meta.train]
+    for name, (v, f) in meshes.items():
+        v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
+        e = errs[name]
+        e.facing_area, e.facing_area_by_views, e.unseen_area = facing_by_views(v, f, truth,
+                                                                               views_seeing(v, f, train, meta.fov))
+    return errs
 
 
 def benchmark_errors(bench, results: dict[str, Path], out: Path, band: float | None = None,
@@ -361,14 +374,7 @@ def benchmark_errors(bench, results: dict[str, Path], out: Path, band: float | N
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     meta = bench.meta
-    errs = surface_errors(gv, gf, meshes, reference="input", band=band)
-    truth = truth_surface(np.asarray(gv, np.float64), gf)
-    train = [meta.cameras[i] for i in meta.train]
-    for name, (v, f) in meshes.items():
-        v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
-        e = errs[name]
-        e.facing_area, e.facing_area_by_views, e.unseen_area = facing_by_views(v, f, truth,
-                                                                               views_seeing(v, f, train, meta.fov))
+    errs = _with_facing(bench, gv, gf, meshes, surface_errors(gv, gf, meshes, reference="input", band=band))
     scale, files = error_maps(gv, gf, meshes, out)
     # the first held-out view and the held-out view farthest from it (the other side, for an open sheet its back)
     eyes = {i: np.asarray(meta.cameras[i].eye, np.float64) for i in meta.test}

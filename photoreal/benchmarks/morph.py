@@ -226,11 +226,15 @@ def suite_row(name: str, m: MorphResult) -> dict:
 
 def where_errors(bench, result: Path) -> dict:
     """:func:`inverse.morph.benchmark_surface_errors` of a result: both Chamfer directions, the truth's border band
-    against the rest, the input's error left (in all and per spatial scale), new error."""
-    e = benchmark_surface_errors(bench, {"morphed": result})["morphed"]
-    return {k: getattr(e, k) for k in ("to_truth", "from_truth", "from_truth_border", "from_truth_interior",
-                                       "border_share", "input_error_left", "input_error_correlation",
-                                       "new_error_rms", "signed_mean", "input_error_left_by_scale")}
+    against the rest, the input's error left (in all and per spatial scale), new error; the facing area by the
+    training views that see it, the result's and (``_input``) the coarse input's."""
+    errs = benchmark_surface_errors(bench, {"morphed": result})
+    e, i = errs["morphed"], errs["input"]
+    return {**{k: getattr(e, k) for k in ("to_truth", "from_truth", "from_truth_border", "from_truth_interior",
+                                          "border_share", "input_error_left", "input_error_correlation",
+                                          "new_error_rms", "signed_mean", "input_error_left_by_scale",
+                                          "facing_area_by_views", "unseen_area")},
+            "facing_area_by_views_input": i.facing_area_by_views, "unseen_area_input": i.unseen_area}
 
 
 def _item(key: str, bench_dir: Path, out: Path, settings: MorphSettings, **kw) -> Item:
