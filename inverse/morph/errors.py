@@ -285,7 +285,6 @@ def views_seeing(v: np.ndarray, f: np.ndarray, cameras: list, fov: float) -> np.
     """Per triangle, how many of ``cameras`` (look-at, y up, square images, ``fov`` degrees) see its centroid: inside
     the view and the first thing the ray from the eye meets (either side of it: a flipped triangle is seen too)."""
     import mi_plugins  # noqa: F401  (the Dr.Jit backend)
-    import drjit as dr
     import mitsuba as mi
 
     v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
@@ -303,6 +302,8 @@ def views_seeing(v: np.ndarray, f: np.ndarray, cameras: list, fov: float) -> np.
         eye, target = np.asarray(cam.eye, np.float64), np.asarray(cam.target, np.float64)
         fwd = (target - eye) / np.linalg.norm(target - eye)
         right = np.cross(fwd, [0.0, 1.0, 0.0])
+        if np.linalg.norm(right) < 1e-9:  # looking straight up or down: any horizontal axis frames it
+            right = np.array([1.0, 0.0, 0.0])
         right /= np.linalg.norm(right)
         up = np.cross(right, fwd)
         d = c - eye
@@ -316,7 +317,6 @@ def views_seeing(v: np.ndarray, f: np.ndarray, cameras: list, fov: float) -> np.
         valid, t, prim = np.array(si.is_valid()), np.array(si.t), np.array(si.prim_index)
         first = ~valid | (prim == ids) | (t >= dist * (1.0 - 1e-5))
         count += inside & first
-        dr.eval()
     return count
 
 
