@@ -144,11 +144,12 @@ def photo_saturation(photos: dict[int, mi.TensorXf], train: list[int], factor: f
     return level, ({i: np.asarray(p).max(axis=-1) > level for i, p in photos.items()} if level else {})
 
 
-def saturated_silhouette(bench: MorphBenchmark, factor: float = 4.0, spp: int = 4) -> dict:
+def saturated_silhouette(bench: MorphBenchmark, factor: float, spp: int = 4) -> dict:
     """Where a benchmark's lighting is saturated behind its truth's silhouette: per training view with saturated
     light (the environment alone, brighter than :func:`saturation_level` of ``factor``), how many of those pixels
     there are and how many lie within one pixel of the truth's silhouette — an edge there carries a gradient scaled
-    by that radiance (:func:`unsaturated_mask`). The truth's coverage is rendered at ``spp``."""
+    by that radiance (:func:`unsaturated_mask`). ``factor``: the morph's ``MorphSettings.saturation`` (the CLI's
+    default). The truth's coverage is rendered at ``spp``."""
     from scipy import ndimage
 
     from foundation.assets import envmap
