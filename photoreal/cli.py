@@ -841,7 +841,7 @@ def build_parser() -> argparse.ArgumentParser:
     from foundation.scene import RenderSettings
     from inverse.btf import BTFRenderSettings, OptimSettings, fit_settings, render_dataset, split_slices
     from inverse.face import FaceBenchmarkSettings, FaceFitSettings, PhotoFitSettings, RenderRefineSettings
-    from inverse.morph import PRIOR_TIES, TRUTH_NORMALS, MorphBenchmarkSettings, MorphSettings
+    from inverse.morph import PLANARITY_WHERE, PRIOR_TIES, TRUTH_NORMALS, MorphBenchmarkSettings, MorphSettings
     from mi_plugins.neural_basis import BasisConfig
 
     from .benchmarks.face import FaceBenchSettings
@@ -1130,6 +1130,10 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "planarity_select", type=float, nargs="*",
          help="planarity-prior weights that join that choice as candidates at constant λ when the input has no "
               "dominant plane (the option alone: the plane rule decides; --planarity-weight turns the choice off)")
+    _opt(mr, MorphSettings, "planarity_where", choices=list(PLANARITY_WHERE),
+         help="edges the planarity prior acts on: all, or seen (beside a triangle a fitted training photo sees)")
+    _opt(mr, MorphSettings, "planarity_select_where", choices=list(PLANARITY_WHERE),
+         help="the same for the --planarity-select candidates (default seen: the photos vouch only for what they see)")
     _opt(mr, MorphSettings, "prior_margin", type=float,
          help="a prior those choices ask the photos about (planarity candidate, colour prior) is kept only where its "
               "validation L1 is this fraction below the best run without it (0: the lower L1 wins)")

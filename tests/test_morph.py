@@ -762,6 +762,10 @@ def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):
     with pytest.raises(CheckpointError, match=r"other settings or data \(settings.adam_quantile \(new\)\)"):
         run_morph(small_armadillo, tmp_path / "p", MorphSettings(iterations=2, resolution=32, adam_quantile=0.9),
                   show_progress=False)
+    # the prior everywhere ("all", the runs before the setting) is not in the fingerprint; "seen" is
+    with pytest.raises(CheckpointError, match=r"other settings or data \(settings.planarity_where \(new\)\)"):
+        run_morph(small_armadillo, tmp_path / "p", MorphSettings(iterations=2, resolution=32, planarity_where="seen"),
+                  show_progress=False)
     (tmp_path / "checkpoint.npz").write_bytes(b"PK\x03\x04 truncated")
     with pytest.raises(CheckpointError, match="checkpoint.npz: damaged checkpoint .* delete it to start over"):
         run_morph(small_armadillo, tmp_path, MorphSettings(iterations=2, resolution=32), show_progress=False)
@@ -827,7 +831,9 @@ def test_out_of_range_morph_settings_are_named():
                      ({"indirect_downsample": 0}, "indirect_downsample"),
                      ({"indirect_downsample": 9}, "indirect_downsample"), ({"adam_quantile": 0.0}, "adam_quantile"),
                      ({"adam_quantile": 1.5}, "adam_quantile"), ({"saturation": -1.0}, "saturation"),
-                     ({"saturation": float("nan")}, "saturation"), ({"lr": -0.1}, "lr"), ({"lr": float("nan")}, "lr")):
+                     ({"saturation": float("nan")}, "saturation"), ({"lr": -0.1}, "lr"), ({"lr": float("nan")}, "lr"),
+                     ({"planarity_where": "unseen"}, "planarity_where"),
+                     ({"planarity_select_where": "both"}, "planarity_select_where")):
         with pytest.raises(UsageError, match=f"^{name} must"):
             MorphSettings(**kw)
 
@@ -1133,6 +1139,51 @@ def test_planarity_prior_is_wired_into_the_morph(small_armadillo, tmp_path):
                    show_progress=False)
     assert m0.planarity.weight == 0.0 and m1.planarity.weight == 10.0 and not m1.planarity.auto
     assert rho(tmp_path / "on" / "morphed.ply") < 0.98 * rho(tmp_path / "off" / "morphed.ply")
+
+
+def test_the_planarity_candidate_acts_only_where_the_fitted_photos_see(small_armadillo, tmp_path):
+    """A weight the photos are asked about (``planarity_select``) acts on the edges beside a triangle a fitted
+    training photo sees at the start; the plane rule's prior and a given weight act everywhere unless told. The kept
+    edges are exactly those :func:`views_seeing` marks, and the prior's gradient vanishes on every vertex none of
+    them touches."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from inverse.morph import dihedral_pairs
+    from inverse.morph.prior import planarity_prior
+    from inverse.morph.run import Candidate, MorphStage, candidate_settings
+    from inverse.morph.scene import views_seeing
+
+    s = MorphSettings(iterations=2, resolution=32, min_vertices=None)
+    assert (s.planarity_where, s.planarity_select_where) == ("all", "seen")
+    assert candidate_settings(s, Candidate(2.0, 0.1)).planarity_where == "seen"
+    assert candidate_settings(s, Candidate(2.0)).planarity_where == "all"  # the rule's weight (or none)
+    assert candidate_settings(replace(s, planarity_select_where="all"), Candidate(2.0, 0.1)).planarity_where == "all"
+    # the training cameras of a 3-photo fit see only part of the armadillo; which part is known independently
+    meta = small_armadillo.meta
+    seen_run = replace(candidate_settings(s, Candidate(2.0, 1.0)), validation_views=0, early_stop=False)
+    st = MorphStage(small_armadillo, tmp_path / "seen", seen_run)
+    f = st.faces
+    pairs = dihedral_pairs(f)
+    seen = views_seeing(st.v_ref, f, [meta.cameras[i] for i in st.train_ids], meta.fov) > 0
+    expect = pairs[seen[pairs[:, 0]] | seen[pairs[:, 1]]]
+    kept = np.asarray(st.pairs, np.int64).reshape(-1, 2)
+    assert 0 < len(kept) < len(pairs) and np.array_equal(kept, expect)
+    assert (st.planarity.where, st.planarity.edges, st.planarity.edges_all) == ("seen", len(kept), len(pairs))
+    everywhere = MorphStage(small_armadillo, tmp_path / "all", replace(seen_run, planarity_where="all"))
+    assert np.array_equal(np.asarray(everywhere.pairs, np.int64).reshape(-1, 2), pairs)
+    assert everywhere.planarity.edges == everywhere.planarity.edges_all == len(pairs)
+    # the prior's gradient on a bumped copy of the start: zero off the kept edges' triangles, non-zero on them
+    rng = np.random.default_rng(0)
+    v = st.v_ref + 0.01 * np.ptp(st.v_ref, axis=0).max() * rng.standard_normal(st.v_ref.shape)
+    p = mi.Float(v.astype(np.float32).ravel())
+    dr.enable_grad(p)
+    loss = planarity_prior(dr.unravel(mi.Point3f, p), st.f_mi, st.pairs, 0.06)
+    dr.backward(loss)
+    g = np.linalg.norm(np.asarray(dr.grad(p)).reshape(-1, 3), axis=1)
+    touched = np.zeros(len(v), bool)
+    touched[f[kept.ravel()].ravel()] = True
+    assert (~touched).any() and np.all(g[~touched] == 0) and np.all(g[touched] > 0)
 
 
 def test_morphing_many_benchmarks_is_a_batch_that_resumes(small_armadillo, tmp_path, capsys):

@@ -26,13 +26,13 @@ from .gcn import GCNSettings, run_gcn_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import PleatReport, RepairReport, SpikeReport, iron_spikes, remesh, repair_flips, unfold_pleats
 from .batch import load_result, run_item
-from .run import (MORPH_SEED_MAX, PRIOR_TIES, Candidate, ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, MorphStage,
+from .run import (MORPH_SEED_MAX, PLANARITY_WHERE, PRIOR_TIES, Candidate, ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, MorphStage,
                   PlanarityDecision, StepSelection, TracePoint, candidate_settings, light_choice_draws, run_morph, start_mesh)
 from .suite import SUITE, KINDS, UNSEEN, suite_mesh
 from .scene import MODES, morph_scene, photo_at, projective_integrator, render_views, saturated_silhouette
 
 __all__ = [
-    "MORPH_SEED_MAX", "PRIOR_TIES", "TRUTH_NORMALS", "ARTIFACT_REGIONS", "Camera", "ErrorReport", "SurfaceErrors", "benchmark_errors", "benchmark_surface_errors", "surface_errors", "Candidate", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
+    "MORPH_SEED_MAX", "PLANARITY_WHERE", "PRIOR_TIES", "TRUTH_NORMALS", "ARTIFACT_REGIONS", "Camera", "ErrorReport", "SurfaceErrors", "benchmark_errors", "benchmark_surface_errors", "surface_errors", "Candidate", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
     "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "MorphStage", "PlanarityDecision",
     "RepairReport", "StepSelection", "artifact_masks", "candidate_settings", "light_choice_draws", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",

@@ -19,6 +19,8 @@ from foundation.files import atomic_path
 from foundation.mesh import boundary_edges, face_normals, sample_surface, write_ply
 from foundation.mesh_metrics import DEFAULT_SAMPLES, signed_distance, truth_surface
 
+from .scene import views_seeing
+
 
 @dataclass
 class ScaleBand:
@@ -279,45 +281,6 @@ class ErrorReport:
     views: list[int]  #: the held-out cameras of the figure
     meshes: list[SurfaceErrors]
     files: dict[str, str]
-
-
-def views_seeing(v: np.ndarray, f: np.ndarray, cameras: list, fov: float) -> np.ndarray:
-    """Per triangle, how many of ``cameras`` (look-at, y up, square images, ``fov`` degrees) see its centroid: inside
-    the view and the first thing the ray from the eye meets (either side of it: a flipped triangle is seen too)."""
-    import mi_plugins  # noqa: F401  (the Dr.Jit backend)
-    import mitsuba as mi
-
-    v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
-    mesh = mi.Mesh("visibility", len(v), len(f))
-    p = mi.traverse(mesh)
-    p["vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
-    p["faces"] = mi.UInt32(f.astype(np.uint32).ravel())
-    p.update()
-    scene = mi.load_dict({"type": "scene", "mesh": mesh})
-    c = v[f].mean(axis=1)
-    ids = np.arange(len(f))
-    tan_half = np.tan(np.radians(fov / 2))
-    count = np.zeros(len(f), np.int64)
-    for cam in cameras:
-        eye, target = np.asarray(cam.eye, np.float64), np.asarray(cam.target, np.float64)
-        fwd = (target - eye) / np.linalg.norm(target - eye)
-        right = np.cross(fwd, [0.0, 1.0, 0.0])
-        if np.linalg.norm(right) < 1e-9:  # looking straight up or down: any horizontal axis frames it
-            right = np.array([1.0, 0.0, 0.0])
-        right /= np.linalg.norm(right)
-        up = np.cross(right, fwd)
-        d = c - eye
-        depth = d @ fwd
-        inside = (depth > 0) & (np.abs(d @ right) <= tan_half * depth) & (np.abs(d @ up) <= tan_half * depth)
-        dist = np.linalg.norm(d, axis=1)
-        d = d / np.maximum(dist, 1e-30)[:, None]
-        o = [mi.Float(np.full(len(c), x, np.float32)) for x in eye]
-        ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*[mi.Float(d[:, k].astype(np.float32)) for k in range(3)]))
-        si = scene.ray_intersect(ray)
-        valid, t, prim = np.array(si.is_valid()), np.array(si.t), np.array(si.prim_index)
-        first = ~valid | (prim == ids) | (t >= dist * (1.0 - 1e-5))
-        count += inside & first
-    return count
 
 
 def facing_by_views(v: np.ndarray, f: np.ndarray, truth, seen: np.ndarray) -> tuple[float, dict[str, float], float]:
