@@ -235,6 +235,14 @@ def demo_photo(out_dir: Path, uv_res: int = 256, seed: int = 0, relight_res: int
     return {k: r[k] for k in ("landmark_reprojection_px", "rerender_psnr_visible_face", "seconds")}
 
 
+def _where(mr) -> str:
+    """Where the planarity prior acted, when not on every edge."""
+    p = mr.planarity
+    if p.where != "seen" or not p.weight:
+        return ""
+    return f" on {p.edges} of {p.edges_all} interior edges (those beside a triangle a fitted photo sees)"
+
+
 def _colour_why(mr) -> str:
     """Why the morph ran with its colour-prior weight, in words."""
     c = mr.colour_selection
@@ -299,8 +307,8 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
             f"{bench.meta.hdri} HDRI; degraded input: {bench.meta.degradation.coarse_vertices} vertices "
             f"with bumps, wobble and misregistered colours. Morph: {iterations} iterations, large steps, lit mode, "
             f"3 views per step, input remeshed to {m['vertices']} vertices; folds left at the end are unfolded "
-            f"locally and counted (inverted_before_repair). Planarity prior weight {mr.planarity.weight:g} "
-            f"(auto: the input's largest plane holds {mr.planarity.dominant_plane_fraction or 0:.0%} of its area; "
+            f"locally and counted (inverted_before_repair). Planarity prior weight {mr.planarity.weight:g}"
+            f"{_where(mr)} (auto: the input's largest plane holds {mr.planarity.dominant_plane_fraction or 0:.0%} of its area; "
             f"on from 20%, as on the village). Colour prior weight {mr.colour_prior.weight:g} "
             f"({_colour_why(mr)}). Light estimate and colour large steps {_light_why(mr)}. Step {_step_why(mr)}.</p><div>{figs}</div>" + _table(rows, ["metric", "value"])
             + "<p>Where the error sits (<code>photoreal morph errors</code>): signed distance to the truth, blue "

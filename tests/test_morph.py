@@ -1385,6 +1385,12 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
                                "quantile step, 0.0120 with uniform Adam (kept only 1.5% or more below)")
     assert _step_why(SimpleNamespace(step_selection=replace(kept.step_selection, kept=False))).startswith("uniform Adam:")
     assert _step_why(SimpleNamespace(step_selection=None, settings=MorphSettings())) == "uniform Adam (given)"
+    from photoreal.demo import _where
+    from inverse.morph.run import PlanarityDecision
+    gated = PlanarityDecision(0.1, False, None, where="seen", edges=980, edges_all=1000)
+    assert _where(SimpleNamespace(planarity=gated)) == \
+        " on 980 of 1000 interior edges (those beside a triangle a fitted photo sees)"
+    assert _where(SimpleNamespace(planarity=PlanarityDecision(1.0, True, 0.4, edges=1000, edges_all=1000))) == ""
 
 
 def _assert_depth2_is_two_renders(stage, images) -> None:
