@@ -1110,7 +1110,7 @@ def build_parser() -> argparse.ArgumentParser:
          help="remesh a coarser input up to about this many vertices (0: keep its count)")
     _opt(mr, MorphSettings, "planarity_weight", type=float,
          help="edge-preserving planarity prior (0: image loss only; default auto: on for scenes whose "
-              "largest plane holds ≥ 20%% of the area, e.g. a ground plane)")
+              "largest plane holds ≥ 26%% of the area, e.g. a ground plane)")
     _opt(mr, MorphSettings, "colour_prior_weight", type=float,
          help="colour prior: a piecewise-smooth albedo, so that the geometry, not the vertex colour, explains "
               "shading (0: off; default auto: 0.1 where the input's own colours are smooth, off for textured ones, "

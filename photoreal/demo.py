@@ -309,7 +309,7 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
             f"3 views per step, input remeshed to {m['vertices']} vertices; folds left at the end are unfolded "
             f"locally and counted (inverted_before_repair). Planarity prior weight {mr.planarity.weight:g}"
             f"{_where(mr)} (auto: the input's largest plane holds {mr.planarity.dominant_plane_fraction or 0:.0%} of its area; "
-            f"on from 20%, as on the village). Colour prior weight {mr.colour_prior.weight:g} "
+            f"on from {mr.settings.planarity_auto_threshold:.0%}, as on the village). Colour prior weight {mr.colour_prior.weight:g} "
             f"({_colour_why(mr)}). Light estimate and colour large steps {_light_why(mr)}. Step {_step_why(mr)}.</p><div>{figs}</div>" + _table(rows, ["metric", "value"])
             + "<p>Where the error sits (<code>photoreal morph errors</code>): signed distance to the truth, blue "
               "behind it, red in front, coarse input above, morphed below; the input's error left is the slope of "

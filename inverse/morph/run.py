@@ -122,7 +122,11 @@ class MorphSettings:
     planarity_weight: float | None = None
     planarity_angle: float = 20.0  #: degrees; σ = 1 − cos(angle), where the prior's pull starts to fade
     planarity_auto_weight: float = 1.0
-    planarity_auto_threshold: float = 0.2  #: village's largest plane 0.48 of the area, armadillo's 0.05, a sphere's 0.07
+    #: the largest plane's share of the remeshed input over the suite's draws at seeds 0–2 (3 for face000): village
+    #: 0.47–0.48, table 0.34, pedestal 0.32–0.33; the organic and CAD meshes 0.03–0.21 (face000@3 0.207, bracket@2
+    #: 0.199, airplane@1 0.195). Until 2026-11-28 0.2, which put the plane prior (weight 1) on face000@3 (−33.7 %
+    #: Chamfer); now the middle of the gap
+    planarity_auto_threshold: float = 0.26
     #: training photos kept out of the fit (evenly spread over the orbit) to watch convergence: their L1 every
     #: ``check_every`` iterations is the validation curve; 0 = fit every training photo, no validation
     validation_views: int = 3
