@@ -1133,7 +1133,7 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "planarity_where", choices=list(PLANARITY_WHERE),
          help="edges the planarity prior acts on: all, or seen (beside a triangle a fitted training photo sees)")
     _opt(mr, MorphSettings, "planarity_select_where", choices=list(PLANARITY_WHERE),
-         help="the same for the --planarity-select candidates (default seen: the photos vouch only for what they see)")
+         help="the same for the --planarity-select candidates")
     _opt(mr, MorphSettings, "prior_margin", type=float,
          help="a prior those choices ask the photos about (planarity candidate, colour prior) is kept only where its "
               "validation L1 is this fraction below the best run without it (0: the lower L1 wins)")

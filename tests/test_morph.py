@@ -1142,8 +1142,8 @@ def test_planarity_prior_is_wired_into_the_morph(small_armadillo, tmp_path):
 
 
 def test_the_planarity_candidate_acts_only_where_the_fitted_photos_see(small_armadillo, tmp_path):
-    """A weight the photos are asked about (``planarity_select``) acts on the edges beside a triangle a fitted
-    training photo sees at the start; the plane rule's prior and a given weight act everywhere unless told. The kept
+    """With ``planarity_select_where`` "seen" a weight the photos are asked about acts on the edges beside a triangle
+    a fitted training photo sees at the start; the plane rule's prior and a given weight act everywhere unless told. The kept
     edges are exactly those :func:`views_seeing` marks, and the prior's gradient vanishes on every vertex none of
     them touches."""
     import drjit as dr
@@ -1155,10 +1155,11 @@ def test_the_planarity_candidate_acts_only_where_the_fitted_photos_see(small_arm
     from inverse.morph.scene import views_seeing
 
     s = MorphSettings(iterations=2, resolution=32, min_vertices=None)
-    assert (s.planarity_where, s.planarity_select_where) == ("all", "seen")
+    assert (s.planarity_where, s.planarity_select_where) == ("all", "all")
+    assert candidate_settings(s, Candidate(2.0, 0.1)).planarity_where == "all"
+    s = replace(s, planarity_select_where="seen")
     assert candidate_settings(s, Candidate(2.0, 0.1)).planarity_where == "seen"
     assert candidate_settings(s, Candidate(2.0)).planarity_where == "all"  # the rule's weight (or none)
-    assert candidate_settings(replace(s, planarity_select_where="all"), Candidate(2.0, 0.1)).planarity_where == "all"
     # the training cameras of a 3-photo fit see only part of the armadillo; which part is known independently
     meta = small_armadillo.meta
     seen_run = replace(candidate_settings(s, Candidate(2.0, 1.0)), validation_views=0, early_stop=False)
