@@ -166,8 +166,8 @@ class MorphSettings:
     #: () = the rule alone.
     planarity_select: tuple[float, ...] = (0.1,)
     #: the edges the planarity prior acts on: "all", or "seen" — only edges beside a triangle that a fitted
-    #: training photo sees at the start (:func:`~.scene.views_seeing`); elsewhere nothing but the prior would move the
-    #: surface, and the input is the better evidence there
+    #: training photo sees at the start (:func:`~.scene.views_seeing`); elsewhere no photo tells the prior's
+    #: flattening from real shape
     planarity_where: Literal["all", "seen"] = "all"
     #: ``planarity_where`` of the weights in ``planarity_select`` ("seen": the photos that prefer such a weight vouch
     #: only for what they see; the plane rule's prior keeps ``planarity_where``). Measured over six suite draws
@@ -984,7 +984,7 @@ def candidate_settings(s: MorphSettings, c: Candidate) -> MorphSettings:
     out = replace(s, lambda_start=float(c.lambda_start) if c.lambda_start > s.lambda_ else None, lambda_select=(),
                   planarity_select=(), planarity_weight=s.planarity_weight if c.planarity is None else c.planarity,
                   colour_prior_weight=s.colour_prior_weight if c.colour is None else c.colour)
-    if c.planarity is not None:  # a weight the photos are asked about: the prior where they see
+    if c.planarity is not None:  # a weight the photos are asked about: on the edges planarity_select_where says
         out = replace(out, planarity_where=s.planarity_select_where)
     if c.step:
         out = replace(out, adam_quantile=s.step_select_quantile, lr=s.step_select_lr)
