@@ -17,7 +17,7 @@ import numpy as np
 
 from foundation.files import atomic_path
 from foundation.mesh import boundary_edges, face_normals, sample_surface, write_ply
-from foundation.mesh_metrics import DEFAULT_SAMPLES, signed_distance, truth_surface
+from foundation.mesh_metrics import DEFAULT_SAMPLES, facing_mask, signed_distance, triangle_areas, truth_surface
 
 from .scene import views_seeing
 
@@ -286,8 +286,6 @@ class ErrorReport:
 def facing_by_views(v: np.ndarray, f: np.ndarray, truth, seen: np.ndarray) -> tuple[float, dict[str, float], float]:
     """The area share facing against the truth, that share by the number of views seeing each triangle ``seen``
     ("0", "1-2", "3+"), and the share no view sees."""
-    from foundation.mesh_metrics import facing_mask, triangle_areas
-
     against = facing_mask(np.asarray(v, np.float64), f, truth)
     area = triangle_areas(v, f)
     total = max(float(area.sum()), 1e-30)
