@@ -1131,9 +1131,13 @@ def build_parser() -> argparse.ArgumentParser:
          help="planarity-prior weights that join that choice as candidates at constant λ when the input has no "
               "dominant plane (the option alone: the plane rule decides; --planarity-weight turns the choice off)")
     _opt(mr, MorphSettings, "planarity_where", choices=list(PLANARITY_WHERE),
-         help="edges the planarity prior acts on: all, or seen (beside a triangle a fitted training photo sees)")
+         help="edges the planarity prior acts on: all; seen (beside a triangle a fitted training photo sees); thick "
+              "(between triangles of parts at least --planarity-min-thickness thick)")
     _opt(mr, MorphSettings, "planarity_select_where", choices=list(PLANARITY_WHERE),
          help="the same for the --planarity-select candidates")
+    _opt(mr, MorphSettings, "planarity_min_thickness", type=float,
+         help="with 'thick': the least thickness of a part the prior acts on (ray cast along the start's inward "
+              "normals), × the start's largest extent")
     _opt(mr, MorphSettings, "prior_margin", type=float,
          help="a prior those choices ask the photos about (planarity candidate, colour prior) is kept only where its "
               "validation L1 is this fraction below the best run without it (0: the lower L1 wins)")

@@ -238,9 +238,10 @@ def demo_photo(out_dir: Path, uv_res: int = 256, seed: int = 0, relight_res: int
 def _where(mr) -> str:
     """Where the planarity prior acted, when not on every edge."""
     p = mr.planarity
-    if p.where != "seen" or not p.weight:
+    if p.where == "all" or not p.weight:
         return ""
-    return f" on {p.edges} of {p.edges_all} interior edges (those beside a triangle a fitted photo sees)"
+    why = "those beside a triangle a fitted photo sees" if p.where == "seen" else "those on parts that are not thin"
+    return f" on {p.edges} of {p.edges_all} interior edges ({why})"
 
 
 def _colour_why(mr) -> str:

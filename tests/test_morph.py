@@ -766,6 +766,10 @@ def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):
     with pytest.raises(CheckpointError, match=r"other settings or data \(settings.planarity_where \(new\)\)"):
         run_morph(small_armadillo, tmp_path / "p", MorphSettings(iterations=2, resolution=32, planarity_where="seen"),
                   show_progress=False)
+    # "thick" brings its thickness into the fingerprint (unread, and so left out, elsewhere)
+    with pytest.raises(CheckpointError, match=r"settings.planarity_min_thickness \(new\); settings.planarity_where \(new\)"):
+        run_morph(small_armadillo, tmp_path / "p", MorphSettings(iterations=2, resolution=32, planarity_where="thick"),
+                  show_progress=False)
     (tmp_path / "checkpoint.npz").write_bytes(b"PK\x03\x04 truncated")
     with pytest.raises(CheckpointError, match="checkpoint.npz: damaged checkpoint .* delete it to start over"):
         run_morph(small_armadillo, tmp_path, MorphSettings(iterations=2, resolution=32), show_progress=False)
@@ -833,7 +837,9 @@ def test_out_of_range_morph_settings_are_named():
                      ({"adam_quantile": 1.5}, "adam_quantile"), ({"saturation": -1.0}, "saturation"),
                      ({"saturation": float("nan")}, "saturation"), ({"lr": -0.1}, "lr"), ({"lr": float("nan")}, "lr"),
                      ({"planarity_where": "unseen"}, "planarity_where"),
-                     ({"planarity_select_where": "both"}, "planarity_select_where")):
+                     ({"planarity_select_where": "both"}, "planarity_select_where"),
+                     ({"planarity_min_thickness": 0.0}, "planarity_min_thickness"),
+                     ({"planarity_min_thickness": float("nan")}, "planarity_min_thickness")):
         with pytest.raises(UsageError, match=f"^{name} must"):
             MorphSettings(**kw)
 
@@ -1141,37 +1147,43 @@ def test_planarity_prior_is_wired_into_the_morph(small_armadillo, tmp_path):
     assert rho(tmp_path / "on" / "morphed.ply") < 0.98 * rho(tmp_path / "off" / "morphed.ply")
 
 
-def test_the_planarity_candidate_acts_only_where_the_fitted_photos_see(small_armadillo, tmp_path):
+@pytest.mark.parametrize("where", ["seen", "thick"])
+def test_the_planarity_candidate_acts_only_where_told(small_armadillo, tmp_path, where):
     """With ``planarity_select_where`` "seen" a weight the photos are asked about acts on the edges beside a triangle
-    a fitted training photo sees at the start; the plane rule's prior and a given weight act everywhere unless told. The kept
-    edges are exactly those :func:`views_seeing` marks, and the prior's gradient vanishes on every vertex none of
-    them touches."""
+    a fitted training photo sees at the start, with "thick" on the edges between triangles of parts at least
+    ``planarity_min_thickness`` thick; the plane rule's prior and a given weight act everywhere unless told. The kept
+    edges are exactly those :func:`views_seeing` / :func:`inward_thickness` (both tested on closed forms) mark, and
+    the prior's gradient vanishes on every vertex none of them touches."""
     import drjit as dr
     import mitsuba as mi
 
     from inverse.morph import dihedral_pairs
     from inverse.morph.prior import planarity_prior
     from inverse.morph.run import Candidate, MorphStage, candidate_settings
-    from inverse.morph.scene import views_seeing
+    from inverse.morph.scene import inward_thickness, views_seeing
 
     s = MorphSettings(iterations=2, resolution=32, min_vertices=None)
     assert (s.planarity_where, s.planarity_select_where) == ("all", "all")
     assert candidate_settings(s, Candidate(2.0, 0.1)).planarity_where == "all"
-    s = replace(s, planarity_select_where="seen")
-    assert candidate_settings(s, Candidate(2.0, 0.1)).planarity_where == "seen"
+    s = replace(s, planarity_select_where=where)
+    assert candidate_settings(s, Candidate(2.0, 0.1)).planarity_where == where
     assert candidate_settings(s, Candidate(2.0)).planarity_where == "all"  # the rule's weight (or none)
     # the training cameras of a 3-photo fit see only part of the armadillo; which part is known independently
     meta = small_armadillo.meta
-    seen_run = replace(candidate_settings(s, Candidate(2.0, 1.0)), validation_views=0, early_stop=False)
-    st = MorphStage(small_armadillo, tmp_path / "seen", seen_run)
+    told_run = replace(candidate_settings(s, Candidate(2.0, 1.0)), validation_views=0, early_stop=False)
+    st = MorphStage(small_armadillo, tmp_path / where, told_run)
     f = st.faces
     pairs = dihedral_pairs(f)
-    seen = views_seeing(st.v_ref, f, [meta.cameras[i] for i in st.train_ids], meta.fov) > 0
-    expect = pairs[seen[pairs[:, 0]] | seen[pairs[:, 1]]]
+    if where == "seen":
+        seen = views_seeing(st.v_ref, f, [meta.cameras[i] for i in st.train_ids], meta.fov) > 0
+        expect = pairs[seen[pairs[:, 0]] | seen[pairs[:, 1]]]
+    else:
+        thick = inward_thickness(st.v_ref, f) >= 0.05 * np.ptp(st.v_ref, axis=0).max()
+        expect = pairs[thick[pairs[:, 0]] & thick[pairs[:, 1]]]
     kept = np.asarray(st.pairs, np.int64).reshape(-1, 2)
     assert 0 < len(kept) < len(pairs) and np.array_equal(kept, expect)
-    assert (st.planarity.where, st.planarity.edges, st.planarity.edges_all) == ("seen", len(kept), len(pairs))
-    everywhere = MorphStage(small_armadillo, tmp_path / "all", replace(seen_run, planarity_where="all"))
+    assert (st.planarity.where, st.planarity.edges, st.planarity.edges_all) == (where, len(kept), len(pairs))
+    everywhere = MorphStage(small_armadillo, tmp_path / "all", replace(told_run, planarity_where="all"))
     assert np.array_equal(np.asarray(everywhere.pairs, np.int64).reshape(-1, 2), pairs)
     assert everywhere.planarity.edges == everywhere.planarity.edges_all == len(pairs)
     # the prior's gradient on a bumped copy of the start: zero off the kept edges' triangles, non-zero on them
@@ -1929,3 +1941,28 @@ def test_morph_saturation_reports_the_lighting_behind_the_silhouette(small_armad
     assert main(["morph", "saturation", str(tmp_path / "nope")]) == 2
     assert "nope" in capsys.readouterr().err
     assert not (tmp_path / "x.json").exists()
+
+
+def test_inward_thickness_of_a_plate_a_sphere_and_an_open_sheet():
+    """Closed forms: a box plate 2 × 2 × 2t (outward winding) is 2t thick through its large faces and 2 through its
+    rims; a unit sphere's inward ray from a triangle's centroid meets the far side after the chord 2·|n·c| (the
+    far side's facets lie up to a tessellation's sag inside: tolerance 0.01); an open sheet, and a sphere wound inward, let the
+    ray out (inf)."""
+    from inverse.morph.scene import inward_thickness
+
+    v, f = _box(4)
+    plate = v * [1.0, 1.0, 0.05]
+    t = inward_thickness(plate, f)
+    c = plate[f].mean(axis=1)
+    large = np.abs(np.abs(c[:, 2]) - 0.05) < 1e-9
+    assert large.sum() == 2 * 32 and np.allclose(t[large], 0.1, atol=1e-4)
+    assert np.allclose(t[~large], 2.0, atol=1e-4)
+    vs, fs = _outward_sphere(40)
+    ts = inward_thickness(vs, fs)
+    from foundation.mesh import face_normals
+    chord = 2 * np.abs(np.sum(face_normals(vs, fs) * vs[fs].mean(axis=1), axis=1))
+    hit = np.isfinite(ts)  # a ray exactly through a vertex of the far side can slip through (2 of 6,080 here)
+    assert hit.mean() > 0.999 and np.abs(ts[hit] - chord[hit]).max() < 0.01
+    assert np.isinf(inward_thickness(vs, fs[:, ::-1])).all()
+    top = f[c[:, 2] > 0.049]  # one large face of the plate alone: a sheet
+    assert np.isinf(inward_thickness(plate, top)).all()

@@ -63,7 +63,7 @@ from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planar
 from .mesh_edit import (PleatReport, RepairReport, SpikeReport, iron_spikes, remesh, repair_flips, undo_flips,
                         unfold_pleats)
 from .scene import (MODES, morph_scene, photo_l1, photo_saturation, photo_tensors, projective_integrator,
-                    render_views, upsample_bilinear, views_seeing)
+                    render_views, upsample_bilinear, views_seeing, inward_thickness)
 
 #: largest run seed: render seeds are seed·7919 + step·101 + view and must stay below 2³¹
 MORPH_SEED_MAX = 200_000
@@ -73,7 +73,7 @@ MORPH_SEED_MAX = 200_000
 #: those runs were first made): it never reads it, and a changed default must not make its checkpoints "other settings"
 PLAIN_RUN_INDIRECT_SPP = 64
 #: the edges the planarity prior acts on (:attr:`MorphSettings.planarity_where`)
-PLANARITY_WHERE = ("all", "seen")
+PLANARITY_WHERE = ("all", "seen", "thick")
 #: how a tied prior choice goes (:attr:`MorphSettings.prior_ties`)
 PRIOR_TIES = ("keep", "drop")
 #: the light estimate's render seeds are 9_000_011 + view (+ this × the draw, for :func:`light_choice_draws`)
@@ -165,16 +165,21 @@ class MorphSettings:
     #: choice (README).
     #: () = the rule alone.
     planarity_select: tuple[float, ...] = (0.1,)
-    #: the edges the planarity prior acts on: "all", or "seen" — only edges beside a triangle that a fitted
-    #: training photo sees at the start (:func:`~.scene.views_seeing`); elsewhere no photo tells the prior's
-    #: flattening from real shape
-    planarity_where: Literal["all", "seen"] = "all"
+    #: the edges the planarity prior acts on: "all"; "seen" — only edges beside a triangle that a fitted training
+    #: photo sees at the start (:func:`~.scene.views_seeing`); elsewhere no photo tells the prior's flattening from
+    #: real shape; "thick" — only edges between two triangles of the start whose part is at least
+    #: ``planarity_min_thickness`` thick (:func:`~.scene.inward_thickness`): on a thin part (a leg, an ear, a horn)
+    #: a dihedral angle is the part's cross-section, not a bump, and the prior there pulls the surface through it
+    planarity_where: Literal["all", "seen", "thick"] = "all"
     #: ``planarity_where`` of the weights in ``planarity_select`` ("seen": the photos that prefer such a weight vouch
     #: only for what they see; the plane rule's prior keeps ``planarity_where``). Measured over six suite draws
     #: (2026-11-28, README "The prior only where the photos see"): the four failing ones moved within their noise
     #: (cow@1 facing 2.662 → 2.591 %, still above the input's 2.583 %), while the bunny@0 and bracket@0 lost 4 and 7
     #: points of Chamfer (the prior had flattened the bumps of their unseen undersides), so the default stays "all"
-    planarity_select_where: Literal["all", "seen"] = "all"
+    planarity_select_where: Literal["all", "seen", "thick"] = "all"
+    #: where ``planarity_where`` is "thick": the least thickness of a part the prior acts on, × the start's largest
+    #: extent (the cow's legs, ears and horns lie below 0.05; its body above)
+    planarity_min_thickness: float = 0.05
     #: weight of the colour prior (mean over edges of the colour step, :func:`~.prior.colour_prior`): under one fixed
     #: lighting a diffuse point looks the same from every view, so per-vertex colour can absorb the shading of bumps
     #: the photos show, and the photos then pull weakly on the geometry; a piecewise-smooth albedo (Retinex) leaves
@@ -276,6 +281,7 @@ class MorphSettings:
         validate.in_range("planarity_angle", self.planarity_angle, 0.0, 180.0, lo_open=True, hi_open=True)
         validate.one_of("planarity_where", self.planarity_where, PLANARITY_WHERE)
         validate.one_of("planarity_select_where", self.planarity_select_where, PLANARITY_WHERE)
+        validate.in_range("planarity_min_thickness", self.planarity_min_thickness, 0.0, 1.0, lo_open=True)
         validate.non_negative("planarity_auto_weight", self.planarity_auto_weight)
         validate.in_range("planarity_auto_threshold", self.planarity_auto_threshold, 0.0, 1.0)
         validate.optional(validate.non_negative, "colour_prior_weight", self.colour_prior_weight)
@@ -339,7 +345,8 @@ class PlanarityDecision:
     dominant_plane_fraction: float | None  #: share of the input's area on its largest plane (auto only)
     _: KW_ONLY  # added later: results written before them still load
     where: str = "all"  #: :attr:`MorphSettings.planarity_where`
-    #: interior edges the prior acted on, of all (``where`` "seen": beside a triangle a fitted photo sees at the start)
+    #: interior edges the prior acted on, of all (``where`` "seen": beside a triangle a fitted photo sees at the start;
+    #: "thick": between triangles of parts at least ``planarity_min_thickness`` thick)
     edges: int | None = None
     edges_all: int | None = None
 
@@ -632,13 +639,17 @@ class MorphStage(DrJitStage):
 
     def _prior_pairs(self, v_ref: np.ndarray, f: np.ndarray) -> np.ndarray:
         """The planarity prior's face pairs: every interior edge, or (``planarity_where`` "seen") those beside a
-        triangle that a fitted training photo sees on ``v_ref``."""
+        triangle that a fitted training photo sees on ``v_ref``, or ("thick") those between two triangles of ``v_ref``
+        whose part is at least ``planarity_min_thickness`` × its largest extent thick."""
         pairs = dihedral_pairs(f)
         self.planarity.where, self.planarity.edges_all = self.s.planarity_where, len(pairs)
         if self.s.planarity_where == "seen" and self.planarity.weight > 0 and len(pairs):
             meta = self.bench.meta
             seen = views_seeing(v_ref, f, [meta.cameras[i] for i in self.train_ids], meta.fov) > 0
             pairs = pairs[seen[pairs[:, 0]] | seen[pairs[:, 1]]]
+        elif self.s.planarity_where == "thick" and self.planarity.weight > 0 and len(pairs):
+            thick = inward_thickness(v_ref, f) >= self.s.planarity_min_thickness * np.ptp(v_ref, axis=0).max()
+            pairs = pairs[thick[pairs[:, 0]] & thick[pairs[:, 1]]]
         self.planarity.edges = len(pairs)
         return pairs
 
@@ -671,7 +682,8 @@ class MorphStage(DrJitStage):
             (("indirect_downsample",) if self.s.indirect_downsample == 1 else ()) + \
             (("adam_quantile",) if self.s.adam_quantile == 1.0 else ()) + \
             (("saturation",) if self.s.saturation == 0 else ()) + \
-            (("planarity_where",) if self.s.planarity_where == "all" else ())
+            (("planarity_where",) if self.s.planarity_where == "all" else ()) + \
+            (("planarity_min_thickness",) if self.s.planarity_where != "thick" else ())
         settings = {k: v for k, v in asdict(self.s).items() if k not in between + same}
         if not self.s.indirect_every:  # no estimate: its settings unread, kept as runs before their defaults changed
             settings["indirect_spp"] = PLAIN_RUN_INDIRECT_SPP

@@ -11,6 +11,7 @@ import mitsuba as mi
 from mi_plugins.arrays import aligned
 
 from foundation.assets import envmap
+from foundation.mesh import face_normals
 from foundation.scene import mitsuba_log_level
 
 from .benchmark import Camera, MorphBenchmark, sensor_dict
@@ -172,16 +173,38 @@ def saturated_silhouette(bench: MorphBenchmark, factor: float, spp: int = 4) -> 
             "at_silhouette": int(sum(v["at_silhouette"] for v in views.values()))}
 
 
-def views_seeing(v: np.ndarray, f: np.ndarray, cameras: list, fov: float) -> np.ndarray:
-    """Per triangle, how many of ``cameras`` (look-at, y up, square images, ``fov`` degrees) see its centroid: inside
-    the view and the first thing the ray from the eye meets (either side of it: a flipped triangle is seen too)."""
-    v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
-    mesh = mi.Mesh("visibility", len(v), len(f))
+def _ray_scene(v: np.ndarray, f: np.ndarray, name: str):
+    """A scene holding the one mesh (v, f), for ray casts against it."""
+    mesh = mi.Mesh(name, len(v), len(f))
     p = mi.traverse(mesh)
     p["vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
     p["faces"] = mi.UInt32(f.astype(np.uint32).ravel())
     p.update()
-    scene = mi.load_dict({"type": "scene", "mesh": mesh})
+    return mi.load_dict({"type": "scene", "mesh": mesh})
+
+
+def inward_thickness(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Per triangle, the distance from its centroid along its inward normal (against the winding's normal) to the
+    next surface the ray meets: the local thickness of the part on a closed, outward-wound mesh (a leg, an ear, a
+    plate); inf where the ray leaves the mesh (an open sheet seen from its outer side, an inward-wound patch)."""
+    v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
+    scene = _ray_scene(v, f, "thickness")
+    n = face_normals(v, f)
+    # start a hair inside the triangle, so that the ray does not meet the triangle itself
+    o = v[f].mean(axis=1) - 1e-5 * np.ptp(v, axis=0).max() * n
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]),
+                   mi.Vector3f(*[mi.Float((-n[:, k]).astype(np.float32)) for k in range(3)]))
+    si = scene.ray_intersect(ray)
+    t = np.array(si.t, np.float64)
+    t[~np.array(si.is_valid())] = np.inf
+    return t
+
+
+def views_seeing(v: np.ndarray, f: np.ndarray, cameras: list, fov: float) -> np.ndarray:
+    """Per triangle, how many of ``cameras`` (look-at, y up, square images, ``fov`` degrees) see its centroid: inside
+    the view and the first thing the ray from the eye meets (either side of it: a flipped triangle is seen too)."""
+    v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
+    scene = _ray_scene(v, f, "visibility")
     c = v[f].mean(axis=1)
     ids = np.arange(len(f))
     tan_half = np.tan(np.radians(fov / 2))
