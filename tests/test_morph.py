@@ -1163,8 +1163,9 @@ def test_the_planarity_candidate_acts_only_where_told(small_armadillo, tmp_path,
     from inverse.morph.scene import inward_thickness, views_seeing
 
     s = MorphSettings(iterations=2, resolution=32, min_vertices=None)
-    assert (s.planarity_where, s.planarity_select_where) == ("all", "all")
-    assert candidate_settings(s, Candidate(2.0, 0.1)).planarity_where == "all"
+    assert (s.planarity_where, s.planarity_select_where) == ("all", "thick")
+    assert candidate_settings(s, Candidate(2.0, 0.1)).planarity_where == "thick"
+    assert candidate_settings(replace(s, planarity_select_where="all"), Candidate(2.0, 0.1)).planarity_where == "all"
     s = replace(s, planarity_select_where=where)
     assert candidate_settings(s, Candidate(2.0, 0.1)).planarity_where == where
     assert candidate_settings(s, Candidate(2.0)).planarity_where == "all"  # the rule's weight (or none)
@@ -1403,6 +1404,8 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
     gated = PlanarityDecision(0.1, False, None, where="seen", edges=980, edges_all=1000)
     assert _where(SimpleNamespace(planarity=gated)) == \
         " on 980 of 1000 interior edges (those beside a triangle a fitted photo sees)"
+    assert _where(SimpleNamespace(planarity=replace(gated, where="thick", edges=800))) == \
+        " on 800 of 1000 interior edges (those on parts that are not thin)"
     assert _where(SimpleNamespace(planarity=PlanarityDecision(1.0, True, 0.4, edges=1000, edges_all=1000))) == ""
 
 

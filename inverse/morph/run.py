@@ -169,14 +169,15 @@ class MorphSettings:
     #: photo sees at the start (:func:`~.scene.views_seeing`); elsewhere no photo tells the prior's flattening from
     #: real shape; "thick" — only edges between two triangles of the start whose part is at least
     #: ``planarity_min_thickness`` thick (:func:`~.scene.inward_thickness`): on a thin part (a leg, an ear, a horn)
-    #: a dihedral angle is the part's cross-section, not a bump, and the prior there pulls the surface through it
+    #: a small dihedral angle is the part's own cross-section as often as a bump
     planarity_where: Literal["all", "seen", "thick"] = "all"
-    #: ``planarity_where`` of the weights in ``planarity_select`` ("seen": the photos that prefer such a weight vouch
-    #: only for what they see; the plane rule's prior keeps ``planarity_where``). Measured over six suite draws
-    #: (2026-11-28, README "The prior only where the photos see"): the four failing ones moved within their noise
-    #: (cow@1 facing 2.662 → 2.591 %, still above the input's 2.583 %), while the bunny@0 and bracket@0 lost 4 and 7
-    #: points of Chamfer (the prior had flattened the bumps of their unseen undersides), so the default stays "all"
-    planarity_select_where: Literal["all", "seen", "thick"] = "all"
+    #: ``planarity_where`` of the weights in ``planarity_select`` (the plane rule's prior keeps ``planarity_where``).
+    #: "seen" (the photos that prefer such a weight vouch only for what they see), measured over six suite draws
+    #: (README "The prior only where the photos see"), moved the failing ones within their noise and cost the bunny@0
+    #: and bracket@0 4 and 7 points of Chamfer. "thick", the default since 2026-11-29 (README "The prior off thin
+    #: parts"): two thirds of cow@1's facing area lay on parts thinner than 5 % of its extent, where the prior made it
+    #: worse; off them cow@1's facing ended below its input's at each of four render seeds
+    planarity_select_where: Literal["all", "seen", "thick"] = "thick"
     #: where ``planarity_where`` is "thick": the least thickness of a part the prior acts on, × the start's largest
     #: extent (the cow's legs, ears and horns lie below 0.05; its body above)
     planarity_min_thickness: float = 0.05
