@@ -62,8 +62,8 @@ from .evaluate import MorphEvaluation, evaluate_morph
 from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (PleatReport, RepairReport, SpikeReport, iron_spikes, remesh, repair_flips, undo_flips,
                         unfold_pleats)
-from .scene import (MODES, morph_scene, photo_l1, photo_saturation, photo_tensors, projective_integrator,
-                    render_views, upsample_bilinear, views_seeing, inward_thickness)
+from .scene import (MODES, inward_thickness, morph_scene, photo_l1, photo_saturation, photo_tensors,
+                    projective_integrator, render_views, upsample_bilinear, views_seeing)
 
 #: largest run seed: render seeds are seed·7919 + step·101 + view and must stay below 2³¹
 MORPH_SEED_MAX = 200_000
