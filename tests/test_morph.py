@@ -767,7 +767,8 @@ def test_checkpoint_of_other_settings_is_refused(small_armadillo, tmp_path):
         run_morph(small_armadillo, tmp_path / "p", MorphSettings(iterations=2, resolution=32, planarity_where="seen"),
                   show_progress=False)
     # "thick" brings its thickness into the fingerprint (unread, and so left out, elsewhere)
-    with pytest.raises(CheckpointError, match=r"settings.planarity_min_thickness \(new\); settings.planarity_where \(new\)"):
+    with pytest.raises(CheckpointError,
+                       match=r"settings.planarity_min_thickness \(new\); settings.planarity_where \(new\)"):
         run_morph(small_armadillo, tmp_path / "p", MorphSettings(iterations=2, resolution=32, planarity_where="thick"),
                   show_progress=False)
     (tmp_path / "checkpoint.npz").write_bytes(b"PK\x03\x04 truncated")
@@ -1179,7 +1180,7 @@ def test_the_planarity_candidate_acts_only_where_told(small_armadillo, tmp_path,
         seen = views_seeing(st.v_ref, f, [meta.cameras[i] for i in st.train_ids], meta.fov) > 0
         expect = pairs[seen[pairs[:, 0]] | seen[pairs[:, 1]]]
     else:
-        thick = inward_thickness(st.v_ref, f) >= 0.05 * np.ptp(st.v_ref, axis=0).max()
+        thick = inward_thickness(st.v_ref, f) >= told_run.planarity_min_thickness * np.ptp(st.v_ref, axis=0).max()
         expect = pairs[thick[pairs[:, 0]] & thick[pairs[:, 1]]]
     kept = np.asarray(st.pairs, np.int64).reshape(-1, 2)
     assert 0 < len(kept) < len(pairs) and np.array_equal(kept, expect)
@@ -1948,9 +1949,10 @@ def test_morph_saturation_reports_the_lighting_behind_the_silhouette(small_armad
 
 def test_inward_thickness_of_a_plate_a_sphere_and_an_open_sheet():
     """Closed forms: a box plate 2 × 2 × 2t (outward winding) is 2t thick through its large faces and 2 through its
-    rims; a unit sphere's inward ray from a triangle's centroid meets the far side after the chord 2·|n·c| (the
-    far side's facets lie up to a tessellation's sag inside: tolerance 0.01); an open sheet, and a sphere wound inward, let the
-    ray out (inf)."""
+    rims; a unit sphere's inward ray from a triangle's centroid meets the far side after the chord 2·|n·c| (the far
+    side's facets lie up to a tessellation's sag inside: tolerance 0.01); an open sheet, and a sphere wound inward,
+    let the ray out (inf)."""
+    from foundation.mesh import face_normals
     from inverse.morph.scene import inward_thickness
 
     v, f = _box(4)
@@ -1962,7 +1964,6 @@ def test_inward_thickness_of_a_plate_a_sphere_and_an_open_sheet():
     assert np.allclose(t[~large], 2.0, atol=1e-4)
     vs, fs = _outward_sphere(40)
     ts = inward_thickness(vs, fs)
-    from foundation.mesh import face_normals
     chord = 2 * np.abs(np.sum(face_normals(vs, fs) * vs[fs].mean(axis=1), axis=1))
     hit = np.isfinite(ts)  # a ray exactly through a vertex of the far side can slip through (2 of 6,080 here)
     assert hit.mean() > 0.999 and np.abs(ts[hit] - chord[hit]).max() < 0.01
