@@ -121,6 +121,11 @@ class Stage:
         """What a checkpoint must match to be resumed (settings, input digests), JSON-able."""
         return {}
 
+    def fingerprint_against(self, saved: dict) -> dict:
+        """:meth:`fingerprint` as compared with a checkpoint's ``saved`` one: a stage may carry over a saved value of
+        a setting that, for its input, decides nothing differently (and the run goes on under that fingerprint)."""
+        return self.fingerprint()
+
     def state(self) -> dict:
         """Everything the next step depends on, as a checkpoint tree (numpy / torch / plain values)."""
         return {}
@@ -339,6 +344,7 @@ def run_loop(stage: Stage, settings: LoopSettings, checkpoint: str | Path | None
         if saved.kind != stage.kind:
             raise CheckpointError(f"{checkpoint}: checkpoint of a {saved.kind} run, not of a "
                                   f"{stage.kind} run; delete it or use another output folder")
+        fingerprint = _normalise(stage.fingerprint_against(saved.fingerprint))
         diff = _differences(saved.fingerprint, fingerprint)
         if diff:
             shown = "; ".join(diff[:4]) + ("; …" if len(diff) > 4 else "")

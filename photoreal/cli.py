@@ -1117,6 +1117,9 @@ def build_parser() -> argparse.ArgumentParser:
               "and with --lambda-select the validation photos confirm it against the winner without it)")
     mr.add_argument("--no-repair", action="store_true",
                     help="keep folds: skip the final unfolding of triangles flipped w.r.t. the start (reported)")
+    _opt(mr, MorphSettings, "border_turn_deg", type=float,
+         help="after the flip repair, iron back into line the open border's triangles (border and 1-ring) turned more "
+              "than this many degrees from the start: a curl of an open scan's border (reported; 0: off)")
     _opt(mr, MorphSettings, "validation_views",
          help="training photos kept out of the fit to watch convergence (0: fit all)")
     _opt(mr, MorphSettings, "early_stop", "--no-early-stop",

@@ -292,13 +292,16 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
     mr = run_morph(bench, mdir / "run", MorphSettings(iterations=iterations, seed=seed))
     m = to_json(mr)
     m.update(inverted_before_repair=mr.repair.inverted_before_repair if mr.repair else None,
-             repaired_vertices=mr.repair.repaired_vertices if mr.repair else None)
+             repaired_vertices=mr.repair.repaired_vertices if mr.repair else None,
+             border_turned_before=mr.border_turns.turned_before if mr.border_turns else None,
+             border_turned_after=mr.border_turns.turned_after if mr.border_turns else None)
     i = bench.meta.test[0]
     figs = "".join(_figure(f"morph/run/heldout_{k}_view{i:02d}.png", label) for k, label in
                    (("input", "coarse input (held-out view)"), ("morphed", "morphed"), ("photo", "photo")))
     rows = [{"metric": k, "value": float(m[k])} for k in
             ("chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input", "psnr_heldout_morphed",
-             "spikes", "inverted_triangles", "inverted_before_repair", "repaired_vertices", "seconds")
+             "spikes", "inverted_triangles", "inverted_before_repair", "repaired_vertices", "border_turned_before",
+             "border_turned_after", "seconds")
             if m.get(k) is not None]
     # where the error sits (photoreal morph errors): what of the input's error the morph kept, what it made
     err = {e.name: e for e in benchmark_errors(bench, {"morphed": mdir / "run" / "morphed.ply"}, mdir / "errors").meshes}
@@ -308,7 +311,8 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
             f"{bench.meta.hdri} HDRI; degraded input: {bench.meta.degradation.coarse_vertices} vertices "
             f"with bumps, wobble and misregistered colours. Morph: {iterations} iterations, large steps, lit mode, "
             f"3 views per step, input remeshed to {m['vertices']} vertices; folds left at the end are unfolded "
-            f"locally and counted (inverted_before_repair). Planarity prior weight {mr.planarity.weight:g}"
+            f"locally and counted (inverted_before_repair), and so are curls of an open border (its triangles turned "
+            f"more than {mr.settings.border_turn_deg:g}° from the start, border_turned_before / after). Planarity prior weight {mr.planarity.weight:g}"
             f"{_where(mr)} (auto: the input's largest plane holds {mr.planarity.dominant_plane_fraction or 0:.0%} of its area; "
             f"on from {mr.settings.planarity_auto_threshold:.0%}, as on the village). Colour prior weight {mr.colour_prior.weight:g} "
             f"({_colour_why(mr)}). Light estimate and colour large steps {_light_why(mr)}. Step {_step_why(mr)}.</p><div>{figs}</div>" + _table(rows, ["metric", "value"])

@@ -24,7 +24,8 @@ from .evaluate import MorphEvaluation, evaluate_morph
 from .errors import ErrorReport, SurfaceErrors, benchmark_errors, benchmark_surface_errors, surface_errors
 from .gcn import GCNSettings, run_gcn_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
-from .mesh_edit import PleatReport, RepairReport, SpikeReport, iron_spikes, remesh, repair_flips, unfold_pleats
+from .mesh_edit import (PleatReport, RepairReport, SpikeReport, TurnReport, border_zone, iron_border_turns, iron_spikes,
+                        remesh, repair_flips, unfold_pleats)
 from .batch import load_result, run_item
 from .run import (MORPH_SEED_MAX, PLANARITY_WHERE, PRIOR_TIES, Candidate, ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, MorphStage,
                   PlanarityDecision, StepSelection, TracePoint, candidate_settings, light_choice_draws, run_morph, start_mesh)
@@ -38,6 +39,6 @@ __all__ = [
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",
     "render_views", "repair_flips", "run_gcn_morph", "run_item", "run_morph", "sensor_dict", "start_mesh",
     "KINDS", "UNSEEN", "PleatReport", "SpikeReport", "iron_spikes", "SUITE", "TracePoint", "silhouette_margins", "saturated_silhouette", "suite_mesh", "truth_scene",
-    "truth_start_benchmark",
+    "truth_start_benchmark", "TurnReport", "border_zone", "iron_border_turns",
     "unfold_pleats",
 ]

@@ -60,8 +60,8 @@ from foundation.scene import mitsuba_log_level
 from .benchmark import MorphBenchmark, sensor_dict
 from .evaluate import MorphEvaluation, evaluate_morph
 from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
-from .mesh_edit import (PleatReport, RepairReport, SpikeReport, iron_spikes, remesh, repair_flips, undo_flips,
-                        unfold_pleats)
+from .mesh_edit import (PleatReport, RepairReport, SpikeReport, TurnReport, iron_border_turns, iron_spikes, remesh,
+                        repair_flips, undo_flips, unfold_pleats)
 from .scene import (MODES, inward_thickness, morph_scene, photo_l1, photo_saturation, photo_tensors,
                     projective_integrator, render_views, upsample_bilinear, views_seeing)
 
@@ -114,6 +114,11 @@ class MorphSettings:
     forbid_flips: bool = False  #: undo a step at vertices of triangles it flips w.r.t. the start
     #: after the run, unfold triangles flipped w.r.t. the start, then iron out pleats (local smoothing; reported)
     repair_flips: bool = True
+    #: with ``repair_flips``: then the open border's triangles (border and 1-ring) turned more than this many degrees
+    #: from the start are ironed back into line with their neighbours' move (:func:`iron_border_turns`: a curl that
+    #: is no flip; face000@0's facing area 0.57 → 0.26 %, README). 0 = off (runs before 2026-11-29, morning). Read
+    #: only after the last step: a finished run's checkpoint takes a new value.
+    border_turn_deg: float = 60.0
     #: weight of the edge-preserving planarity prior (mean over interior edges of ρ(1 − n_a·n_b), ρ(d) = d/(d+σ));
     #: 0 = image loss only (the thesis). Dihedrals well above ``planarity_angle`` (house corners, ridges) are left
     #: alone. None = auto: ``planarity_auto_weight`` for man-made scenes (the input's largest plane holds at least
@@ -279,6 +284,7 @@ class MorphSettings:
             validate.integer("remesh_at", it, 1)
         validate.integer("checkpoint_every", self.checkpoint_every, 1)
         validate.optional(validate.non_negative, "planarity_weight", self.planarity_weight)
+        validate.in_range("border_turn_deg", self.border_turn_deg, 0.0, 180.0, hi_open=True)
         validate.in_range("planarity_angle", self.planarity_angle, 0.0, 180.0, lo_open=True, hi_open=True)
         validate.one_of("planarity_where", self.planarity_where, PLANARITY_WHERE)
         validate.one_of("planarity_select_where", self.planarity_select_where, PLANARITY_WHERE)
@@ -479,6 +485,7 @@ class MorphResult(MorphEvaluation):
     repair: RepairReport | None = None
     pleats: PleatReport | None = None  #: the final ironing of pleats (after the unfolding of flips)
     spike_ironing: SpikeReport | None = None  #: spikes the repairs left, brought back to their neighbours (last)
+    border_turns: TurnReport | None = None  #: curls of the open border ironed (after the flip repair)
     pretrain_loss_last: float | None = None  #: GCN only: identity pre-training
     trace: list[TracePoint] = field(default_factory=list)
     stopped_early: bool = False  #: the validation loss stopped improving before ``settings.iterations``
@@ -676,6 +683,8 @@ class MorphStage(DrJitStage):
         # these only decide between runs (the decision files record them); a run's own steps do not read them
         between = ("prior_margin", "prior_ties", "light_select_every", "light_select_colour_lambda",
                    "step_select_quantile", "step_select_lr", "planarity_select_where")
+        # and these only act in :meth:`finish`, on the state the checkpoint holds
+        between += ("border_turn_deg",)
         # fields added later, at the value that computes what runs made before them did (bit for bit): those runs'
         # checkpoints still match
         same = (("boundary_spp",) if self.shared_spp else ()) + \
@@ -691,6 +700,19 @@ class MorphStage(DrJitStage):
             settings.pop("indirect_reference", None)
             settings.pop("indirect_downsample", None)
         return {"settings": settings, "input": self.digest, "photos": self.photos_digest}
+
+    def fingerprint_against(self, saved: dict) -> dict:
+        # the plane rule's threshold acts only through the weight it decides for this input (and not at all under a
+        # given weight): a checkpoint made under another threshold on the same side of the input's plane share (the
+        # suite's stored trials at 0.2) resumes
+        fp = self.fingerprint()
+        was = (saved.get("settings") or {}).get("planarity_auto_threshold")
+        share = self.planarity.dominant_plane_fraction
+        unread = self.s.planarity_weight is not None
+        if isinstance(was, (int, float)) and (unread or share is not None and
+                                              (share >= was) == (share >= self.s.planarity_auto_threshold)):
+            fp["settings"]["planarity_auto_threshold"] = was
+        return fp
 
     def state(self) -> dict:
         return {"faces": self.faces, "v_ref": self.v_ref, "vertices": self.vertices(), "colours": self.colours(),
@@ -875,9 +897,11 @@ class MorphStage(DrJitStage):
         s = self.s
         v_out, c_out = self.vertices(), self.colours()
         repair = None
-        pleat_report = spike_report = None
+        pleat_report = spike_report = turn_report = None
         if s.repair_flips and not s.remesh_at:
             v_out, repair = repair_flips(v_out, self.faces, self.v_start)
+            if s.border_turn_deg:
+                v_out, turn_report = iron_border_turns(v_out, self.faces, self.v_start, s.border_turn_deg)
             # the pleats' smoothing brings back no flip w.r.t. the start (``v_ref``: unfold_pleats guarantees it)
             v_out, pleat_report = unfold_pleats(v_out, self.faces, v_ref=self.v_start)
             v_out, spike_report = iron_spikes(v_out, self.faces, self.v_start)
@@ -898,7 +922,8 @@ class MorphStage(DrJitStage):
         return MorphResult(**vars(ev), seconds=seconds, iterations=run.step, vertices=int(len(v_out)),
                            method=s.parameterisation, settings=s, training=run.summary(),
                            planarity=self.planarity, colour_prior=self.colour_prior, repair=repair,
-                           pleats=pleat_report, spike_ironing=spike_report, trace=self.trace,
+                           pleats=pleat_report, spike_ironing=spike_report, border_turns=turn_report,
+                           trace=self.trace,
                            stopped_early=run.stopped,
                            validation_views=list(self.val_ids), validation_seconds=self.validation_seconds,
                            trace_chamfer_input=trace_in, saturation_level=self.saturation_level)

@@ -202,6 +202,7 @@ def suite_row(name: str, m: MorphResult) -> dict:
            "normal_consistency": {"input": m.normal_consistency_input, "morphed": m.normal_consistency_morphed},
            "pleats": asdict(m.pleats) if m.pleats else None,
            "spike_ironing": asdict(m.spike_ironing) if m.spike_ironing else None,
+           "border_turns": asdict(m.border_turns) if m.border_turns else None,
            "iterations": m.iterations, "stopped_early": m.stopped_early, "trace_chamfer_input": m.trace_chamfer_input,
            # per iteration of the run that finished (the candidates not chosen are in ``seconds``, not in this)
            "s_per_iteration": (m.seconds - m.trial_seconds) / max(m.iterations, 1),
