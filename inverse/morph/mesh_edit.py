@@ -12,7 +12,7 @@ import mitsuba as mi
 from mi_plugins.arrays import aligned
 
 from foundation.files import Memo, array_key
-from foundation.mesh import edge_lengths, face_normals, graph_laplacian
+from foundation.mesh import boundary_edges, edge_lengths, face_normals, graph_laplacian
 from foundation.mesh_metrics import spike_mask, vertex_neighbours_mean
 
 
@@ -233,8 +233,6 @@ class TurnReport:
 def border_zone(f: np.ndarray, n_vertices: int) -> np.ndarray:
     """Per triangle: whether all three corners lie on an open border or in its 1-ring (False everywhere on a closed
     mesh)."""
-    from foundation.mesh import boundary_edges
-
     zone = np.zeros(n_vertices, bool)
     be = boundary_edges(f)
     if len(be):
@@ -269,16 +267,20 @@ def iron_border_turns(v: np.ndarray, f: np.ndarray, v_ref: np.ndarray, max_turn_
         bad[f[turned].ravel()] = True
         return bad, int(turned.sum())
 
+    def flipped(x):
+        return np.sum(face_normals(x, f) * n_ref, axis=1) < 0
+
     v_in = np.array(v, np.float64)
-    flips_in = np.sum(face_normals(v_in, f) * n_ref, axis=1) < 0
-    v, before, after, moved, _ = _iron_displacements(v_in, f, v_ref, flagged, rounds, refuse_flips=False)
-    v, fixed = repair_flips(v, f, v_ref)
+    flips_in = flipped(v_in)
+    v, before, _, _, _ = _iron_displacements(v_in, f, v_ref, flagged, rounds, refuse_flips=False)
+    made = int((flipped(v) & ~flips_in).sum())
+    if made:
+        v, _ = repair_flips(v, f, v_ref)
     after = flagged(v)[1]
-    if after > before or ((np.sum(face_normals(v, f) * n_ref, axis=1) < 0) & ~flips_in).any():
+    if after > before or (flipped(v) & ~flips_in).any():
         return v_in, TurnReport(before, before, 0, 0.0)
     move = np.linalg.norm(v - v_in, axis=1)
-    return v, TurnReport(before, after, int((move > 0).sum()), float(move.max()),
-                         fixed.inverted_before_repair - int(flips_in.sum()))
+    return v, TurnReport(before, after, int((move > 0).sum()), float(move.max()) if len(move) else 0.0, made)
 
 
 def _iron_displacements(v, f, v_ref, flagged, rounds, refuse_flips=True):

@@ -116,7 +116,7 @@ class MorphSettings:
     repair_flips: bool = True
     #: with ``repair_flips``: then the open border's triangles (border and 1-ring) turned more than this many degrees
     #: from the start are ironed back into line with their neighbours' move (:func:`iron_border_turns`: a curl that
-    #: is no flip; face000@0's facing area 0.57 → 0.26 %, README). 0 = off (runs before 2026-11-29, morning). Read
+    #: is no flip; face000@0's facing area 0.571 → 0.279 %, README). 0 = off (runs before 2026-11-29, morning). Read
     #: only after the last step: a finished run's checkpoint takes a new value.
     border_turn_deg: float = 60.0
     #: weight of the edge-preserving planarity prior (mean over interior edges of ρ(1 − n_a·n_b), ρ(d) = d/(d+σ));
