@@ -48,6 +48,11 @@ def _remesh(v, f, c, target_vertices):
     return v2, f2, c[cKDTree(v).query(v2)[1]]
 
 
+def _flipped(x: np.ndarray, f: np.ndarray, n_ref: np.ndarray) -> np.ndarray:
+    """Per triangle: whether its normal in ``x`` points against ``n_ref`` (its normal in the reference mesh)."""
+    return np.sum(face_normals(x, f) * n_ref, axis=1) < 0
+
+
 @dataclass
 class RepairReport:
     """What :func:`repair_flips` did: the repair is reported, never silent."""
@@ -76,10 +81,7 @@ def repair_flips(v: np.ndarray, f: np.ndarray, v_ref: np.ndarray, rounds: int = 
     deg = np.maximum(lap.diagonal(), 1)
     ring_of = abs(lap)  # nonzero at a vertex and its 1-ring
 
-    def flipped(x):
-        return np.sum(face_normals(x, f) * n_ref, axis=1) < 0
-
-    bad = flipped(v)
+    bad = _flipped(v, f, n_ref)
     before = int(bad.sum())
     v0 = v.copy()
     moved = np.zeros(n, bool)
@@ -96,9 +98,9 @@ def repair_flips(v: np.ndarray, f: np.ndarray, v_ref: np.ndarray, rounds: int = 
         target = v - (lap @ v) / deg[:, None] if r < 10 else v_ref  # 1-ring mean, then the start
         v[sel] = 0.5 * v[sel] + 0.5 * target[sel]
         moved |= sel
-        bad = flipped(v)
+        bad = _flipped(v, f, n_ref)
     if bad.sum() > before:  # never hand back a worse mesh
-        v, bad, moved = v0, flipped(v0), np.zeros(n, bool)
+        v, bad, moved = v0, _flipped(v0, f, n_ref), np.zeros(n, bool)
     return v, RepairReport(before, int(bad.sum()), int(moved.sum()),
                            float(np.linalg.norm(v - v0, axis=1).max()) if moved.any() else 0.0)
 
@@ -147,7 +149,7 @@ def unfold_pleats(v: np.ndarray, f: np.ndarray, rounds: int = 30,
     lap = graph_laplacian(len(v), f)
     deg = np.maximum(lap.diagonal(), 1)
     n_ref = face_normals(v_ref, f) if v_ref is not None else None
-    turned0 = np.sum(face_normals(v, f) * n_ref, axis=1) < 0 if n_ref is not None else None
+    turned0 = _flipped(v, f, n_ref) if n_ref is not None else None
     stays = np.zeros(len(v), bool)
     bad = pleats(v, f)
     before = int(bad.sum())
@@ -166,7 +168,7 @@ def unfold_pleats(v: np.ndarray, f: np.ndarray, rounds: int = 30,
             # put back can turn a neighbour whose other corner moved, so again until none is turned. It ends: a
             # turned triangle has a corner still moved (with all corners at ``prev`` it is as the last round left
             # it, not turned), so each pass puts back at least one vertex.
-            turned = (np.sum(face_normals(v, f) * n_ref, axis=1) < 0) & ~turned0
+            turned = _flipped(v, f, n_ref) & ~turned0
             if not turned.any():
                 break
             back = np.zeros(len(v), bool)
@@ -267,17 +269,14 @@ def iron_border_turns(v: np.ndarray, f: np.ndarray, v_ref: np.ndarray, max_turn_
         bad[f[turned].ravel()] = True
         return bad, int(turned.sum())
 
-    def flipped(x):
-        return np.sum(face_normals(x, f) * n_ref, axis=1) < 0
-
     v_in = np.array(v, np.float64)
-    flips_in = flipped(v_in)
+    flips_in = _flipped(v_in, f, n_ref)
     v, before, _, _, _ = _iron_displacements(v_in, f, v_ref, flagged, rounds, refuse_flips=False)
-    made = int((flipped(v) & ~flips_in).sum())
+    made = int((_flipped(v, f, n_ref) & ~flips_in).sum())
     if made:
         v, _ = repair_flips(v, f, v_ref)
     after = flagged(v)[1]
-    if after > before or (flipped(v) & ~flips_in).any():
+    if after > before or (_flipped(v, f, n_ref) & ~flips_in).any():
         return v_in, TurnReport(before, before, 0, 0.0)
     move = np.linalg.norm(v - v_in, axis=1)
     return v, TurnReport(before, after, int((move > 0).sum()), float(move.max()) if len(move) else 0.0, made)
@@ -293,22 +292,19 @@ def _iron_displacements(v, f, v_ref, flagged, rounds, refuse_flips=True):
     v0 = v.copy()
     n_ref = face_normals(v_ref, f)
 
-    def flipped(x):
-        return np.sum(face_normals(x, f) * n_ref, axis=1) < 0
-
     bad, before = flagged(v)
-    after, flips_before = before, flipped(v)
+    after, flips_before = before, _flipped(v, f, n_ref)
     moved = np.zeros(len(v), bool)
     for _ in range(rounds):
         active = bad.copy()
-        active[f[flipped(v) & ~flips_before].ravel()] = True
+        active[f[_flipped(v, f, n_ref) & ~flips_before].ravel()] = True
         if not active.any():
             break
         d = v - v_ref
         v[active] = v_ref[active] + 0.5 * d[active] + 0.5 * vertex_neighbours_mean(d, f)[active]
         moved |= active
         bad, after = flagged(v)
-    if after > before or (refuse_flips and (flipped(v) & ~flips_before).any()):
+    if after > before or (refuse_flips and (_flipped(v, f, n_ref) & ~flips_before).any()):
         v, (bad, after), moved = v0, flagged(v0), np.zeros(len(v), bool)
     return v, before, after, int(moved.sum()), float(np.linalg.norm(v - v0, axis=1).max()) if moved.any() else 0.0
 
@@ -323,7 +319,7 @@ def undo_flips(opt, key: str, v_before: np.ndarray, positions, to_param, n_start
     v = np.array(dr.detach(positions()), np.float64).reshape(-1, 3)
     changed = False
     for _ in range(rounds):
-        bad = np.sum(face_normals(v, faces) * n_start, axis=1) < 0
+        bad = _flipped(v, faces, n_start)
         if not bad.any():
             break
         idx = np.unique(faces[bad])

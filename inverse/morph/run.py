@@ -683,8 +683,7 @@ class MorphStage(DrJitStage):
         # these only decide between runs (the decision files record them); a run's own steps do not read them
         between = ("prior_margin", "prior_ties", "light_select_every", "light_select_colour_lambda",
                    "step_select_quantile", "step_select_lr", "planarity_select_where")
-        # and these only act in :meth:`finish`, on the state the checkpoint holds
-        between += ("border_turn_deg",)
+        finish_only = ("border_turn_deg",)  # acts in :meth:`finish`, on the state the checkpoint holds
         # fields added later, at the value that computes what runs made before them did (bit for bit): those runs'
         # checkpoints still match
         same = (("boundary_spp",) if self.shared_spp else ()) + \
@@ -694,7 +693,7 @@ class MorphStage(DrJitStage):
             (("saturation",) if self.s.saturation == 0 else ()) + \
             (("planarity_where",) if self.s.planarity_where == "all" else ()) + \
             (("planarity_min_thickness",) if self.s.planarity_where != "thick" else ())
-        settings = {k: v for k, v in asdict(self.s).items() if k not in between + same}
+        settings = {k: v for k, v in asdict(self.s).items() if k not in between + finish_only + same}
         if not self.s.indirect_every:  # no estimate: its settings unread, kept as runs before their defaults changed
             settings["indirect_spp"] = PLAIN_RUN_INDIRECT_SPP
             settings.pop("indirect_reference", None)
