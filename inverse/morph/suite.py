@@ -14,14 +14,17 @@ name           kind                                                   source
 
 The village and the armadillo (what the defaults were tuned on) are not part of it.
 
-Three more meshes were added after the defaults were last changed, to check them on meshes nothing was decided
-on (``UNSEEN``; ``photoreal bench morph --parts suite --suite paul face000 bracket``):
+Four more meshes were added after the defaults were last changed, to check them on meshes nothing was decided
+on (``UNSEEN``; ``photoreal bench morph --parts suite --suite paul face000 bracket mpface``; ``mpface`` on
+2026-11-29, after every default of that day):
 
 =============  =====================================================  ============================================
 ``paul``       scanned head, an open sheet (josie's sibling scan)     Cyberware scan (inventor-data, LGPL-2+)
 ``face000``    a real single-view range scan of a head: ragged        pymeshlab's wheel
                border, holes, 86k vertices                            (``rangemaps/face000.ply``)
 ``bracket``    generated machined part: an L bracket with a hole      :func:`bracket_mesh`
+``mpface``     an artist-made low-poly face: an open sheet of 468     MediaPipe's canonical face model
+               vertices, no skull                                     (``scenes/assets/face``, Apache-2.0)
 =============  =====================================================  ============================================
 """
 
@@ -36,11 +39,12 @@ from foundation.errors import UsageError
 from foundation.mesh import write_ply
 
 SUITE = ("bunny", "bone", "josie", "cow", "airplane", "table", "pedestal")
-UNSEEN = ("paul", "face000", "bracket")
+UNSEEN = ("paul", "face000", "bracket", "mpface")
 KINDS = {"bunny": "scan, organic", "bone": "scan, organic, elongated", "josie": "scan, head, open sheet",
          "cow": "organic, thin legs", "airplane": "CAD, thin wings", "table": "CAD, thin legs (generated)",
          "pedestal": "large flat base (generated)", "paul": "unseen: scan, head, open sheet",
-         "face000": "unseen: range scan, ragged border", "bracket": "unseen: machined part (generated)"}
+         "face000": "unseen: range scan, ragged border", "bracket": "unseen: machined part (generated)",
+         "mpface": "unseen: low-poly face, open sheet"}
 
 
 def _orient(v: np.ndarray, f: np.ndarray, outward: np.ndarray) -> np.ndarray:
@@ -137,6 +141,8 @@ def suite_mesh(name: str, folder: str | Path) -> Path:
         return path
     if name in ("josie", "paul"):
         return FACE / "cyberheads" / f"{name}.obj"
+    if name == "mpface":
+        return FACE / "canonical_face_model.obj"
     files = {"bunny": "bunny.obj", "bone": "bone.ply", "cow": "cow.obj", "airplane": "airplane.obj",
              "face000": "rangemaps/face000.ply"}
     if name not in files:
