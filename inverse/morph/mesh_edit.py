@@ -48,9 +48,10 @@ def _remesh(v, f, c, target_vertices):
     return v2, f2, c[cKDTree(v).query(v2)[1]]
 
 
-def _flipped(x: np.ndarray, f: np.ndarray, n_ref: np.ndarray) -> np.ndarray:
-    """Per triangle: whether its normal in ``x`` points against ``n_ref`` (its normal in the reference mesh)."""
-    return np.sum(face_normals(x, f) * n_ref, axis=1) < 0
+def _flipped(x: np.ndarray, f: np.ndarray, n_ref: np.ndarray, cos_limit: float = 0.0) -> np.ndarray:
+    """Per triangle: whether its normal in ``x`` points against ``n_ref`` (its normal in the reference mesh), or with
+    ``cos_limit`` > 0, turned from it by more than arccos(``cos_limit``)."""
+    return np.sum(face_normals(x, f) * n_ref, axis=1) < cos_limit
 
 
 @dataclass
@@ -264,7 +265,7 @@ def iron_border_turns(v: np.ndarray, f: np.ndarray, v_ref: np.ndarray, max_turn_
     limit = float(np.cos(np.radians(max_turn_deg)))
 
     def flagged(x):
-        turned = zone & (np.sum(face_normals(x, f) * n_ref, axis=1) < limit)
+        turned = zone & _flipped(x, f, n_ref, limit)
         bad = np.zeros(len(x), bool)
         bad[f[turned].ravel()] = True
         return bad, int(turned.sum())
