@@ -900,6 +900,9 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bm, MorphBenchSettings, "saturation", type=float,
          help="the suite's runs leave pixels brighter than this × the photos' 99th percentile out of the loss "
               "(MorphSettings.saturation; 0: every pixel counts)")
+    _opt(bm, MorphBenchSettings, "mask_weight", type=float,
+         help="the suite's runs add a silhouette L1 against the photos' masks at this weight "
+              "(MorphSettings.mask_weight; 0: photos only)")
     _opt(bm, MorphBenchSettings, "seed", help="another draw of every benchmark (photos' noise, views) and of every "
                                                "morph's render seeds (work folder: OUT/morph_work_seed<k>)")
     _opt(bm, MorphBenchSettings, "cost_mesh", help="the mesh of --parts iteration")
@@ -1181,6 +1184,9 @@ def build_parser() -> argparse.ArgumentParser:
          help="pixels brighter than this × the training photos' 99th percentile, in a photo or its render, and their "
               "neighbours stay out of the loss, as a camera clips them (a silhouette against the sun otherwise "
               "swamps every step); 0: every pixel counts")
+    _opt(mr, MorphSettings, "mask_weight", type=float,
+         help="weight of a silhouette L1 beside the photos': the mesh's coverage of each pixel against the photos' "
+              "masks (the benchmark's truth), so that every silhouette pulls with contrast 1; 0: photos only")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

@@ -852,6 +852,7 @@ def test_out_of_range_morph_settings_are_named():
                      ({"indirect_downsample": 9}, "indirect_downsample"), ({"adam_quantile": 0.0}, "adam_quantile"),
                      ({"adam_quantile": 1.5}, "adam_quantile"), ({"saturation": -1.0}, "saturation"),
                      ({"saturation": float("nan")}, "saturation"), ({"lr": -0.1}, "lr"), ({"lr": float("nan")}, "lr"),
+                     ({"mask_weight": -1.0}, "mask_weight"), ({"mask_weight": float("nan")}, "mask_weight"),
                      ({"planarity_where": "unseen"}, "planarity_where"),
                      ({"planarity_select_where": "both"}, "planarity_select_where"),
                      ({"planarity_min_thickness": 0.0}, "planarity_min_thickness"),

@@ -57,12 +57,12 @@ from foundation.optim_state import load_optimizer_state, optimizer_state
 from foundation.quantile_adam import QuantileAdam
 from foundation.scene import mitsuba_log_level
 
-from .benchmark import MorphBenchmark, sensor_dict
+from .benchmark import MorphBenchmark, photo_masks, sensor_dict
 from .evaluate import MorphEvaluation, evaluate_morph
 from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (PleatReport, RepairReport, SpikeReport, TurnReport, iron_border_turns, iron_spikes, remesh,
                         repair_flips, undo_flips, unfold_pleats)
-from .scene import (MODES, inward_thickness, morph_scene, photo_l1, photo_saturation, photo_tensors,
+from .scene import (MODES, inward_thickness, mask_scene, morph_scene, photo_l1, photo_saturation, photo_tensors,
                     projective_integrator, render_views, upsample_bilinear, views_seeing)
 
 #: largest run seed: render seeds are seed·7919 + step·101 + view and must stay below 2³¹
@@ -262,6 +262,13 @@ class MorphSettings:
     #: A silhouette against the sun otherwise froze uniform Adam (paul at seed 1: one view's largest gradient
     #: 3,000 times the others'). 0 = every pixel counts (runs before 2026-11-28, evening).
     saturation: float = 4.0
+    #: weight of a silhouette L1 beside the photos' (eq. 4.3): the mesh's coverage of each pixel against the photos'
+    #: masks (:func:`~inverse.morph.scene.mask_scene`, :func:`~inverse.morph.benchmark.photo_masks`), the same views
+    #: and seeds as the step. Every silhouette then pulls with contrast 1, where the photos' own contrast can be
+    #: small (a head's skin against the sky): josie@0's silhouettes moved from 0.37 to only 0.26 px off the truth's
+    #: without it (the bunny's 0.58 → 0.15), and its fixed candidate went from −27.4 % to −42.9 % Chamfer with it at 1
+    #: (docs/morph.md: "The silhouettes on their own"). 0 = photos only (every run before 2026-11-29, evening).
+    mask_weight: float = 0.0
     seed: int = 0
 
     def __post_init__(self):
@@ -272,6 +279,7 @@ class MorphSettings:
         validate.positive("lambda_", self.lambda_)  # λ ≤ 0 makes I + λL indefinite (Cholesky fails)
         validate.non_negative("lr", self.lr)
         validate.non_negative("lr_colour", self.lr_colour)
+        validate.non_negative("mask_weight", self.mask_weight)
         validate.in_range("adam_quantile", self.adam_quantile, 0.0, 1.0, lo_open=True)
         validate.non_negative("saturation", self.saturation)
         validate.in_range("lr_final", self.lr_final, 0.0, 1.0)
@@ -611,6 +619,9 @@ class MorphStage(DrJitStage):
         self.indirect: dict[int, mi.TensorXf] = {}
         #: one count for every part of the gradient: the renders are those of runs before ``boundary_spp`` existed
         self.shared_spp = s.boundary_spp is None or s.boundary_spp == s.spp
+        #: the photos' masks as the mask scene renders them (1 − coverage, RGB), training views only
+        self.sky = {i: mi.TensorXf(aligned(np.repeat((1.0 - m)[..., None], 3, axis=-1)))
+                    for i, m in photo_masks(bench, self.res, self.train_ids).items()} if s.mask_weight > 0 else {}
         self._build(v0, v0, f0, c0)
         if self.planarity.weight and dr.width(self.pairs) == 0:  # no manifold edge (an unwelded soup)
             self.planarity.weight = 0.0
@@ -626,6 +637,10 @@ class MorphStage(DrJitStage):
         self.scene = morph_scene(self.work_ply, s.mode, self.bench.meta.hdri,
                                  integrator=None if self.shared_spp else projective_integrator(s.spp, s.boundary_spp))
         self.params = mi.traverse(self.scene)
+        if s.mask_weight > 0:  # the same mesh file: both scenes get the step's positions
+            self.mask_scene = mask_scene(self.work_ply, integrator=None if self.shared_spp else
+                                         projective_integrator(s.spp, s.boundary_spp))
+            self.mask_params = mi.traverse(self.mask_scene)
         self.f_mi = mi.UInt32(aligned(f, np.uint32).ravel())
         self.pairs = mi.UInt32(aligned(self._prior_pairs(v_ref, f), np.uint32).ravel())
         self.edges = mi.UInt32(aligned(unique_edges(f), np.uint32).ravel())
@@ -691,6 +706,7 @@ class MorphStage(DrJitStage):
             (("indirect_downsample",) if self.s.indirect_downsample == 1 else ()) + \
             (("adam_quantile",) if self.s.adam_quantile == 1.0 else ()) + \
             (("saturation",) if self.s.saturation == 0 else ()) + \
+            (("mask_weight",) if self.s.mask_weight == 0 else ()) + \
             (("planarity_where",) if self.s.planarity_where == "all" else ()) + \
             (("planarity_min_thickness",) if self.s.planarity_where != "thick" else ())
         settings = {k: v for k, v in asdict(self.s).items() if k not in between + finish_only + same}
@@ -855,6 +871,16 @@ class MorphStage(DrJitStage):
         for img, i in zip(imgs, views):
             loss += self._l1(img, i)  # eq. 4.3, L1
         loss = loss / len(views)
+        if s.mask_weight > 0:
+            self.mask_params["mesh.vertex_positions"] = flat
+            with mitsuba_log_level(mi.LogLevel.Error):
+                self.mask_params.update()
+            skies = render_views(self.mask_scene, self.mask_params, meta.cameras, views, self.res, meta.fov, s.spp,
+                                 s.seed * 7919 + it * 101 + 1_000_003, integrator_spp=not self.shared_spp)
+            silhouettes = 0
+            for img, i in zip(skies, views):
+                silhouettes += dr.mean(dr.abs(img[..., :3] - self.sky[int(i)]), axis=None)
+            loss += s.mask_weight * silhouettes / len(views)
         if self.planarity.weight > 0:
             loss += self.planarity.weight * planarity_prior(dr.unravel(mi.Point3f, flat), self.f_mi, self.pairs,
                                                             self.sigma)

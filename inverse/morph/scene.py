@@ -40,6 +40,17 @@ def morph_scene(mesh_ply: Path, mode: str, hdri: str | Path, integrator: dict | 
                              "env": envmap(hdri), "mesh": shape})
 
 
+def mask_scene(mesh_ply: Path, integrator: dict | None = None) -> mi.Scene:
+    """The mesh black under a constant white sky: a render is 1 − the mesh's coverage of each pixel. Every
+    silhouette then has contrast 1 for the projective integrator's boundary term, whatever the lighting and colours
+    beside it (the photos' own contrast there can be small: a head's skin against the sky). Compared with
+    :func:`~inverse.morph.benchmark.photo_masks` by ``MorphSettings.mask_weight``."""
+    shape = {"type": "ply", "filename": str(mesh_ply), "bsdf": {"type": "diffuse", "reflectance": 0.0}}
+    with mitsuba_log_level(mi.LogLevel.Error):
+        return mi.load_dict({"type": "scene", "integrator": integrator or {"type": "direct_projective", "sppi": 0},
+                             "env": {"type": "constant", "radiance": 1.0}, "mesh": shape})
+
+
 def projective_integrator(spp: int, boundary_spp: int) -> dict:
     """The morph's differentiable direct-light integrator: ``spp`` samples per pixel for the image and its
     continuous derivative, ``boundary_spp`` for the silhouettes' (primarily visible discontinuities), no indirect

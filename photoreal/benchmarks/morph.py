@@ -66,6 +66,9 @@ class MorphBenchSettings:
     #: the suite's runs leave pixels brighter than this × the photos' 99th percentile out of the loss
     #: (:attr:`~inverse.morph.MorphSettings.saturation`; 0: every pixel, the suite before 2026-11-28 evening)
     saturation: float = MorphSettings.saturation
+    #: the suite's runs add a silhouette L1 at this weight (:attr:`~inverse.morph.MorphSettings.mask_weight`; 0: photos
+    #: only, every suite before 2026-11-29 evening)
+    mask_weight: float = MorphSettings.mask_weight
 
     def __post_init__(self):
         validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
@@ -74,6 +77,7 @@ class MorphBenchSettings:
         validate.positive("lr", self.lr)
         validate.in_range("step_select_quantile", self.step_select_quantile, 0.0, 1.0, lo_open=True)
         validate.non_negative("saturation", self.saturation)
+        validate.non_negative("mask_weight", self.mask_weight)
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
                      "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
@@ -275,7 +279,7 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
     benches = {n: _suite_bench(n, work, _suite_benchmark_settings(s), tag) for n in s.suite}
     settings = MorphSettings(iterations=s.iterations, seed=s.seed, prior_ties=s.prior_ties,
                              adam_quantile=s.adam_quantile, lr=s.lr, step_select_quantile=s.step_select_quantile,
-                             saturation=s.saturation)
+                             saturation=s.saturation, mask_weight=s.mask_weight)
     for b in benches.values():  # the start remeshes made here, once, before the workers read them (stored_remesh)
         start_mesh(load_morph_benchmark(b), settings)
     items = [_item(n, benches[n], work / f"suite_{n}{tag}", settings) for n in s.suite]
@@ -593,11 +597,12 @@ def _merged_suites(a: dict, b: dict) -> dict:
 def recorded_run_settings(settings: dict) -> dict:
     """The settings of a ``bench morph`` result that change its runs, as the file recorded them; a file written
     before a field existed ran at what is now its default (vertex normals, uniform Adam's maximum, lr 0.05), except
-    the step choice and the saturation mask: files before them ran without (quantile 1, saturation 0)."""
+    the step choice, the saturation mask and the silhouette loss: files before them ran without (quantile 1,
+    saturation 0, mask weight 0)."""
     d = MorphBenchSettings()
     got = {k: settings.get(k) or getattr(d, k) for k in ("iterations", "truth_normals", "adam_quantile", "lr")}
     return {**got, "step_select_quantile": settings.get("step_select_quantile") or 1.0,
-            "saturation": settings.get("saturation") or 0.0}
+            "saturation": settings.get("saturation") or 0.0, "mask_weight": settings.get("mask_weight") or 0.0}
 
 
 def seeds_summary(paths: list[str | Path]) -> dict:
@@ -726,7 +731,8 @@ def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True)
         if not work.is_dir():
             raise UsageError(f"{p}: its work folder {work} is gone (run the bench with --keep-work)")
         s = MorphSettings(iterations=got["iterations"], seed=seed, adam_quantile=got["adam_quantile"], lr=got["lr"],
-                          step_select_quantile=got["step_select_quantile"], saturation=got["saturation"])
+                          step_select_quantile=got["step_select_quantile"], saturation=got["saturation"],
+                          mask_weight=got["mask_weight"])
         todo += [(f"{n}@{seed}", work / f"bench_{n}{tag}", work / f"suite_{n}{tag}", s) for n in suite["meshes"]]
     todo = [t for t in todo if (t[2] / "lambda_select" / "light_decision.json").is_file()]  # others made none
     rows = {key: light_choice_draws(load_morph_benchmark(bench), out, s, draws)

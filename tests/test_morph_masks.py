@@ -1,0 +1,137 @@
+"""The morph's silhouette loss (``MorphSettings.mask_weight``): the photos' masks, the mask scene, its gradient,
+and a run that uses it.
+
+Oracles: Mitsuba's own film alpha (the coverage it accumulates per pixel) for the masks; finite differences of the
+mask L1 for its gradient; a closed form (the covered fraction of a square) for the mask scene's render."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import drjit as dr
+import mitsuba as mi
+
+from foundation.mesh import write_ply
+from inverse.morph import MorphBenchmarkSettings, MorphSettings, load_morph_benchmark, make_morph_benchmark, run_morph
+
+ARMADILLO = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    out = tmp_path_factory.mktemp("masks") / "armadillo"
+    s = MorphBenchmarkSettings(n_views=8, resolution=40, spp=8, coarse_vertices=800)
+    return load_morph_benchmark(make_morph_benchmark(ARMADILLO, out, s, show_progress=False))
+
+
+def test_photo_masks_are_the_truths_coverage_as_mitsubas_film_counts_it(tiny):
+    from inverse.morph.benchmark import photo_masks, sensor_dict
+
+    masks = photo_masks(tiny, 40, [0, 3])
+    assert sorted(masks) == [0, 3]
+    truth = mi.load_dict({"type": "scene", "integrator": {"type": "direct"},
+                          "gt": {"type": "ply", "filename": str(tiny.ground_truth)}})
+    for i, m in masks.items():
+        assert m.shape == (40, 40) and m.dtype == np.float32 and 0.0 <= m.min() and m.max() <= 1.0
+        sd = sensor_dict(tiny.meta.cameras[i], 40, tiny.meta.fov)
+        sd["film"]["pixel_format"] = "rgba"
+        alpha = np.asarray(mi.render(truth, sensor=mi.load_dict(sd), spp=256, seed=100 + i))[..., 3]
+        # both are Monte-Carlo estimates of the same coverage (64 and 256 samples a pixel): they agree inside and
+        # outside exactly, and at the silhouette within their noise (a pixel's std ≤ 0.5 / √64)
+        assert np.abs(m - alpha).mean() < 0.01, np.abs(m - alpha).mean()
+        assert 0.05 < m.mean() < 0.95  # the object is in the frame, with background around it
+
+
+def _square_ply(path, x=0.0, flip=False):
+    v = np.array([[-.5, -.5, 0], [.5, -.5, 0], [.5, .5, 0], [-.5, .5, 0]], np.float64) + [x, 0, 0]
+    f = np.array([[0, 1, 2], [0, 2, 3]]) if not flip else np.array([[0, 2, 1], [0, 3, 2]])
+    write_ply(path, v, f, np.full((4, 3), 0.5))
+    return path
+
+
+def _sensor(z=3.0, res=32):
+    return mi.load_dict({"type": "perspective", "fov": 45,
+                         "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, z], target=[0, 0, 0], up=[0, 1, 0]),
+                         "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"},
+                                  "sample_border": True}})
+
+
+def test_the_mask_scene_is_one_minus_coverage_from_either_side(tmp_path):
+    """A unit square at distance 3 under a 45° field of view covers (1 / (2·3·tan 22.5°))² of the frame: the
+    render's mean is 1 minus that, seen from the front or the back (a sheet's back blocks the sky as well)."""
+    from inverse.morph.scene import mask_scene
+
+    scene = mask_scene(_square_ply(tmp_path / "sq.ply"))
+    covered = (1.0 / (2 * 3.0 * np.tan(np.radians(22.5)))) ** 2
+    for z in (3.0, -3.0):
+        img = np.asarray(mi.render(scene, sensor=_sensor(z, 64), spp=64, seed=0))[..., :3]
+        assert abs((1.0 - img.mean()) - covered) < 0.01, (z, 1.0 - img.mean(), covered)
+        assert np.allclose(img[..., 0], img[..., 1]) and np.allclose(img[..., 0], img[..., 2])
+
+
+def test_the_mask_l1_pulls_a_silhouette_towards_the_target_as_finite_differences_say(tmp_path):
+    """The target: the square moved 0.08 to the right (about 1.6 pixels). The derivative of the mask L1 in the
+    square's x position, from the projective integrator's boundary term, matches central differences of the same
+    loss (±0.02, 256 spp) within 15 %, and points the square towards the target."""
+    from inverse.morph.scene import mask_scene
+
+    sensor = _sensor()
+    target = mask_scene(_square_ply(tmp_path / "t.ply", x=0.08))
+    sky = mi.TensorXf(np.asarray(mi.render(target, sensor=sensor, spp=1024, seed=7))[..., :3])
+    scene = mask_scene(_square_ply(tmp_path / "s.ply"))
+    params = mi.traverse(scene)
+    # a copy: np.asarray maps Dr.Jit's buffer, which the next assignment frees
+    v0 = np.array(params["mesh.vertex_positions"], copy=True).reshape(-1, 3)
+
+    def loss(x, grad=False, spp=256, seed=1):
+        xs = mi.Float(x)
+        if grad:
+            dr.enable_grad(xs)
+        col = [mi.Float(np.ascontiguousarray(v0[:, k], np.float32)) for k in range(3)]
+        params["mesh.vertex_positions"] = dr.ravel(mi.Point3f(col[0] + xs, col[1], col[2]))
+        params.update()
+        img = mi.render(scene, params, sensor=sensor, spp=spp, seed=seed)[..., :3]
+        l1 = dr.mean(dr.abs(img - sky), axis=None)
+        if grad:
+            dr.backward(l1)
+            return float(np.asarray(dr.grad(xs)).sum())
+        return float(np.asarray(l1).item())
+
+    h = 0.02
+    fd = (loss(h, seed=3) - loss(-h, seed=3)) / (2 * h)
+    ad = np.mean([loss(0.0, grad=True, seed=s) for s in (11, 12, 13, 14)])
+    assert fd < 0 and ad < 0, (fd, ad)  # moving right (towards the target) lowers the loss
+    assert abs(ad - fd) < 0.15 * abs(fd), (ad, fd)
+
+
+def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(tiny, tmp_path):
+    """20 iterations at mask weight 1 from the coarse input: the mask L1 over the training views falls by a tenth or
+    more (the photos alone: the same run with weight 0 is reported beside it); the weight is part of the checkpoint's
+    settings only when it is not 0 (runs before it resume)."""
+    from inverse.morph.benchmark import photo_masks
+    from inverse.morph.run import MorphStage
+    from inverse.morph.scene import mask_scene
+
+    def mask_l1(ply):
+        masks = photo_masks(tiny, 40, tiny.meta.train)
+        scene = mask_scene(ply)
+        from inverse.morph.benchmark import sensor_dict
+        err = []
+        for i, m in masks.items():
+            img = np.asarray(mi.render(scene, sensor=mi.load_dict(sensor_dict(tiny.meta.cameras[i], 40, tiny.meta.fov)),
+                                       spp=64, seed=i))[..., 0]
+            err.append(np.abs((1.0 - img) - m).mean())
+        return float(np.mean(err))
+
+    s = MorphSettings(iterations=20, resolution=40, min_vertices=None, check_every=10, validation_fraction=0.5,
+                      mask_weight=1.0, early_stop=False)
+    r = run_morph(tiny, tmp_path / "m", s, show_progress=False)
+    start = mask_l1(tiny.coarse)
+    after = mask_l1(tmp_path / "m" / "morphed.ply")
+    assert after < 0.9 * start, (start, after)
+    assert r.spikes == 0
+    stage = MorphStage(tiny, tmp_path / "fp", s)
+    assert stage.fingerprint()["settings"]["mask_weight"] == 1.0
+    plain = MorphStage(tiny, tmp_path / "fp0", MorphSettings(resolution=40, min_vertices=None))
+    assert "mask_weight" not in plain.fingerprint()["settings"] and not plain.sky
