@@ -26,7 +26,7 @@ def tiny(tmp_path_factory):
 
 
 def test_photo_masks_are_the_truths_coverage_as_mitsubas_film_counts_it(tiny):
-    from inverse.morph.benchmark import photo_masks, sensor_dict
+    from inverse.morph import photo_masks, sensor_dict
 
     masks = photo_masks(tiny, 40, [0, 3])
     assert sorted(masks) == [0, 3]
@@ -60,7 +60,7 @@ def _sensor(z=3.0, res=32):
 def test_the_mask_scene_is_one_minus_coverage_from_either_side(tmp_path):
     """A unit square at distance 3 under a 45° field of view covers (1 / (2·3·tan 22.5°))² of the frame: the
     render's mean is 1 minus that, seen from the front or the back (a sheet's back blocks the sky as well)."""
-    from inverse.morph.scene import mask_scene
+    from inverse.morph import mask_scene
 
     scene = mask_scene(_square_ply(tmp_path / "sq.ply"))
     covered = (1.0 / (2 * 3.0 * np.tan(np.radians(22.5)))) ** 2
@@ -74,7 +74,7 @@ def test_the_mask_l1_pulls_a_silhouette_towards_the_target_as_finite_differences
     """The target: the square moved 0.08 to the right (about 1.6 pixels). The derivative of the mask L1 in the
     square's x position, from the projective integrator's boundary term, matches central differences of the same
     loss (±0.02, 256 spp) within 15 %, and points the square towards the target."""
-    from inverse.morph.scene import mask_scene
+    from inverse.morph import mask_scene
 
     sensor = _sensor()
     target = mask_scene(_square_ply(tmp_path / "t.ply", x=0.08))
@@ -109,14 +109,14 @@ def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(tiny, tmp_
     """20 iterations at mask weight 1 from the coarse input: the mask L1 over the training views falls by a tenth or
     more (the photos alone: the same run with weight 0 is reported beside it); the weight is part of the checkpoint's
     settings only when it is not 0 (runs before it resume)."""
-    from inverse.morph.benchmark import photo_masks
-    from inverse.morph.run import MorphStage
-    from inverse.morph.scene import mask_scene
+    from inverse.morph import photo_masks
+    from inverse.morph import MorphStage
+    from inverse.morph import mask_scene
 
     def mask_l1(ply):
         masks = photo_masks(tiny, 40, tiny.meta.train)
         scene = mask_scene(ply)
-        from inverse.morph.benchmark import sensor_dict
+        from inverse.morph import sensor_dict
         err = []
         for i, m in masks.items():
             img = np.asarray(mi.render(scene, sensor=mi.load_dict(sensor_dict(tiny.meta.cameras[i], 40, tiny.meta.fov)),
