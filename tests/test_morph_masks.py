@@ -135,3 +135,12 @@ def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(tiny, tmp_
     assert stage.fingerprint()["settings"]["mask_weight"] == 1.0
     plain = MorphStage(tiny, tmp_path / "fp0", MorphSettings(resolution=40, min_vertices=None))
     assert "mask_weight" not in plain.fingerprint()["settings"] and not plain.sky
+
+
+def test_the_gcn_morph_refuses_the_silhouette_loss_before_any_output(tiny, tmp_path):
+    from foundation.errors import UsageError
+    from inverse.morph import run_gcn_morph
+
+    with pytest.raises(UsageError, match="^mask_weight: the GCN morph"):
+        run_gcn_morph(tiny, tmp_path / "g", MorphSettings(mask_weight=1.0), show_progress=False)
+    assert not (tmp_path / "g").exists()

@@ -35,6 +35,7 @@ import drjit as dr
 import mitsuba as mi
 
 from foundation import validate
+from foundation.errors import UsageError
 from foundation.bridge import torch_to_drjit_loss
 from foundation.files import file_digest
 from foundation.loop import LoopSettings, RunState, StepResult, TorchStage, rng_state, run_loop, set_rng_state
@@ -242,6 +243,9 @@ def run_gcn_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | Non
     """Morph with a GCN whose offsets are trained by the image loss through Mitsuba (``dr.wrap``); resumable."""
     s = s or MorphSettings()
     g = g or GCNSettings()
+    if s.mask_weight:  # named before any output: the silhouette loss lives in the large-steps stage only
+        raise UsageError(f"mask_weight: the GCN morph has no silhouette loss (got {s.mask_weight}; use 0, or the "
+                         f"large-steps morph)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     stage = GCNMorphStage(bench, out, s, g)
