@@ -74,3 +74,17 @@ class compiled_kernels:
         self.hashes = [k["hash"] for k in hist if k.get("type") == dr.KernelType.JIT]
         self.count = len(self.irs)
         return False
+
+
+@pytest.fixture(scope="module")
+def small_armadillo(tmp_path_factory):
+    """A small morph benchmark of the armadillo (8 views at 48², 8 spp, an 800-vertex coarse input), one per test
+    module that asks for it."""
+    from pathlib import Path
+
+    from inverse.morph import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
+
+    out = tmp_path_factory.mktemp("morph") / "armadillo"
+    mesh = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
+    s = MorphBenchmarkSettings(n_views=8, resolution=48, spp=8, coarse_vertices=800)
+    return load_morph_benchmark(make_morph_benchmark(mesh, out, s, show_progress=False))

@@ -60,13 +60,6 @@ def test_spikes_and_inverted_triangles():
     assert sp["far_moved_vertices"] == int(cap.sum()) and sp["spike_vertices"] < 0.5 * cap.sum()
 
 
-@pytest.fixture(scope="module")
-def small_armadillo(tmp_path_factory):
-    out = tmp_path_factory.mktemp("morph") / "armadillo"
-    s = MorphBenchmarkSettings(n_views=8, resolution=48, spp=8, coarse_vertices=800)
-    return load_morph_benchmark(make_morph_benchmark(ARMADILLO, out, s, show_progress=False))
-
-
 def test_benchmark_contents(small_armadillo):
     b = small_armadillo
     assert len(b.photos) == 8 and b.photos["view00"].shape == (48, 48, 3)

@@ -4,8 +4,6 @@ and a run that uses it.
 Oracles: Mitsuba's own film alpha (the coverage it accumulates per pixel) for the masks; finite differences of the
 mask L1 for its gradient; a closed form (the covered fraction of a square) for the mask scene's render."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -13,28 +11,19 @@ import drjit as dr
 import mitsuba as mi
 
 from foundation.mesh import write_ply
-from inverse.morph import MorphBenchmarkSettings, MorphSettings, load_morph_benchmark, make_morph_benchmark, run_morph
-
-ARMADILLO = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
+from inverse.morph import MorphSettings, run_morph
 
 
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    out = tmp_path_factory.mktemp("masks") / "armadillo"
-    s = MorphBenchmarkSettings(n_views=8, resolution=40, spp=8, coarse_vertices=800)
-    return load_morph_benchmark(make_morph_benchmark(ARMADILLO, out, s, show_progress=False))
-
-
-def test_photo_masks_are_the_truths_coverage_as_mitsubas_film_counts_it(tiny):
+def test_photo_masks_are_the_truths_coverage_as_mitsubas_film_counts_it(small_armadillo):
     from inverse.morph import photo_masks, sensor_dict
 
-    masks = photo_masks(tiny, 40, [0, 3])
+    masks = photo_masks(small_armadillo, 48, [0, 3])
     assert sorted(masks) == [0, 3]
     truth = mi.load_dict({"type": "scene", "integrator": {"type": "direct"},
-                          "gt": {"type": "ply", "filename": str(tiny.ground_truth)}})
+                          "gt": {"type": "ply", "filename": str(small_armadillo.ground_truth)}})
     for i, m in masks.items():
-        assert m.shape == (40, 40) and m.dtype == np.float32 and 0.0 <= m.min() and m.max() <= 1.0
-        sd = sensor_dict(tiny.meta.cameras[i], 40, tiny.meta.fov)
+        assert m.shape == (48, 48) and m.dtype == np.float32 and 0.0 <= m.min() and m.max() <= 1.0
+        sd = sensor_dict(small_armadillo.meta.cameras[i], 48, small_armadillo.meta.fov)
         sd["film"]["pixel_format"] = "rgba"
         alpha = np.asarray(mi.render(truth, sensor=mi.load_dict(sd), spp=256, seed=100 + i))[..., 3]
         # both are Monte-Carlo estimates of the same coverage (64 and 256 samples a pixel): they agree inside and
@@ -105,7 +94,7 @@ def test_the_mask_l1_pulls_a_silhouette_towards_the_target_as_finite_differences
     assert abs(ad - fd) < 0.15 * abs(fd), (ad, fd)
 
 
-def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(tiny, tmp_path):
+def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(small_armadillo, tmp_path):
     """20 iterations at mask weight 1 from the coarse input: the mask L1 over the training views falls by a tenth or
     more (the photos alone: the same run with weight 0 is reported beside it); the weight is part of the checkpoint's
     settings only when it is not 0 (runs before it resume)."""
@@ -114,33 +103,33 @@ def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(tiny, tmp_
     from inverse.morph import mask_scene
 
     def mask_l1(ply):
-        masks = photo_masks(tiny, 40, tiny.meta.train)
+        masks = photo_masks(small_armadillo, 48, small_armadillo.meta.train)
         scene = mask_scene(ply)
         from inverse.morph import sensor_dict
         err = []
         for i, m in masks.items():
-            img = np.asarray(mi.render(scene, sensor=mi.load_dict(sensor_dict(tiny.meta.cameras[i], 40, tiny.meta.fov)),
+            img = np.asarray(mi.render(scene, sensor=mi.load_dict(sensor_dict(small_armadillo.meta.cameras[i], 48, small_armadillo.meta.fov)),
                                        spp=64, seed=i))[..., 0]
             err.append(np.abs((1.0 - img) - m).mean())
         return float(np.mean(err))
 
-    s = MorphSettings(iterations=20, resolution=40, min_vertices=None, check_every=10, validation_fraction=0.5,
+    s = MorphSettings(iterations=20, resolution=48, min_vertices=None, check_every=10, validation_fraction=0.5,
                       mask_weight=1.0, early_stop=False)
-    r = run_morph(tiny, tmp_path / "m", s, show_progress=False)
-    start = mask_l1(tiny.coarse)
+    r = run_morph(small_armadillo, tmp_path / "m", s, show_progress=False)
+    start = mask_l1(small_armadillo.coarse)
     after = mask_l1(tmp_path / "m" / "morphed.ply")
     assert after < 0.9 * start, (start, after)
     assert r.spikes == 0
-    stage = MorphStage(tiny, tmp_path / "fp", s)
+    stage = MorphStage(small_armadillo, tmp_path / "fp", s)
     assert stage.fingerprint()["settings"]["mask_weight"] == 1.0
-    plain = MorphStage(tiny, tmp_path / "fp0", MorphSettings(resolution=40, min_vertices=None))
+    plain = MorphStage(small_armadillo, tmp_path / "fp0", MorphSettings(resolution=48, min_vertices=None))
     assert "mask_weight" not in plain.fingerprint()["settings"] and not plain.sky
 
 
-def test_the_gcn_morph_refuses_the_silhouette_loss_before_any_output(tiny, tmp_path):
+def test_the_gcn_morph_refuses_the_silhouette_loss_before_any_output(small_armadillo, tmp_path):
     from foundation.errors import UsageError
     from inverse.morph import run_gcn_morph
 
     with pytest.raises(UsageError, match="^mask_weight: the GCN morph"):
-        run_gcn_morph(tiny, tmp_path / "g", MorphSettings(mask_weight=1.0), show_progress=False)
+        run_gcn_morph(small_armadillo, tmp_path / "g", MorphSettings(mask_weight=1.0), show_progress=False)
     assert not (tmp_path / "g").exists()
