@@ -32,10 +32,9 @@ def test_photo_masks_are_the_truths_coverage_as_mitsubas_film_counts_it(small_ar
         assert 0.05 < m.mean() < 0.95  # the object is in the frame, with background around it
 
 
-def _square_ply(path, x=0.0, flip=False):
+def _square_ply(path, x=0.0):
     v = np.array([[-.5, -.5, 0], [.5, -.5, 0], [.5, .5, 0], [-.5, .5, 0]], np.float64) + [x, 0, 0]
-    f = np.array([[0, 1, 2], [0, 2, 3]]) if not flip else np.array([[0, 2, 1], [0, 3, 2]])
-    write_ply(path, v, f, np.full((4, 3), 0.5))
+    write_ply(path, v, np.array([[0, 1, 2], [0, 2, 3]]), np.full((4, 3), 0.5))
     return path
 
 
@@ -96,20 +95,18 @@ def test_the_mask_l1_pulls_a_silhouette_towards_the_target_as_finite_differences
 
 def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(small_armadillo, tmp_path):
     """20 iterations at mask weight 1 from the coarse input: the mask L1 over the training views falls by a tenth or
-    more (the photos alone: the same run with weight 0 is reported beside it); the weight is part of the checkpoint's
-    settings only when it is not 0 (runs before it resume)."""
-    from inverse.morph import photo_masks
-    from inverse.morph import MorphStage
-    from inverse.morph import mask_scene
+    more; the weight is part of the checkpoint's settings only when it is not 0 (runs before it resume)."""
+    from inverse.morph import MorphStage, mask_scene, photo_masks, sensor_dict
+
+    meta = small_armadillo.meta
+    masks = photo_masks(small_armadillo, 48, meta.train)
 
     def mask_l1(ply):
-        masks = photo_masks(small_armadillo, 48, small_armadillo.meta.train)
         scene = mask_scene(ply)
-        from inverse.morph import sensor_dict
         err = []
         for i, m in masks.items():
-            img = np.asarray(mi.render(scene, sensor=mi.load_dict(sensor_dict(small_armadillo.meta.cameras[i], 48, small_armadillo.meta.fov)),
-                                       spp=64, seed=i))[..., 0]
+            sensor = mi.load_dict(sensor_dict(meta.cameras[i], 48, meta.fov))
+            img = np.asarray(mi.render(scene, sensor=sensor, spp=64, seed=i))[..., 0]
             err.append(np.abs((1.0 - img) - m).mean())
         return float(np.mean(err))
 

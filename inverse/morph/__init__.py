@@ -18,7 +18,7 @@ Other features use only the names below.
 """
 
 from .benchmark import (TRUTH_NORMALS, ARTIFACT_REGIONS, Camera, MorphBenchmark, MorphBenchmarkMeta, MorphBenchmarkSettings,
-                        artifact_masks, load_morph_benchmark, make_morph_benchmark, photo_masks, sensor_dict, silhouette_margins,
+                        artifact_masks, load_morph_benchmark, make_morph_benchmark, sensor_dict, silhouette_margins,
                         truth_scene, truth_start_benchmark)
 from .evaluate import MorphEvaluation, evaluate_morph
 from .errors import ErrorReport, SurfaceErrors, benchmark_errors, benchmark_surface_errors, surface_errors
@@ -30,7 +30,7 @@ from .batch import load_result, run_item
 from .run import (MORPH_SEED_MAX, PLANARITY_WHERE, PRIOR_TIES, Candidate, ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, MorphStage,
                   PlanarityDecision, StepSelection, TracePoint, candidate_settings, light_choice_draws, run_morph, start_mesh)
 from .suite import SUITE, KINDS, UNSEEN, suite_mesh
-from .scene import MODES, mask_scene, morph_scene, photo_at, projective_integrator, render_views, saturated_silhouette
+from .scene import MODES, mask_scene, morph_scene, photo_at, photo_masks, projective_integrator, render_views, saturated_silhouette
 
 __all__ = [
     "MORPH_SEED_MAX", "PLANARITY_WHERE", "PRIOR_TIES", "TRUTH_NORMALS", "ARTIFACT_REGIONS", "Camera", "ErrorReport", "SurfaceErrors", "benchmark_errors", "benchmark_surface_errors", "surface_errors", "Candidate", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",

@@ -454,24 +454,6 @@ def truth_scene(bench: "MorphBenchmark", integrator: dict | None = None) -> mi.S
                          **truth_shapes(bench.path, meta.kind, meta.settings)})
 
 
-def photo_masks(bench: "MorphBenchmark", res: int, views: list[int] | None = None, spp: int = 64
-                ) -> dict[int, np.ndarray]:
-    """The photos' masks (alpha): per view (``views``; None: every camera), the fraction of each pixel the truth
-    covers, (res, res) float32 in [0, 1], rendered from the benchmark's truth at ``spp`` (seed = the view), as a
-    segmentation of the photos gives. A benchmark of real photos would carry its own."""
-    meta = bench.meta
-    scene = mi.load_dict({"type": "scene", "integrator": {"type": "direct"},
-                          "env": {"type": "constant", "radiance": 1.0},
-                          "gt": {"type": "ply", "filename": str(bench.ground_truth),
-                                 "bsdf": {"type": "diffuse", "reflectance": 0.0}}})
-    out = {}
-    for i in (range(len(meta.cameras)) if views is None else views):
-        sensor = mi.load_dict(sensor_dict(meta.cameras[int(i)], res, meta.fov))
-        sky = np.asarray(mi.render(scene, sensor=sensor, spp=spp, seed=int(i)))[..., 0]
-        out[int(i)] = np.clip(1.0 - sky, 0.0, 1.0).astype(np.float32)
-    return out
-
-
 def make_morph_benchmark(source: str | Path, out: str | Path, s: MorphBenchmarkSettings | None = None,
                          show_progress: bool = True) -> Path:
     """Build a benchmark folder from a mesh file or ``"village"``."""

@@ -57,13 +57,13 @@ from foundation.optim_state import load_optimizer_state, optimizer_state
 from foundation.quantile_adam import QuantileAdam
 from foundation.scene import mitsuba_log_level
 
-from .benchmark import MorphBenchmark, photo_masks, sensor_dict
+from .benchmark import MorphBenchmark, sensor_dict
 from .evaluate import MorphEvaluation, evaluate_morph
 from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (PleatReport, RepairReport, SpikeReport, TurnReport, iron_border_turns, iron_spikes, remesh,
                         repair_flips, undo_flips, unfold_pleats)
-from .scene import (MODES, inward_thickness, mask_scene, morph_scene, photo_l1, photo_saturation, photo_tensors,
-                    projective_integrator, render_views, upsample_bilinear, views_seeing)
+from .scene import (MODES, inward_thickness, mask_scene, morph_scene, photo_l1, photo_masks, photo_saturation,
+                    photo_tensors, projective_integrator, render_views, upsample_bilinear, views_seeing)
 
 #: largest run seed: render seeds are seed·7919 + step·101 + view and must stay below 2³¹
 MORPH_SEED_MAX = 200_000
@@ -263,7 +263,7 @@ class MorphSettings:
     #: 3,000 times the others'). 0 = every pixel counts (runs before 2026-11-28, evening).
     saturation: float = 4.0
     #: weight of a silhouette L1 beside the photos' (eq. 4.3): the mesh's coverage of each pixel against the photos'
-    #: masks (:func:`~inverse.morph.scene.mask_scene`, :func:`~inverse.morph.benchmark.photo_masks`), the same views
+    #: masks (:func:`~inverse.morph.scene.mask_scene`, :func:`~inverse.morph.scene.photo_masks`), the same views
     #: and seeds as the step. Every silhouette then pulls with contrast 1, where the photos' own contrast can be
     #: small (a head's skin against the sky): josie@0's silhouettes moved from 0.37 to only 0.26 px off the truth's
     #: without it (the bunny's 0.58 → 0.15), and its fixed candidate went from −27.4 % to −42.9 % Chamfer with it at 1

@@ -44,11 +44,26 @@ def mask_scene(mesh_ply: Path, integrator: dict | None = None) -> mi.Scene:
     """The mesh black under a constant white sky: a render is 1 − the mesh's coverage of each pixel. Every
     silhouette then has contrast 1 for the projective integrator's boundary term, whatever the lighting and colours
     beside it (the photos' own contrast there can be small: a head's skin against the sky). Compared with
-    :func:`~inverse.morph.benchmark.photo_masks` by ``MorphSettings.mask_weight``."""
+    :func:`photo_masks` by ``MorphSettings.mask_weight``."""
     shape = {"type": "ply", "filename": str(mesh_ply), "bsdf": {"type": "diffuse", "reflectance": 0.0}}
     with mitsuba_log_level(mi.LogLevel.Error):
         return mi.load_dict({"type": "scene", "integrator": integrator or {"type": "direct_projective", "sppi": 0},
                              "env": {"type": "constant", "radiance": 1.0}, "mesh": shape})
+
+
+def photo_masks(bench: MorphBenchmark, res: int, views: list[int] | None = None, spp: int = 64
+                ) -> dict[int, np.ndarray]:
+    """The photos' masks (alpha): per view (``views``; None: every camera), the fraction of each pixel the truth
+    covers, (res, res) float32 in [0, 1], rendered from the benchmark's truth at ``spp`` (seed = the view), as a
+    segmentation of the photos gives. A benchmark of real photos would carry its own."""
+    meta = bench.meta
+    scene = mask_scene(bench.ground_truth, integrator={"type": "direct"})
+    out = {}
+    for i in (range(len(meta.cameras)) if views is None else views):
+        sensor = mi.load_dict(sensor_dict(meta.cameras[int(i)], res, meta.fov))
+        sky = np.asarray(mi.render(scene, sensor=sensor, spp=spp, seed=int(i)))[..., 0]
+        out[int(i)] = np.clip(1.0 - sky, 0.0, 1.0).astype(np.float32)
+    return out
 
 
 def projective_integrator(spp: int, boundary_spp: int) -> dict:
