@@ -903,6 +903,12 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(bm, MorphBenchSettings, "mask_weight", type=float,
          help="the suite's runs add a silhouette L1 against the photos' masks at this weight "
               "(MorphSettings.mask_weight; 0: photos only)")
+    _opt(bm, MorphBenchSettings, "boundary_spp", type=int, help="the suite's runs' silhouette samples per pixel "
+         "(MorphSettings.boundary_spp; default: the image's spp)")
+    _opt(bm, MorphBenchSettings, "mask_every", help="the suite's runs render the masks every this many steps, at "
+         "this × the weight (MorphSettings.mask_every)")
+    _opt(bm, MorphBenchSettings, "mask_downsample", help="the suite's runs render the masks at the photos' resolution "
+         "// this (MorphSettings.mask_downsample)")
     _opt(bm, MorphBenchSettings, "seed", help="another draw of every benchmark (photos' noise, views) and of every "
                                                "morph's render seeds (work folder: OUT/morph_work_seed<k>)")
     _opt(bm, MorphBenchSettings, "cost_mesh", help="the mesh of --parts iteration")
@@ -1187,6 +1193,10 @@ def build_parser() -> argparse.ArgumentParser:
     _opt(mr, MorphSettings, "mask_weight", type=float,
          help="weight of a silhouette L1 beside the photos': the mesh's coverage of each pixel against the photos' "
               "masks (the benchmark's truth), so that every silhouette pulls with contrast 1; 0: photos only")
+    _opt(mr, MorphSettings, "mask_every", help="the silhouette L1 every this many steps only, at this × the weight "
+         "(the same mean gradient, cheaper)")
+    _opt(mr, MorphSettings, "mask_downsample", help="the masks and their renders at the photos' resolution // this "
+         "(cheaper; a coarser mask still places a silhouette to a fraction of its pixel)")
     _opt(mr, MorphSettings, "seed")
     _pool_opts(mr)
     mr.set_defaults(func=_cmd_morph_run)

@@ -846,6 +846,8 @@ def test_out_of_range_morph_settings_are_named():
                      ({"adam_quantile": 1.5}, "adam_quantile"), ({"saturation": -1.0}, "saturation"),
                      ({"saturation": float("nan")}, "saturation"), ({"lr": -0.1}, "lr"), ({"lr": float("nan")}, "lr"),
                      ({"mask_weight": -1.0}, "mask_weight"), ({"mask_weight": float("nan")}, "mask_weight"),
+                     ({"mask_every": 0}, "mask_every"), ({"mask_downsample": 0}, "mask_downsample"),
+                     ({"mask_downsample": 17}, "mask_downsample"),
                      ({"planarity_where": "unseen"}, "planarity_where"),
                      ({"planarity_select_where": "both"}, "planarity_select_where"),
                      ({"planarity_min_thickness": 0.0}, "planarity_min_thickness"),
@@ -1663,6 +1665,11 @@ def test_the_iteration_cost_bench_times_the_recipes_at_the_same_vertices(small_a
     assert (issue.indirect_every, issue.colour_lambda, issue.validation_views) == (0, 0.0, 0)
     assert (plain.indirect_every, plain.colour_lambda) == (0, 0.0) and plain.validation_views
     assert light.indirect_every and light.colour_lambda and light.validation_views
+    # with a silhouette loss the bench times the light run with it too, at the bench's mask and boundary samples
+    assert "defaults_light_mask" not in recipes
+    m = cost_recipes(MorphBenchSettings(mask_weight=1.0, mask_downsample=2, boundary_spp=1))["defaults_light_mask"]
+    assert (m.mask_weight, m.mask_every, m.mask_downsample, m.boundary_spp) == (1.0, 1, 2, 1)
+    assert (m.indirect_every, m.colour_lambda) == (light.indirect_every, light.colour_lambda)
     out = iteration_cost(small_armadillo, recipes, iterations=2, rounds=2, tmp=tmp_path)
     assert len(set(out["vertices"].values())) == 1 and out["views"]
     for k in recipes:

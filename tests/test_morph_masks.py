@@ -130,3 +130,42 @@ def test_the_gcn_morph_refuses_the_silhouette_loss_before_any_output(small_armad
     with pytest.raises(UsageError, match="^mask_weight: the GCN morph"):
         run_gcn_morph(small_armadillo, tmp_path / "g", MorphSettings(mask_weight=1.0), show_progress=False)
     assert not (tmp_path / "g").exists()
+
+
+def test_a_cheaper_mask_renders_every_kth_step_at_k_times_the_weight_and_a_coarser_resolution(small_armadillo,
+                                                                                              tmp_path):
+    """``mask_every`` 2, ``mask_downsample`` 2 at 48²: the photos' masks are 24²; at an odd step the loss is the
+    photos' alone (equal to a run without masks, same seed, same views), at an even step it is that plus 2 × the
+    mask L1 of 24² renders (computed here from the same scene and seed); both fields enter the fingerprint only
+    when they change the steps. A mask under 8² is refused by name."""
+    from foundation.errors import UsageError
+    from inverse.morph import MorphStage, render_views
+
+    # conftest runs Dr.Jit on one thread: the two stages' photo renders agree bit for bit
+    base = dict(resolution=48, min_vertices=None, validation_fraction=0.5, seed=3)
+    cheap = MorphStage(small_armadillo, tmp_path / "c", MorphSettings(mask_weight=1.0, mask_every=2,
+                                                                       mask_downsample=2, **base))
+    plain = MorphStage(small_armadillo, tmp_path / "p", MorphSettings(**base))
+    assert {tuple(t.shape) for t in cheap.sky.values()} == {(24, 24, 3)}
+    meta, s = small_armadillo.meta, cheap.s
+    for it in (0, 1):
+        state = cheap.rng.bit_generator.state
+        views = cheap.rng.choice(cheap.train_ids, size=min(s.views_per_step, len(cheap.train_ids)), replace=False)
+        cheap.rng.bit_generator.state = state
+        lc, lp = cheap.step(it).loss, plain.step(it).loss
+        if it % 2:
+            assert lc == lp, (it, lc, lp)
+            continue
+        skies = render_views(cheap.mask_scene, cheap.mask_params, meta.cameras, views, 24, meta.fov, s.spp,
+                             s.seed * 7919 + it * 101 + 1_000_003, integrator_spp=not cheap.shared_spp)
+        l1 = np.mean([np.abs(np.asarray(img)[..., :3] - np.asarray(cheap.sky[int(i)])).mean()
+                      for img, i in zip(skies, views)])
+        assert l1 > 0.001 and abs((lc - lp) - 2.0 * l1) < 1e-4 * max(1.0, lc), (lc, lp, l1)
+    fp = cheap.fingerprint()["settings"]
+    assert fp["mask_every"] == 2 and fp["mask_downsample"] == 2
+    assert "mask_every" not in plain.fingerprint()["settings"]
+    assert "mask_downsample" not in plain.fingerprint()["settings"]
+    cheap.close()
+    plain.close()
+    with pytest.raises(UsageError, match="^mask_downsample: 8 leaves 6² masks"):
+        MorphStage(small_armadillo, tmp_path / "x", MorphSettings(mask_weight=1.0, mask_downsample=8, **base))

@@ -269,6 +269,12 @@ class MorphSettings:
     #: without it (the bunny's 0.58 → 0.15), and its fixed candidate went from −27.4 % to −42.9 % Chamfer with it at 1
     #: (docs/morph.md: "The silhouettes on their own"). 0 = photos only (every run before 2026-11-29, evening).
     mask_weight: float = 0.0
+    #: the silhouette L1 every ``mask_every``-th step only, at ``mask_every`` × the weight (the same mean gradient),
+    #: its renders and the photos' masks at resolution // ``mask_downsample`` (coverage is an area: a coarser mask
+    #: still places a silhouette to a fraction of its pixel). Each mask render costs about as much as the photo's
+    #: (its silhouettes' boundary samples dominate both); these make it cheaper (docs/morph.md: "A cheaper mask").
+    mask_every: int = 1
+    mask_downsample: int = 1
     seed: int = 0
 
     def __post_init__(self):
@@ -280,6 +286,8 @@ class MorphSettings:
         validate.non_negative("lr", self.lr)
         validate.non_negative("lr_colour", self.lr_colour)
         validate.non_negative("mask_weight", self.mask_weight)
+        validate.integer("mask_every", self.mask_every, 1)
+        validate.integer("mask_downsample", self.mask_downsample, 1, 16)
         validate.in_range("adam_quantile", self.adam_quantile, 0.0, 1.0, lo_open=True)
         validate.non_negative("saturation", self.saturation)
         validate.in_range("lr_final", self.lr_final, 0.0, 1.0)
@@ -595,6 +603,10 @@ class MorphStage(DrJitStage):
         self.name = f"morph {bench.meta.kind}"
         meta = bench.meta
         self.res = s.resolution or meta.resolution
+        self.mask_res = self.res // s.mask_downsample
+        if s.mask_weight > 0 and self.mask_res < 8:
+            raise UsageError(f"mask_downsample: {s.mask_downsample} leaves {self.mask_res}² masks of the {self.res}² "
+                             "photos (at least 8² are needed)")
         self.size = meta.scene_size
         self.photos = photo_tensors(bench, self.res)
         self.saturation_level, self.photo_hot = photo_saturation(self.photos, meta.train, s.saturation)
@@ -621,7 +633,7 @@ class MorphStage(DrJitStage):
         self.shared_spp = s.boundary_spp is None or s.boundary_spp == s.spp
         #: the photos' masks as the mask scene renders them (1 − coverage, RGB), training views only
         self.sky = {i: mi.TensorXf(aligned(np.repeat((1.0 - m)[..., None], 3, axis=-1)))
-                    for i, m in photo_masks(bench, self.res, self.train_ids).items()} if s.mask_weight > 0 else {}
+                    for i, m in photo_masks(bench, self.mask_res, self.train_ids).items()} if s.mask_weight > 0 else {}
         self._build(v0, v0, f0, c0)
         if self.planarity.weight and dr.width(self.pairs) == 0:  # no manifold edge (an unwelded soup)
             self.planarity.weight = 0.0
@@ -707,6 +719,8 @@ class MorphStage(DrJitStage):
             (("adam_quantile",) if self.s.adam_quantile == 1.0 else ()) + \
             (("saturation",) if self.s.saturation == 0 else ()) + \
             (("mask_weight",) if self.s.mask_weight == 0 else ()) + \
+            (("mask_every",) if self.s.mask_every == 1 or self.s.mask_weight == 0 else ()) + \
+            (("mask_downsample",) if self.s.mask_downsample == 1 or self.s.mask_weight == 0 else ()) + \
             (("planarity_where",) if self.s.planarity_where == "all" else ()) + \
             (("planarity_min_thickness",) if self.s.planarity_where != "thick" else ())
         settings = {k: v for k, v in asdict(self.s).items() if k not in between + finish_only + same}
@@ -871,16 +885,16 @@ class MorphStage(DrJitStage):
         for img, i in zip(imgs, views):
             loss += self._l1(img, i)  # eq. 4.3, L1
         loss = loss / len(views)
-        if s.mask_weight > 0:
+        if s.mask_weight > 0 and it % s.mask_every == 0:
             self.mask_params["mesh.vertex_positions"] = flat
             with mitsuba_log_level(mi.LogLevel.Error):
                 self.mask_params.update()
-            skies = render_views(self.mask_scene, self.mask_params, meta.cameras, views, self.res, meta.fov, s.spp,
+            skies = render_views(self.mask_scene, self.mask_params, meta.cameras, views, self.mask_res, meta.fov, s.spp,
                                  s.seed * 7919 + it * 101 + 1_000_003, integrator_spp=not self.shared_spp)
             silhouettes = 0
             for img, i in zip(skies, views):
                 silhouettes += dr.mean(dr.abs(img[..., :3] - self.sky[int(i)]), axis=None)
-            loss += s.mask_weight * silhouettes / len(views)
+            loss += s.mask_weight * s.mask_every * silhouettes / len(views)
         if self.planarity.weight > 0:
             loss += self.planarity.weight * planarity_prior(dr.unravel(mi.Point3f, flat), self.f_mi, self.pairs,
                                                             self.sigma)

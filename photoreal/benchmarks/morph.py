@@ -69,6 +69,11 @@ class MorphBenchSettings:
     #: the suite's runs add a silhouette L1 at this weight (:attr:`~inverse.morph.MorphSettings.mask_weight`; 0: photos
     #: only, every suite before 2026-11-29 evening)
     mask_weight: float = MorphSettings.mask_weight
+    #: the suite's runs' silhouette samples per pixel (:attr:`~inverse.morph.MorphSettings.boundary_spp`; None:
+    #: the image's ``spp``)
+    boundary_spp: int | None = MorphSettings.boundary_spp
+    mask_every: int = MorphSettings.mask_every  #: (:attr:`~inverse.morph.MorphSettings.mask_every`)
+    mask_downsample: int = MorphSettings.mask_downsample  #: (:attr:`~inverse.morph.MorphSettings.mask_downsample`)
 
     def __post_init__(self):
         validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
@@ -78,6 +83,9 @@ class MorphBenchSettings:
         validate.in_range("step_select_quantile", self.step_select_quantile, 0.0, 1.0, lo_open=True)
         validate.non_negative("saturation", self.saturation)
         validate.non_negative("mask_weight", self.mask_weight)
+        validate.integer("mask_every", self.mask_every, 1)
+        validate.integer("mask_downsample", self.mask_downsample, 1, 16)
+        validate.optional(validate.integer, "boundary_spp", self.boundary_spp, 1, 1 << 16)
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
                      "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
@@ -279,7 +287,8 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
     benches = {n: _suite_bench(n, work, _suite_benchmark_settings(s), tag) for n in s.suite}
     settings = MorphSettings(iterations=s.iterations, seed=s.seed, prior_ties=s.prior_ties,
                              adam_quantile=s.adam_quantile, lr=s.lr, step_select_quantile=s.step_select_quantile,
-                             saturation=s.saturation, mask_weight=s.mask_weight)
+                             saturation=s.saturation, mask_weight=s.mask_weight, mask_every=s.mask_every,
+                             mask_downsample=s.mask_downsample, boundary_spp=s.boundary_spp)
     for b in benches.values():  # the start remeshes made here, once, before the workers read them (stored_remesh)
         start_mesh(load_morph_benchmark(b), settings)
     items = [_item(n, benches[n], work / f"suite_{n}{tag}", settings) for n in s.suite]
@@ -371,12 +380,19 @@ def cost_recipes(s: MorphBenchSettings) -> dict[str, MorphSettings]:
     """The recipes the "iteration" part times. ``issue_recipe``: the defaults issue 17 was filed against
     (constant λ 2, the planarity rule, plain colour steps, no validation renders). ``defaults``: today's defaults
     where the photos keep the plain run (validation renders every ``check_every``). ``defaults_light``: where they
-    keep the light run (also the light estimate every ``light_select_every`` and colour large steps)."""
+    keep the light run (also the light estimate every ``light_select_every`` and colour large steps).
+    ``defaults_light_mask`` (only with ``s.mask_weight`` > 0): the light run with the silhouette L1 at the bench's
+    mask settings and ``boundary_spp``."""
     d = MorphSettings(seed=s.seed)
     issue = replace(d, lambda_select=(), planarity_select=(), colour_prior_weight=0.0, validation_views=0,
                     early_stop=False, light_select_every=0)
-    return {"issue_recipe": issue, "defaults": candidate_settings(d, Candidate(lambda_start=d.lambda_)),
-            "defaults_light": candidate_settings(d, Candidate(lambda_start=d.lambda_, light=True))}
+    out = {"issue_recipe": issue, "defaults": candidate_settings(d, Candidate(lambda_start=d.lambda_)),
+           "defaults_light": candidate_settings(d, Candidate(lambda_start=d.lambda_, light=True))}
+    if s.mask_weight > 0:  # the light run with the bench's silhouette loss (its masks every mask_every steps)
+        out["defaults_light_mask"] = replace(out["defaults_light"], mask_weight=s.mask_weight,
+                                             mask_every=s.mask_every, mask_downsample=s.mask_downsample,
+                                             boundary_spp=s.boundary_spp)
+    return out
 
 
 def iteration_cost(bench, recipes: dict[str, MorphSettings], iterations: int, rounds: int, tmp: Path,
@@ -439,6 +455,8 @@ def iteration_cost(bench, recipes: dict[str, MorphSettings], iterations: int, ro
                             "indirect_spp": rs.indirect_spp, "indirect_reference": rs.indirect_reference,
                             "indirect_downsample": rs.indirect_downsample,
                             "colour_lambda": rs.colour_lambda,
+                            "mask_weight": rs.mask_weight, "mask_every": rs.mask_every,
+                            "mask_downsample": rs.mask_downsample,
                             "check_every": rs.check_every if rs.validation_views else None}
                         for k, rs in recipes.items()},
             "blocks": blocks, "s_per_iteration": med}
@@ -602,7 +620,9 @@ def recorded_run_settings(settings: dict) -> dict:
     d = MorphBenchSettings()
     got = {k: settings.get(k) or getattr(d, k) for k in ("iterations", "truth_normals", "adam_quantile", "lr")}
     return {**got, "step_select_quantile": settings.get("step_select_quantile") or 1.0,
-            "saturation": settings.get("saturation") or 0.0, "mask_weight": settings.get("mask_weight") or 0.0}
+            "saturation": settings.get("saturation") or 0.0, "mask_weight": settings.get("mask_weight") or 0.0,
+            "mask_every": settings.get("mask_every") or 1, "mask_downsample": settings.get("mask_downsample") or 1,
+            "boundary_spp": settings.get("boundary_spp")}
 
 
 def seeds_summary(paths: list[str | Path]) -> dict:
@@ -732,7 +752,8 @@ def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True)
             raise UsageError(f"{p}: its work folder {work} is gone (run the bench with --keep-work)")
         s = MorphSettings(iterations=got["iterations"], seed=seed, adam_quantile=got["adam_quantile"], lr=got["lr"],
                           step_select_quantile=got["step_select_quantile"], saturation=got["saturation"],
-                          mask_weight=got["mask_weight"])
+                          mask_weight=got["mask_weight"], mask_every=got["mask_every"],
+                          mask_downsample=got["mask_downsample"], boundary_spp=got["boundary_spp"])
         todo += [(f"{n}@{seed}", work / f"bench_{n}{tag}", work / f"suite_{n}{tag}", s) for n in suite["meshes"]]
     todo = [t for t in todo if (t[2] / "lambda_select" / "light_decision.json").is_file()]  # others made none
     rows = {key: light_choice_draws(load_morph_benchmark(bench), out, s, draws)
