@@ -403,7 +403,7 @@ def test_a_kept_quantile_step_runs_on_and_carries_into_the_light_choice(small_ar
 
     s = MorphSettings(iterations=6, checkpoint_every=2, resolution=32, min_vertices=None, check_every=2,
                       validation_fraction=0.5, early_stop=False, lambda_select=(2.0, 25.0), planarity_select=(),
-                      prior_margin=0.0, step_select_lr=0.1)
+                      prior_margin=0.0, step_select_lr=0.1, mask_weight=0.0, boundary_spp=None)  # as measured
     r = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
     step, light = r.step_selection, r.light_selection
     assert step.kept and step.validation_l1_quantile < step.validation_l1_uniform and step.at_iteration == 2
@@ -815,7 +815,8 @@ def test_gcn_morph_lowers_the_photo_loss_through_the_renderer(small_armadillo, t
     v, f, c = read_ply_colours(bdir / "coarse.ply")
     write_ply(bdir / "coarse.ply", v, f, np.full_like(c, 0.15))
     bench = load_morph_benchmark(bdir)
-    m = run_gcn_morph(bench, tmp_path / "run", MorphSettings(iterations=12, resolution=32), show_progress=False)
+    m = run_gcn_morph(bench, tmp_path / "run", MorphSettings(iterations=12, resolution=32, mask_weight=0.0),
+                      show_progress=False)
     views = bench.meta.train
     before = _photo_l1(bench, bench.coarse, views, 32)
     after = _photo_l1(bench, tmp_path / "run" / "morphed.ply", views, 32)
@@ -826,8 +827,10 @@ def test_gcn_morph_lowers_the_photo_loss_through_the_renderer(small_armadillo, t
 
 
 def test_forbid_flips_leaves_no_inverted_triangles(small_armadillo, tmp_path):
+    # photos only, one sample count (as measured before the silhouette loss): the flips at lr 0.3 are the photos'
     m = run_morph(small_armadillo, tmp_path, MorphSettings(iterations=10, resolution=48, lr=0.3, forbid_flips=True,
-                                                          min_vertices=3000), show_progress=False)
+                                                          min_vertices=3000, mask_weight=0.0, boundary_spp=None),
+                  show_progress=False)
     assert m.inverted_triangles == 0
     assert m.psnr_heldout_morphed > m.psnr_heldout_input
     assert m.vertices > 2000  # the 800-vertex input was remeshed up to ~3k (min_vertices)
@@ -1665,11 +1668,15 @@ def test_the_iteration_cost_bench_times_the_recipes_at_the_same_vertices(small_a
     assert (issue.indirect_every, issue.colour_lambda, issue.validation_views) == (0, 0.0, 0)
     assert (plain.indirect_every, plain.colour_lambda) == (0, 0.0) and plain.validation_views
     assert light.indirect_every and light.colour_lambda and light.validation_views
-    # with a silhouette loss the bench times the light run with it too, at the bench's mask and boundary samples
-    assert "defaults_light_mask" not in recipes
-    m = cost_recipes(MorphBenchSettings(mask_weight=1.0, mask_downsample=2, boundary_spp=1))["defaults_light_mask"]
-    assert (m.mask_weight, m.mask_every, m.mask_downsample, m.boundary_spp) == (1.0, 1, 2, 1)
-    assert (m.indirect_every, m.colour_lambda) == (light.indirect_every, light.colour_lambda)
+    # today's recipes carry the bench's silhouette loss and boundary samples (the defaults unless set); the issue's
+    # recipe had neither
+    assert (issue.mask_weight, issue.boundary_spp) == (0.0, None)
+    for r in (plain, light):
+        assert (r.mask_weight, r.mask_every, r.mask_downsample, r.boundary_spp) == \
+            (MorphSettings.mask_weight, MorphSettings.mask_every, MorphSettings.mask_downsample,
+             MorphSettings.boundary_spp)
+    other = cost_recipes(MorphBenchSettings(mask_weight=0.0, boundary_spp=None))["defaults_light"]
+    assert (other.mask_weight, other.boundary_spp) == (0.0, None)
     out = iteration_cost(small_armadillo, recipes, iterations=2, rounds=2, tmp=tmp_path)
     assert len(set(out["vertices"].values())) == 1 and out["views"]
     for k in recipes:

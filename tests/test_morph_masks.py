@@ -4,6 +4,8 @@ and a run that uses it.
 Oracles: Mitsuba's own film alpha (the coverage it accumulates per pixel) for the masks; finite differences of the
 mask L1 for its gradient; a closed form (the covered fraction of a square) for the mask scene's render."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -94,8 +96,10 @@ def test_the_mask_l1_pulls_a_silhouette_towards_the_target_as_finite_differences
 
 
 def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(small_armadillo, tmp_path):
-    """20 iterations at mask weight 1 from the coarse input: the mask L1 over the training views falls by a tenth or
-    more; the weight is part of the checkpoint's settings only when it is not 0 (runs before it resume)."""
+    """20 iterations from the coarse input under the defaults (weight 2, masks at half resolution, one boundary
+    sample), against the same run on the photos alone: the silhouettes' L1 over the training views (at full
+    resolution) falls by 5 % or more, and lies 5 % or more below the photos-only run's; the weight is part of the
+    checkpoint's settings only when it is not 0 (runs before it resume)."""
     from inverse.morph import MorphStage, mask_scene, photo_masks, sensor_dict
 
     meta = small_armadillo.meta
@@ -111,25 +115,36 @@ def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(small_arma
         return float(np.mean(err))
 
     s = MorphSettings(iterations=20, resolution=48, min_vertices=None, check_every=10, validation_fraction=0.5,
-                      mask_weight=1.0, early_stop=False)
+                      early_stop=False)
     r = run_morph(small_armadillo, tmp_path / "m", s, show_progress=False)
+    run_morph(small_armadillo, tmp_path / "p", replace(s, mask_weight=0.0), show_progress=False)
     start = mask_l1(small_armadillo.coarse)
-    after = mask_l1(tmp_path / "m" / "morphed.ply")
-    assert after < 0.9 * start, (start, after)
+    after, photos_only = mask_l1(tmp_path / "m" / "morphed.ply"), mask_l1(tmp_path / "p" / "morphed.ply")
+    # measured: 0.01615 → 0.01492 with the masks, 0.01648 without (the photos alone leave the outlines where they are)
+    assert after < 0.95 * start and after < 0.95 * photos_only, (start, after, photos_only)
     assert r.spikes == 0
     stage = MorphStage(small_armadillo, tmp_path / "fp", s)
-    assert stage.fingerprint()["settings"]["mask_weight"] == 1.0
-    plain = MorphStage(small_armadillo, tmp_path / "fp0", MorphSettings(resolution=48, min_vertices=None))
+    assert stage.fingerprint()["settings"]["mask_weight"] == MorphSettings.mask_weight == 2.0
+    plain = MorphStage(small_armadillo, tmp_path / "fp0", MorphSettings(resolution=48, min_vertices=None,
+                                                                          mask_weight=0.0))
     assert "mask_weight" not in plain.fingerprint()["settings"] and not plain.sky
 
 
-def test_the_gcn_morph_refuses_the_silhouette_loss_before_any_output(small_armadillo, tmp_path):
-    from foundation.errors import UsageError
-    from inverse.morph import run_gcn_morph
+def test_the_gcn_morph_runs_without_the_silhouette_loss_and_says_so():
+    """The GCN morph has no silhouette loss: settings that ask for one (the defaults do) run without it, with a
+    warning naming the parameter, and record 0; settings without one pass unchanged and silently."""
+    import warnings
 
-    with pytest.raises(UsageError, match="^mask_weight: the GCN morph"):
-        run_gcn_morph(small_armadillo, tmp_path / "g", MorphSettings(mask_weight=1.0), show_progress=False)
-    assert not (tmp_path / "g").exists()
+    from inverse.morph import gcn_settings
+
+    assert MorphSettings().mask_weight > 0
+    with pytest.warns(UserWarning, match=r"^mask_weight: the GCN morph has no silhouette loss.*2\.0 → 0"):
+        s = gcn_settings(MorphSettings(iterations=7))
+    assert s.mask_weight == 0.0 and s.iterations == 7
+    plain = MorphSettings(mask_weight=0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert gcn_settings(plain) is plain
 
 
 def test_a_cheaper_mask_renders_every_kth_step_at_k_times_the_weight_and_a_coarser_resolution(small_armadillo,
@@ -144,8 +159,8 @@ def test_a_cheaper_mask_renders_every_kth_step_at_k_times_the_weight_and_a_coars
     # conftest runs Dr.Jit on one thread: the two stages' photo renders agree bit for bit
     base = dict(resolution=48, min_vertices=None, validation_fraction=0.5, seed=3)
     cheap = MorphStage(small_armadillo, tmp_path / "c", MorphSettings(mask_weight=1.0, mask_every=2,
-                                                                       mask_downsample=2, **base))
-    plain = MorphStage(small_armadillo, tmp_path / "p", MorphSettings(**base))
+                                                                       mask_downsample=2, boundary_spp=1, **base))
+    plain = MorphStage(small_armadillo, tmp_path / "p", MorphSettings(mask_weight=0.0, **base))
     assert {tuple(t.shape) for t in cheap.sky.values()} == {(24, 24, 3)}
     meta, s = small_armadillo.meta, cheap.s
     for it in (0, 1):

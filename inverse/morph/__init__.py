@@ -22,7 +22,7 @@ from .benchmark import (TRUTH_NORMALS, ARTIFACT_REGIONS, Camera, MorphBenchmark,
                         truth_scene, truth_start_benchmark)
 from .evaluate import MorphEvaluation, evaluate_morph
 from .errors import ErrorReport, SurfaceErrors, benchmark_errors, benchmark_surface_errors, surface_errors
-from .gcn import GCNSettings, run_gcn_morph
+from .gcn import GCNSettings, gcn_settings, run_gcn_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (PleatReport, RepairReport, SpikeReport, TurnReport, border_zone, iron_border_turns, iron_spikes,
                         remesh, repair_flips, unfold_pleats)
@@ -37,7 +37,7 @@ __all__ = [
     "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "MorphStage", "PlanarityDecision",
     "RepairReport", "StepSelection", "artifact_masks", "candidate_settings", "light_choice_draws", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
     "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",
-    "render_views", "repair_flips", "run_gcn_morph", "run_item", "run_morph", "sensor_dict", "start_mesh",
+    "render_views", "repair_flips", "run_gcn_morph", "gcn_settings", "run_item", "run_morph", "sensor_dict", "start_mesh",
     "KINDS", "UNSEEN", "PleatReport", "SpikeReport", "iron_spikes", "SUITE", "TracePoint", "silhouette_margins", "saturated_silhouette", "suite_mesh", "truth_scene",
     "truth_start_benchmark", "TurnReport", "border_zone", "iron_border_turns",
     "unfold_pleats", "mask_scene", "photo_masks",

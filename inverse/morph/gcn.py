@@ -23,7 +23,8 @@ offsets are bounded but not smooth by construction.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +36,6 @@ import drjit as dr
 import mitsuba as mi
 
 from foundation import validate
-from foundation.errors import UsageError
 from foundation.bridge import torch_to_drjit_loss
 from foundation.files import file_digest
 from foundation.loop import LoopSettings, RunState, StepResult, TorchStage, rng_state, run_loop, set_rng_state
@@ -237,15 +237,22 @@ class GCNMorphStage(TorchStage):
         self.work_ply.unlink(missing_ok=True)
 
 
+def gcn_settings(s: MorphSettings) -> MorphSettings:
+    """``s`` as the GCN morph runs it: without the silhouette loss, which lives in the large-steps stage only (a
+    warning names it when ``s`` asks for one; the result's settings record 0)."""
+    if not s.mask_weight:
+        return s
+    warnings.warn(f"mask_weight: the GCN morph has no silhouette loss; it runs on the photos alone "
+                  f"(mask_weight {s.mask_weight} → 0)", stacklevel=3)
+    return replace(s, mask_weight=0.0)
+
+
 def run_gcn_morph(bench: MorphBenchmark, out: str | Path, s: MorphSettings | None = None,
                   g: GCNSettings | None = None, show_progress: bool = True,
                   budget_iterations: int | None = None) -> MorphResult | None:
     """Morph with a GCN whose offsets are trained by the image loss through Mitsuba (``dr.wrap``); resumable."""
-    s = s or MorphSettings()
+    s = gcn_settings(s or MorphSettings())
     g = g or GCNSettings()
-    if s.mask_weight:  # named before any output: the silhouette loss lives in the large-steps stage only
-        raise UsageError(f"mask_weight: the GCN morph has no silhouette loss (got {s.mask_weight}; use 0, or the "
-                         f"large-steps morph)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     stage = GCNMorphStage(bench, out, s, g)

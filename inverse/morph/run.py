@@ -102,7 +102,9 @@ class MorphSettings:
     #: discontinuities); None = ``spp``. They cost more than the image's own samples (village, 2 threads: the
     #: backward pass 0.51 s at 4, 0.43 s at 2, 0.30 s at 1); an unbiased estimate at any count (tested), but the
     #: suite's fits were worse at 2 (josie −24.9 % Chamfer, village −49.9 %, against −32.4 / −55.8 % at 4: docs/morph.md)
-    boundary_spp: int | None = None
+    #: without the silhouette loss below. With it (the default since 2026-11-29) the masks carry the outlines and 1
+    #: is enough: the default (docs/morph.md: "A cheaper mask").
+    boundary_spp: int | None = 1
     resolution: int | None = None  #: None = the benchmark's photo resolution
     remesh_input: bool = True  #: isotropic remesh of the input first (decimators leave slivers that flip)
     target_vertices: int | None = None  #: remesh the input to about this many vertices (None: see min_vertices)
@@ -267,14 +269,17 @@ class MorphSettings:
     #: and seeds as the step. Every silhouette then pulls with contrast 1, where the photos' own contrast can be
     #: small (a head's skin against the sky): josie@0's silhouettes moved from 0.37 to only 0.26 px off the truth's
     #: without it (the bunny's 0.58 → 0.15), and its fixed candidate went from −27.4 % to −42.9 % Chamfer with it at 1
-    #: (docs/morph.md: "The silhouettes on their own"). 0 = photos only (every run before 2026-11-29, evening).
-    mask_weight: float = 0.0
+    #: (docs/morph.md: "The silhouettes on their own"). The default 2, at half resolution with one boundary sample,
+    #: met every target on the draws it was run on where the photos alone failed (josie@0–2, face000@0) and costs
+    #: 0.90 × the issue's recipe per iteration (docs/morph.md: "A cheaper mask"). 0 = photos only (every run before
+    #: 2026-11-29, evening).
+    mask_weight: float = 2.0
     #: the silhouette L1 every ``mask_every``-th step only, at ``mask_every`` × the weight (the same mean gradient),
     #: its renders and the photos' masks at resolution // ``mask_downsample`` (coverage is an area: a coarser mask
     #: still places a silhouette to a fraction of its pixel). Each mask render costs about as much as the photo's
     #: (its silhouettes' boundary samples dominate both); these make it cheaper (docs/morph.md: "A cheaper mask").
     mask_every: int = 1
-    mask_downsample: int = 1
+    mask_downsample: int = 2
     seed: int = 0
 
     def __post_init__(self):

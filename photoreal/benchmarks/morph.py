@@ -154,7 +154,8 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, pool: PoolSettings,
     ours = run_morph(bench, work / f"{case}_speed_ours", base, show_progress=show_progress)
     tutorial = run_morph(bench, work / f"{case}_speed_tutorial",
                          replace(base, spp=s.baseline_spp, lambda_=25.0, lr=0.05 * 10 / 2, lr_final=1.0,
-                                 repair_flips=False, planarity_weight=0.0, colour_prior_weight=0.0),
+                                 repair_flips=False, planarity_weight=0.0, colour_prior_weight=0.0,
+                                 mask_weight=0.0, boundary_spp=None),  # the tutorial: photos only, one count
                          show_progress=show_progress)
 
     def item(key: str, settings: MorphSettings, **kw) -> Item:
@@ -176,7 +177,8 @@ def bench_case(case: str, work: Path, s: MorphBenchSettings, pool: PoolSettings,
     items += [item(f"stab_{k}", v) for k, v in stab_runs.items()]
     # four neighbouring views only: border regions unseen
     items.append(item("stab_few_views_4", short, train=bench.meta.train[:4]))
-    items.append(item("stab_gcn_image_loss_only", replace(short, iterations=min(60, short.iterations)), gcn=True))
+    items.append(item("stab_gcn_image_loss_only", replace(short, iterations=min(60, short.iterations),
+                                                          mask_weight=0.0), gcn=True))
     report = run_items(items, pool, desc=f"bench morph {case}", show_progress=show_progress)
     report.raise_if_failed()
     runs = {r.key: r.value for r in report.results}
@@ -380,19 +382,15 @@ def cost_recipes(s: MorphBenchSettings) -> dict[str, MorphSettings]:
     """The recipes the "iteration" part times. ``issue_recipe``: the defaults issue 17 was filed against
     (constant λ 2, the planarity rule, plain colour steps, no validation renders). ``defaults``: today's defaults
     where the photos keep the plain run (validation renders every ``check_every``). ``defaults_light``: where they
-    keep the light run (also the light estimate every ``light_select_every`` and colour large steps).
-    ``defaults_light_mask`` (only with ``s.mask_weight`` > 0): the light run with the silhouette L1 at the bench's
-    mask settings and ``boundary_spp``."""
-    d = MorphSettings(seed=s.seed)
+    keep the light run (also the light estimate every ``light_select_every`` and colour large steps). Both with the
+    bench's silhouette loss and boundary samples (``s.mask_weight`` …, ``s.boundary_spp``: today's defaults unless
+    the command sets them); the issue's recipe had neither (weight 0, one sample count)."""
+    d = MorphSettings(seed=s.seed, mask_weight=s.mask_weight, mask_every=s.mask_every,
+                      mask_downsample=s.mask_downsample, boundary_spp=s.boundary_spp)
     issue = replace(d, lambda_select=(), planarity_select=(), colour_prior_weight=0.0, validation_views=0,
-                    early_stop=False, light_select_every=0)
-    out = {"issue_recipe": issue, "defaults": candidate_settings(d, Candidate(lambda_start=d.lambda_)),
-           "defaults_light": candidate_settings(d, Candidate(lambda_start=d.lambda_, light=True))}
-    if s.mask_weight > 0:  # the light run with the bench's silhouette loss (its masks every mask_every steps)
-        out["defaults_light_mask"] = replace(out["defaults_light"], mask_weight=s.mask_weight,
-                                             mask_every=s.mask_every, mask_downsample=s.mask_downsample,
-                                             boundary_spp=s.boundary_spp)
-    return out
+                    early_stop=False, light_select_every=0, mask_weight=0.0, boundary_spp=None)
+    return {"issue_recipe": issue, "defaults": candidate_settings(d, Candidate(lambda_start=d.lambda_)),
+            "defaults_light": candidate_settings(d, Candidate(lambda_start=d.lambda_, light=True))}
 
 
 def iteration_cost(bench, recipes: dict[str, MorphSettings], iterations: int, rounds: int, tmp: Path,
