@@ -103,7 +103,7 @@ class MorphSettings:
     #: backward pass 0.51 s at 4, 0.43 s at 2, 0.30 s at 1); an unbiased estimate at any count (tested), but the
     #: suite's fits were worse at 2 (josie −24.9 % Chamfer, village −49.9 %, against −32.4 / −55.8 % at 4: docs/morph.md)
     #: without the silhouette loss below. With it (the default since 2026-11-29) the masks carry the outlines and 1
-    #: is enough: the default (docs/morph.md: "A cheaper mask").
+    #: is enough: the default (docs/morph.md: "A cheaper mask, and the default").
     boundary_spp: int | None = 1
     resolution: int | None = None  #: None = the benchmark's photo resolution
     remesh_input: bool = True  #: isotropic remesh of the input first (decimators leave slivers that flip)
@@ -271,13 +271,14 @@ class MorphSettings:
     #: without it (the bunny's 0.58 → 0.15), and its fixed candidate went from −27.4 % to −42.9 % Chamfer with it at 1
     #: (docs/morph.md: "The silhouettes on their own"). The default 2, at half resolution with one boundary sample,
     #: met every target on the draws it was run on where the photos alone failed (josie@0–2, face000@0) and costs
-    #: 0.90 × the issue's recipe per iteration (docs/morph.md: "A cheaper mask"). 0 = photos only (every run before
-    #: 2026-11-29, evening).
+    #: 0.86–0.91 × the issue's recipe per iteration (docs/morph.md: "A cheaper mask, and the default"). 0 = photos
+    #: only (every run before 2026-11-29, evening).
     mask_weight: float = 2.0
     #: the silhouette L1 every ``mask_every``-th step only, at ``mask_every`` × the weight (the same mean gradient),
     #: its renders and the photos' masks at resolution // ``mask_downsample`` (coverage is an area: a coarser mask
     #: still places a silhouette to a fraction of its pixel). Each mask render costs about as much as the photo's
-    #: (its silhouettes' boundary samples dominate both); these make it cheaper (docs/morph.md: "A cheaper mask").
+    #: (its silhouettes' boundary samples dominate both); these make it cheaper (docs/morph.md: "A cheaper mask, and
+    #: the default").
     mask_every: int = 1
     mask_downsample: int = 2
     seed: int = 0

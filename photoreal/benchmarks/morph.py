@@ -614,7 +614,8 @@ def recorded_run_settings(settings: dict) -> dict:
     """The settings of a ``bench morph`` result that change its runs, as the file recorded them; a file written
     before a field existed ran at what is now its default (vertex normals, uniform Adam's maximum, lr 0.05), except
     the step choice, the saturation mask and the silhouette loss: files before them ran without (quantile 1,
-    saturation 0, mask weight 0)."""
+    saturation 0, mask weight 0; before its cheaper form, masks every step at full resolution with one sample count
+    for the photo's and the silhouettes' gradients)."""
     d = MorphBenchSettings()
     got = {k: settings.get(k) or getattr(d, k) for k in ("iterations", "truth_normals", "adam_quantile", "lr")}
     return {**got, "step_select_quantile": settings.get("step_select_quantile") or 1.0,
