@@ -18,6 +18,10 @@ from inverse.morph import (KINDS, MORPH_SEED_MAX, PRIOR_TIES, SUITE, TRUTH_NORMA
                            start_mesh, suite_mesh, benchmark_surface_errors, truth_start_benchmark)
 
 
+#: the fields of the silhouette loss (and its boundary samples) that the bench passes to every run as they are
+SILHOUETTE_FIELDS = ("mask_weight", "mask_every", "mask_downsample", "boundary_spp")
+
+
 @dataclass
 class MorphBenchSettings:
     #: what to run: "cases" (village and armadillo: main run, speed vs the tutorial, vertex sweep, stability),
@@ -74,6 +78,10 @@ class MorphBenchSettings:
     boundary_spp: int | None = MorphSettings.boundary_spp
     mask_every: int = MorphSettings.mask_every  #: (:attr:`~inverse.morph.MorphSettings.mask_every`)
     mask_downsample: int = MorphSettings.mask_downsample  #: (:attr:`~inverse.morph.MorphSettings.mask_downsample`)
+
+    def silhouette_fields(self) -> dict:
+        """The silhouette loss's settings and the boundary samples, as the runs' :class:`MorphSettings` take them."""
+        return {k: getattr(self, k) for k in SILHOUETTE_FIELDS}
 
     def __post_init__(self):
         validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
@@ -289,8 +297,7 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
     benches = {n: _suite_bench(n, work, _suite_benchmark_settings(s), tag) for n in s.suite}
     settings = MorphSettings(iterations=s.iterations, seed=s.seed, prior_ties=s.prior_ties,
                              adam_quantile=s.adam_quantile, lr=s.lr, step_select_quantile=s.step_select_quantile,
-                             saturation=s.saturation, mask_weight=s.mask_weight, mask_every=s.mask_every,
-                             mask_downsample=s.mask_downsample, boundary_spp=s.boundary_spp)
+                             saturation=s.saturation, **s.silhouette_fields())
     for b in benches.values():  # the start remeshes made here, once, before the workers read them (stored_remesh)
         start_mesh(load_morph_benchmark(b), settings)
     items = [_item(n, benches[n], work / f"suite_{n}{tag}", settings) for n in s.suite]
@@ -385,8 +392,7 @@ def cost_recipes(s: MorphBenchSettings) -> dict[str, MorphSettings]:
     keep the light run (also the light estimate every ``light_select_every`` and colour large steps). Both with the
     bench's silhouette loss and boundary samples (``s.mask_weight`` …, ``s.boundary_spp``: today's defaults unless
     the command sets them); the issue's recipe had neither (weight 0, one sample count)."""
-    d = MorphSettings(seed=s.seed, mask_weight=s.mask_weight, mask_every=s.mask_every,
-                      mask_downsample=s.mask_downsample, boundary_spp=s.boundary_spp)
+    d = MorphSettings(seed=s.seed, **s.silhouette_fields())
     issue = replace(d, lambda_select=(), planarity_select=(), colour_prior_weight=0.0, validation_views=0,
                     early_stop=False, light_select_every=0, mask_weight=0.0, boundary_spp=None)
     return {"issue_recipe": issue, "defaults": candidate_settings(d, Candidate(lambda_start=d.lambda_)),
@@ -751,8 +757,7 @@ def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True)
             raise UsageError(f"{p}: its work folder {work} is gone (run the bench with --keep-work)")
         s = MorphSettings(iterations=got["iterations"], seed=seed, adam_quantile=got["adam_quantile"], lr=got["lr"],
                           step_select_quantile=got["step_select_quantile"], saturation=got["saturation"],
-                          mask_weight=got["mask_weight"], mask_every=got["mask_every"],
-                          mask_downsample=got["mask_downsample"], boundary_spp=got["boundary_spp"])
+                          **{k: got[k] for k in SILHOUETTE_FIELDS})
         todo += [(f"{n}@{seed}", work / f"bench_{n}{tag}", work / f"suite_{n}{tag}", s) for n in suite["meshes"]]
     todo = [t for t in todo if (t[2] / "lambda_select" / "light_decision.json").is_file()]  # others made none
     rows = {key: light_choice_draws(load_morph_benchmark(bench), out, s, draws)
