@@ -600,6 +600,24 @@ def _suite_file(path, seed, rows, iterations=600, truth_normals="vertex"):
     return path
 
 
+def test_suite_chart_tells_every_mesh_apart(tmp_path):
+    """The suite chart: the whole suite (13 meshes) gets 13 different lines, and a PNG of both panels is written."""
+    import matplotlib.image
+
+    from inverse.morph.suite import SUITE, UNSEEN
+    from photoreal.benchmarks.morph import suite_chart, suite_line_style
+
+    names = SUITE + UNSEEN + ("village", "armadillo")
+    styles = {(suite_line_style(i)["color"], suite_line_style(i)["ls"]) for i in range(len(names))}
+    assert len(names) == 13 and len(styles) == 13
+    trace = [{"iteration": k, "seconds": 2.0 * k, "validation_l1": 0.02 / (1 + k), "chamfer": 0.01 / (1 + k)}
+             for k in range(0, 50, 10)]
+    meshes = {n: {"kind": "scan", "trace": trace, "trace_chamfer_input": 0.01} for n in names}
+    out = suite_chart({"meshes": meshes, "targets": {"chamfer_reduction": 0.4}}, tmp_path / "suite.png")
+    img = matplotlib.image.imread(out)
+    assert img.shape[0] > 300 and img.shape[1] > 1000
+
+
 def test_suite_over_draws_sums_up_each_mesh(tmp_path, capsys):
     """``photoreal bench morph-seeds``: per mesh the mean, worst and best over the draws and the draws where every
     target holds; files that are not draws of one experiment are refused by name, nothing written."""

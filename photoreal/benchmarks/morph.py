@@ -531,6 +531,12 @@ def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True
     return result
 
 
+def suite_line_style(i: int) -> dict:
+    """The ``i``-th suite mesh's line: ten colours, then the same ten dashed, then dotted (the whole suite is 13
+    meshes; ten colours alone repeated three of them)."""
+    return {"color": f"C{i % 10}", "ls": ("-", "--", ":")[i // 10 % 3]}
+
+
 def suite_chart(suite: dict, path: Path) -> Path:
     """Chamfer reduction against time for every suite mesh (the runs' traces), the target as a line."""
     import matplotlib
@@ -540,18 +546,19 @@ def suite_chart(suite: dict, path: Path) -> Path:
 
     from foundation.imageio import save_figure
 
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
-    for name, r in suite["meshes"].items():
+    fig, ax = plt.subplots(1, 2, figsize=(14, 4.5))
+    for i, (name, r) in enumerate(suite["meshes"].items()):
         tr = [t for t in r["trace"] if t["chamfer"] is not None]
         if not tr:
             continue
+        style = suite_line_style(i)
         # The trace's Chamfer uses a coarser estimator than the headline figure: relative to the coarse input
         # measured with the same estimator.
         c0 = r["trace_chamfer_input"]
-        ax[0].plot([t["seconds"] for t in tr], [1 - t["chamfer"] / c0 for t in tr], "-", label=f"{name} ({r['kind']})")
+        ax[0].plot([t["seconds"] for t in tr], [1 - t["chamfer"] / c0 for t in tr], **style, label=f"{name} ({r['kind']})")
         vl = [t for t in r["trace"] if t["validation_l1"] is not None]
         if vl:
-            ax[1].plot([t["iteration"] for t in vl], [t["validation_l1"] / vl[0]["validation_l1"] for t in vl], "-",
+            ax[1].plot([t["iteration"] for t in vl], [t["validation_l1"] / vl[0]["validation_l1"] for t in vl], **style,
                        label=name)
     ax[0].axhline(suite["targets"]["chamfer_reduction"], color="gray", ls="--", lw=0.8)
     ax[0].set_xlabel("seconds (one run per worker, 1 thread each)")
@@ -560,7 +567,8 @@ def suite_chart(suite: dict, path: Path) -> Path:
     ax[1].set_ylabel("validation L1 / at start (photos not fitted)")
     for a in ax:
         a.grid(alpha=0.3)
-        a.legend(fontsize=7)
+    # one legend for both panels (same colours), beside them: inside, it hid the curves it names
+    ax[1].legend(*ax[0].get_legend_handles_labels(), loc="center left", bbox_to_anchor=(1.02, 0.5), fontsize=7)
     fig.suptitle("morph generalisation suite at the same defaults")
     return save_figure(fig, path)
 
