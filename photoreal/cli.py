@@ -904,7 +904,7 @@ def build_parser() -> argparse.ArgumentParser:
          help="the suite's runs add a silhouette L1 against the photos' masks at this weight "
               "(MorphSettings.mask_weight; 0: photos only)")
     _opt(bm, MorphBenchSettings, "boundary_spp", type=int, help="the suite's runs' silhouette samples per pixel "
-         "(MorphSettings.boundary_spp; default: the image's spp)")
+         "(MorphSettings.boundary_spp; the image takes 4)")
     _opt(bm, MorphBenchSettings, "mask_every", help="the suite's runs render the masks every this many steps, at "
          "this × the weight (MorphSettings.mask_every)")
     _opt(bm, MorphBenchSettings, "mask_downsample", help="the suite's runs render the masks at the photos' resolution "
