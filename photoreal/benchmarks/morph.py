@@ -555,11 +555,12 @@ def suite_chart(suite: dict, path: Path) -> Path:
         # The trace's Chamfer uses a coarser estimator than the headline figure: relative to the coarse input
         # measured with the same estimator.
         c0 = r["trace_chamfer_input"]
-        ax[0].plot([t["seconds"] for t in tr], [1 - t["chamfer"] / c0 for t in tr], **style, label=f"{name} ({r['kind']})")
+        ax[0].plot([t["seconds"] for t in tr], [1 - t["chamfer"] / c0 for t in tr], **style,
+                   label=f"{name} ({r['kind']})")
         vl = [t for t in r["trace"] if t["validation_l1"] is not None]
         if vl:
-            ax[1].plot([t["iteration"] for t in vl], [t["validation_l1"] / vl[0]["validation_l1"] for t in vl], **style,
-                       label=name)
+            ax[1].plot([t["iteration"] for t in vl], [t["validation_l1"] / vl[0]["validation_l1"] for t in vl],
+                       **style, label=name)
     ax[0].axhline(suite["targets"]["chamfer_reduction"], color="gray", ls="--", lw=0.8)
     ax[0].set_xlabel("seconds (one run per worker, 1 thread each)")
     ax[0].set_ylabel("Chamfer reduction vs the coarse input")
