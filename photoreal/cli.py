@@ -553,7 +553,7 @@ def _cmd_morph_errors(a) -> int:
                 {b.band: None if b.slope is None else round(b.slope, 3) for b in e.input_error_left_by_scale},
                 "facing_area": e.facing_area, "facing_area_by_views": e.facing_area_by_views,
                 "unseen_area": e.unseen_area})
-    print(f"maps: {a.out}/errors_*.ply, figure: {r.files['figure']}")
+    print(f"maps: {a.out}/errors_*.ply, {a.out}/facing_*.ply; figures: {r.files['figure']}, {r.files['facing_figure']}")
     return 0
 
 
@@ -1204,10 +1204,12 @@ def build_parser() -> argparse.ArgumentParser:
     me = msub.add_parser("errors", help="where meshes lie against a benchmark's truth: both Chamfer directions, its "
                                         "open border against its interior, the input's error a result kept (in all "
                                         "and per spatial scale), the area facing against the truth by how many "
-                                        "training views see it; signed-distance PLYs and a figure")
+                                        "training views see it; signed-distance PLYs, PLYs marking the "
+                                        "triangles facing against the truth, and a figure of each")
     me.add_argument("benchmark", help="folder made by `photoreal morph make-benchmark`")
     me.add_argument("results", nargs="+", help="result meshes (OBJ/PLY/OFF) or morph output folders (their morphed.ply)")
-    me.add_argument("--out", required=True, help="folder for errors.json, errors_<name>.ply and errors.png")
+    me.add_argument("--out", required=True, help="folder for errors.json, errors_<name>.ply, facing_<name>.ply, "
+                    "errors.png and facing.png")
     me.add_argument("--json", default=None, help="also write the report here")
     me.add_argument("--band", type=float, default=None,
                     help="width of the truth's border band (default 2.5%% of its bounding-box diagonal)")

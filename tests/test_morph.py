@@ -1849,6 +1849,8 @@ def test_views_seeing_a_sphere_is_the_spherical_cap_the_camera_sees():
     assert a[flipped != seen].sum() / a.sum() < 0.002
     both = views_seeing(v, f, [front, back], 60.0)
     assert both.max() == 1 and a[both == 1].sum() / a.sum() == pytest.approx(2 / 3, abs=0.02)
+    each = views_seeing(v, f, [front, back], 60.0, per_camera=True)  # the same casts, kept apart
+    assert each.shape == (2, len(f)) and np.array_equal(each[0], seen == 1) and np.array_equal(each.sum(0), both)
     # a half-size sphere at z = 2 between the camera (now at z = 4) and the unit sphere
     vs, fs = _sphere(0.5, 40)
     vv, ff = np.r_[v, vs + [0.0, 0.0, 2.0]], np.r_[f, fs + len(v)]
@@ -1863,6 +1865,33 @@ def test_views_seeing_a_sphere_is_the_spherical_cap_the_camera_sees():
     narrow = views_seeing(v, f, [front], 10.0)
     c = v[f].mean(axis=1)[narrow == 1]
     assert len(c) > 0 and np.all(np.abs(c[:, :2]) <= np.tan(np.radians(5.0)) * (3.0 - c[:, 2:3]) + 1e-9)
+
+
+def test_facing_maps_mark_the_facing_triangles_and_the_view_that_sees_them(tmp_path):
+    """A unit sphere against itself with the triangles of its +z cap turned inside out: the map marks exactly the
+    triangles :func:`~foundation.mesh_metrics.facing_against_truth` counts (oracle: the metric), each triangle in
+    one colour; of a camera on +z and one on −z the +z one sees them; the sphere as it is marks none, and no view
+    is chosen."""
+    from foundation.mesh import read_ply_colours
+    from foundation.mesh_metrics import facing_against_truth, truth_surface
+    from inverse.morph.benchmark import Camera
+    from inverse.morph.errors import FACING_COLOUR, facing_maps, most_facing_view
+
+    v, f = _outward_sphere(40)
+    cap = v[f].mean(axis=1)[:, 2] > 0.8
+    bad = f.copy()
+    bad[cap] = bad[cap][:, ::-1]
+    meshes = {"turned": (v, bad), "plain": (v, f)}
+    files, masks = facing_maps(v, f, meshes, tmp_path)
+    want = facing_against_truth(v, bad, truth_surface(v, f))
+    assert want["count"] == cap.sum() > 20 and np.array_equal(masks["turned"], cap) and not masks["plain"].any()
+    pv, pf, pc = read_ply_colours(files["turned"])
+    assert len(pv) == 3 * len(f) and np.allclose(pc[0::3], pc[1::3]) and np.allclose(pc[0::3], pc[2::3])
+    marked = np.all(np.abs(pc[0::3] - FACING_COLOUR) < 1e-2, axis=1)
+    assert np.array_equal(marked, cap)
+    cams = [Camera((0.0, 0.0, -3.0), (0.0, 0.0, 0.0)), Camera((0.0, 0.0, 3.0), (0.0, 0.0, 0.0))]
+    assert most_facing_view(meshes, masks, cams, 60.0) == 1
+    assert most_facing_view({"plain": (v, f)}, {"plain": masks["plain"]}, cams, 60.0) is None
 
 
 def test_morph_errors_cli_writes_maps_a_figure_and_a_report(small_armadillo, tmp_path, capsys):
@@ -1892,6 +1921,11 @@ def test_morph_errors_cli_writes_maps_a_figure_and_a_report(small_armadillo, tmp
     v, f, c = read_ply_colours(out / "errors_coarse.ply")
     assert len(c) == len(v) and c.std() > 0
     assert (out / "errors.png").stat().st_size > 10_000
+    # where it faces against the truth: one PLY per mesh, their figure, its cameras (the held-out pair, after the
+    # camera that sees the most of it when that is another)
+    assert (out / "facing.png").stat().st_size > 10_000 and (out / "facing_coarse.ply").is_file()
+    assert rep["facing_views"][-len(rep["views"]):] == rep["views"]
+    assert len(rep["facing_views"]) == len(set(rep["facing_views"])) <= len(rep["views"]) + 1
     capsys.readouterr()
     assert main(["morph", "errors", str(b.path), str(tmp_path / "none.ply"), "--out", str(tmp_path / "e2")]) == 2
     assert "none.ply: no such mesh file" in capsys.readouterr().err

@@ -209,11 +209,50 @@ def error_maps(gv: np.ndarray, gf: np.ndarray, meshes: dict[str, tuple[np.ndarra
     return scale, files
 
 
-def error_figure(files: dict[str, Path], cameras: list, fov: float, scale: float, path: Path,
-                 res: int = 384, spp: int = 128) -> Path:
+#: colours of :func:`facing_maps`: the triangles facing against the truth, the others
+FACING_COLOUR, PLAIN_COLOUR = (0.85, 0.0, 0.75), (0.72, 0.72, 0.72)
+
+
+def facing_maps(gv: np.ndarray, gf: np.ndarray, meshes: dict[str, tuple[np.ndarray, np.ndarray]],
+                out: Path) -> tuple[dict[str, Path], dict[str, np.ndarray]]:
+    """``OUT/facing_<name>.ply`` per mesh: the triangles facing against the truth
+    (:func:`~foundation.mesh_metrics.facing_mask`) in :data:`FACING_COLOUR`, the others grey. Each triangle gets its
+    own three vertices (a PLY's colours are per vertex, and a shared vertex would blend a marked triangle into its
+    neighbours). Returns the files and each mesh's per-triangle mask."""
+    truth = truth_surface(gv, gf)
+    files, masks = {}, {}
+    for name, (v, f) in meshes.items():
+        v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
+        m = facing_mask(v, f, truth)
+        col = np.where(m[:, None], FACING_COLOUR, PLAIN_COLOUR).astype(np.float32)
+        files[name] = write_ply(Path(out) / f"facing_{name}.ply", v[f].reshape(-1, 3),
+                                np.arange(3 * len(f)).reshape(-1, 3), np.repeat(col, 3, axis=0))
+        masks[name] = m
+    return files, masks
+
+
+def most_facing_view(meshes: dict[str, tuple[np.ndarray, np.ndarray]], masks: dict[str, np.ndarray], cameras: list,
+                     fov: float) -> int | None:
+    """Index into ``cameras`` of the one that sees the most area facing against the truth, summed over ``meshes``
+    (:func:`~inverse.morph.scene.views_seeing`); None when no camera sees any."""
+    seen = np.zeros(len(cameras))
+    for name, (v, f) in meshes.items():
+        m = masks[name]
+        if m.any():
+            v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
+            a = triangle_areas(v, f)
+            # the facing triangles are cast against the whole mesh: the rest of it can hide them
+            seen += views_seeing(v, f, cameras, fov, per_camera=True)[:, m] @ (a[m] / max(float(a.sum()), 1e-30))
+    return int(np.argmax(seen)) if seen.max() > 0 else None
+
+
+def error_figure(files: dict[str, Path], cameras: list, fov: float, scale: float | None, path: Path,
+                 res: int = 384, spp: int = 128, row_labels: dict[str, str] | None = None,
+                 marked: str | None = None) -> Path:
     """A figure of the signed-distance PLYs (rows) from ``cameras`` (columns), with the colour bar: each rendered
     two-sided diffuse under a uniform white sky, direct light only, so that the colours read as they are and
-    ambient occlusion shows the shape."""
+    ambient occlusion shows the shape. ``scale`` None (the PLYs of :func:`facing_maps`): no colour bar, a legend
+    naming :data:`FACING_COLOUR` ``marked``. ``row_labels``: per file, its row's label (default its name)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -260,9 +299,16 @@ def error_figure(files: dict[str, Path], cameras: list, fov: float, scale: float
         ax.imshow(np.clip(img[y0:y1, x0:x1, :3], 0, 1))
         ax.set_xticks([]), ax.set_yticks([])
         if c == 0:
-            ax.set_ylabel(list(files)[r])
-    sm = plt.cm.ScalarMappable(cmap="RdBu_r", norm=matplotlib.colors.Normalize(-scale, scale))
-    fig.colorbar(sm, ax=axes, shrink=0.8, label="signed distance to the truth (blue: behind, red: in front)")
+            name = list(files)[r]
+            ax.set_ylabel((row_labels or {}).get(name, name))
+    if scale is not None:
+        sm = plt.cm.ScalarMappable(cmap="RdBu_r", norm=matplotlib.colors.Normalize(-scale, scale))
+        fig.colorbar(sm, ax=axes, shrink=0.8, label="signed distance to the truth (blue: behind, red: in front)")
+    else:
+        from matplotlib.patches import Patch
+
+        fig.legend(handles=[Patch(color=FACING_COLOUR, label=marked or "facing against the truth")],
+                   loc="upper center", ncol=1, frameon=False)
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
@@ -281,6 +327,9 @@ class ErrorReport:
     views: list[int]  #: the held-out cameras of the figure
     meshes: list[SurfaceErrors]
     files: dict[str, str]
+    #: the cameras of the facing figure: the benchmark's camera that sees the most area facing against the truth
+    #: (:func:`most_facing_view`; omitted when none does), then :attr:`views`
+    facing_views: list[int] | None = None
 
 
 def facing_by_views(v: np.ndarray, f: np.ndarray, truth, seen: np.ndarray) -> tuple[float, dict[str, float], float]:
@@ -326,9 +375,10 @@ def _with_facing(bench, gv, gf, meshes: dict, errs: dict[str, SurfaceErrors]) ->
 
 def benchmark_errors(bench, results: dict[str, Path], out: Path, band: float | None = None,
                      res: int = 384) -> ErrorReport:
-    """:func:`surface_errors`, :func:`error_maps` and :func:`error_figure` of ``results`` (name → mesh file) against
-    a morph benchmark's truth, with its coarse input as the reference; writes ``OUT/errors.json`` last (atomically:
-    a report on disk means its maps are there). Every mesh is read before ``out`` is made."""
+    """:func:`surface_errors`, :func:`error_maps`, :func:`facing_maps` and their figures (``errors.png``,
+    ``facing.png``, :func:`error_figure`) of ``results`` (name → mesh file) against a morph benchmark's truth, with
+    its coarse input as the reference; writes ``OUT/errors.json`` last (atomically: a report on disk means its maps
+    are there). Every mesh is read before ``out`` is made."""
     from foundation.files import write_json
 
     (gv, gf), meshes = _benchmark_meshes(bench, results)
@@ -343,7 +393,17 @@ def benchmark_errors(bench, results: dict[str, Path], out: Path, band: float | N
     other = max(meta.test, key=lambda i: float(np.linalg.norm(eyes[i] - eyes[first])))
     views = [first] if other == first else [first, other]
     fig = error_figure(files, [meta.cameras[i] for i in views], meta.fov, scale, out / "errors.png", res=res)
+    # where the orientation is wrong: small areas (a crease, a pleat) that the signed distance does not show
+    facing_files, masks = facing_maps(gv, gf, meshes, out)
+    most = most_facing_view(meshes, masks, meta.cameras, meta.fov)
+    facing_views = ([most] if most is not None and most not in views else []) + views
+    labels = {k: f"{k}: {100 * errs[k].facing_area:.3f} %" for k in facing_files}
+    facing_fig = error_figure(facing_files, [meta.cameras[i] for i in facing_views], meta.fov, None,
+                              out / "facing.png", res=res, row_labels=labels,
+                              marked="facing against the truth (row: its share of the area)")
     report = ErrorReport(str(bench.path), border_band(gv, band), scale, views, list(errs.values()),
-                         {**{k: str(p) for k, p in files.items()}, "figure": str(fig)})
+                         {**{k: str(p) for k, p in files.items()}, "figure": str(fig),
+                          **{f"facing_{k}": str(p) for k, p in facing_files.items()}, "facing_figure": str(facing_fig)},
+                         facing_views)
     write_json(out / "errors.json", report)
     return report

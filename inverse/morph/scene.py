@@ -226,16 +226,17 @@ def inward_thickness(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return t
 
 
-def views_seeing(v: np.ndarray, f: np.ndarray, cameras: list, fov: float) -> np.ndarray:
+def views_seeing(v: np.ndarray, f: np.ndarray, cameras: list, fov: float, per_camera: bool = False) -> np.ndarray:
     """Per triangle, how many of ``cameras`` (look-at, y up, square images, ``fov`` degrees) see its centroid: inside
-    the view and the first thing the ray from the eye meets (either side of it: a flipped triangle is seen too)."""
+    the view and the first thing the ray from the eye meets (either side of it: a flipped triangle is seen too).
+    ``per_camera``: instead, whether each camera sees it (cameras × triangles, bool)."""
     v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
     scene = _ray_scene(v, f, "visibility")
     c = v[f].mean(axis=1)
     ids = np.arange(len(f))
     tan_half = np.tan(np.radians(fov / 2))
-    count = np.zeros(len(f), np.int64)
-    for cam in cameras:
+    seen = np.zeros((len(cameras), len(f)), bool)
+    for k, cam in enumerate(cameras):
         eye, target = np.asarray(cam.eye, np.float64), np.asarray(cam.target, np.float64)
         fwd = (target - eye) / np.linalg.norm(target - eye)
         right = np.cross(fwd, [0.0, 1.0, 0.0])
@@ -253,5 +254,5 @@ def views_seeing(v: np.ndarray, f: np.ndarray, cameras: list, fov: float) -> np.
         si = scene.ray_intersect(ray)
         valid, t, prim = np.array(si.is_valid()), np.array(si.t), np.array(si.prim_index)
         first = ~valid | (prim == ids) | (t >= dist * (1.0 - 1e-5))
-        count += inside & first
-    return count
+        seen[k] = inside & first
+    return seen if per_camera else seen.sum(axis=0, dtype=np.int64)
