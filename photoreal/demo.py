@@ -319,7 +319,10 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
             + "<p>Where the error sits (<code>photoreal morph errors</code>): signed distance to the truth, blue "
               "behind it, red in front, coarse input above, morphed below; the input's error left is the slope of "
               "the result's signed distance on the input's (1: kept, 0: gone), the new error what that leaves.</p>"
-            + _figure("morph/errors/errors.png", "signed distance to the truth"))
+            + _figure("morph/errors/errors.png", "signed distance to the truth")
+            + "<p>Where the orientation is wrong: the triangles facing against the truth (the suite's facing "
+              "target; the row's label gives their share of the area), from the camera that sees most of them.</p>"
+            + _figure("morph/errors/facing.png", "triangles facing against the truth"))
     mb = _bench_json(bench_dir, "morph.json")
     if mb is not None:
         body += "<h3>Benchmark (<code>photoreal bench morph</code>)</h3>"
