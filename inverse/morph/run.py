@@ -271,7 +271,7 @@ class MorphSettings:
     #: without it (the bunny's 0.58 → 0.15), and its fixed candidate went from −27.4 % to −42.9 % Chamfer with it at 1
     #: (docs/morph.md: "The silhouettes on their own"). The default 2, at half resolution with one boundary sample,
     #: met every target on the draws it was run on where the photos alone failed (josie@0–2, face000@0) and costs
-    #: 0.86–0.91 × the issue's recipe per iteration (docs/morph.md: "A cheaper mask, and the default"). 0 = photos
+    #: 0.83–0.91 × the issue's recipe per iteration (docs/morph.md: "A cheaper mask, and the default"). 0 = photos
     #: only (every run before 2026-11-29, evening).
     mask_weight: float = 2.0
     #: the silhouette L1 every ``mask_every``-th step only, at ``mask_every`` × the weight (the same mean gradient),
