@@ -95,6 +95,35 @@ def test_the_mask_l1_pulls_a_silhouette_towards_the_target_as_finite_differences
     assert abs(ad - fd) < 0.15 * abs(fd), (ad, fd)
 
 
+def test_the_mask_integrator_skips_the_continuous_samples_and_changes_no_bit(small_armadillo):
+    """The mask scene's mesh is black under a constant sky: its continuous derivative is zero at every pixel, so
+    ``mask_integrator`` takes no continuous samples. Oracle: the same render with them (``projective_integrator``:
+    4 continuous samples a pixel, the same boundary count) gives the same image and the same vertex gradient, bit
+    for bit, for every render seed and both sample-count paths (the integrator's own counts, and a run-time spp)."""
+    from inverse.morph import mask_integrator, mask_scene, projective_integrator, render_views
+
+    meta = small_armadillo.meta
+    sky = mi.TensorXf(np.full((48, 48, 3), 0.5, np.float32))
+
+    def grad(integrator, own_counts, seed):
+        scene = mask_scene(small_armadillo.coarse, integrator=integrator)
+        params = mi.traverse(scene)
+        v = mi.Float(params["mesh.vertex_positions"])
+        dr.enable_grad(v)
+        params["mesh.vertex_positions"] = v
+        params.update()
+        imgs = render_views(scene, params, meta.cameras, [0, 5], 48, meta.fov, 2, seed, integrator_spp=own_counts)
+        dr.backward(sum(dr.mean(dr.abs(im[..., :3] - sky), axis=None) for im in imgs))
+        return [np.array(im, copy=True) for im in imgs], np.array(dr.grad(v), copy=True)
+
+    for own_counts, spp_b in ((True, 1), (False, None)):
+        for seed in (0, 17):
+            with_c = grad(projective_integrator(4, spp_b if spp_b else 2), own_counts, seed)
+            without = grad(mask_integrator(spp_b), own_counts, seed)
+            assert all(np.array_equal(a, b) for a, b in zip(with_c[0], without[0]))
+            assert np.array_equal(with_c[1], without[1]) and np.abs(without[1]).max() > 0, (own_counts, seed)
+
+
 def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(small_armadillo, tmp_path):
     """20 iterations from the coarse input under the defaults (weight 2, masks at half resolution, one boundary
     sample), against the same run on the photos alone: the silhouettes' L1 over the training views (at full

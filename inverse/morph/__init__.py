@@ -30,13 +30,13 @@ from .batch import load_result, run_item
 from .run import (MORPH_SEED_MAX, PLANARITY_WHERE, PRIOR_TIES, Candidate, ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, MorphStage,
                   PlanarityDecision, StepSelection, TracePoint, candidate_settings, light_choice_draws, run_morph, start_mesh)
 from .suite import SUITE, KINDS, UNSEEN, suite_mesh
-from .scene import MODES, mask_scene, morph_scene, photo_at, photo_masks, projective_integrator, render_views, saturated_silhouette
+from .scene import MODES, mask_integrator, mask_scene, morph_scene, photo_at, photo_masks, projective_integrator, render_views, saturated_silhouette
 
 __all__ = [
     "MORPH_SEED_MAX", "PLANARITY_WHERE", "PRIOR_TIES", "TRUTH_NORMALS", "ARTIFACT_REGIONS", "Camera", "ErrorReport", "SurfaceErrors", "benchmark_errors", "benchmark_surface_errors", "surface_errors", "Candidate", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
     "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "MorphStage", "PlanarityDecision",
     "RepairReport", "StepSelection", "artifact_masks", "candidate_settings", "light_choice_draws", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
-    "load_morph_benchmark", "make_morph_benchmark", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",
+    "load_morph_benchmark", "make_morph_benchmark", "mask_integrator", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",
     "render_views", "repair_flips", "run_gcn_morph", "gcn_settings", "run_item", "run_morph", "sensor_dict", "start_mesh",
     "KINDS", "UNSEEN", "PleatReport", "SpikeReport", "iron_spikes", "SUITE", "TracePoint", "silhouette_margins", "saturated_silhouette", "suite_mesh", "truth_scene",
     "truth_start_benchmark", "TurnReport", "border_zone", "iron_border_turns",

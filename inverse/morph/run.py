@@ -62,8 +62,8 @@ from .evaluate import MorphEvaluation, evaluate_morph
 from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (PleatReport, RepairReport, SpikeReport, TurnReport, iron_border_turns, iron_spikes, remesh,
                         repair_flips, undo_flips, unfold_pleats)
-from .scene import (MODES, inward_thickness, mask_scene, morph_scene, photo_l1, photo_masks, photo_saturation,
-                    photo_tensors, projective_integrator, render_views, upsample_bilinear, views_seeing)
+from .scene import (MODES, inward_thickness, mask_integrator, mask_scene, morph_scene, photo_l1, photo_masks,
+                    photo_saturation, photo_tensors, projective_integrator, render_views, upsample_bilinear, views_seeing)
 
 #: largest run seed: render seeds are seed·7919 + step·101 + view and must stay below 2³¹
 MORPH_SEED_MAX = 200_000
@@ -656,8 +656,8 @@ class MorphStage(DrJitStage):
                                  integrator=None if self.shared_spp else projective_integrator(s.spp, s.boundary_spp))
         self.params = mi.traverse(self.scene)
         if s.mask_weight > 0:  # the same mesh file: both scenes get the step's positions
-            self.mask_scene = mask_scene(self.work_ply, integrator=None if self.shared_spp else
-                                         projective_integrator(s.spp, s.boundary_spp))
+            self.mask_scene = mask_scene(self.work_ply, integrator=mask_integrator(None if self.shared_spp else
+                                                                                   s.boundary_spp))
             self.mask_params = mi.traverse(self.mask_scene)
         self.f_mi = mi.UInt32(aligned(f, np.uint32).ravel())
         self.pairs = mi.UInt32(aligned(self._prior_pairs(v_ref, f), np.uint32).ravel())
