@@ -125,9 +125,9 @@ def test_the_mask_integrator_skips_the_continuous_samples_and_changes_no_bit(sma
 
 
 def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(small_armadillo, tmp_path):
-    """20 iterations from the coarse input under the defaults (weight 2, masks at half resolution, one boundary
+    """20 iterations from the coarse input under the defaults (weight 2, masks at full resolution, one boundary
     sample), against the same run on the photos alone: the silhouettes' L1 over the training views (at full
-    resolution) falls by 5 % or more, and lies 5 % or more below the photos-only run's; the weight is part of the
+    resolution) falls by 10 % or more, and lies 10 % or more below the photos-only run's; the weight is part of the
     checkpoint's settings only when it is not 0 (runs before it resume)."""
     from inverse.morph import MorphStage, mask_scene, photo_masks, sensor_dict
 
@@ -149,8 +149,9 @@ def test_a_run_with_the_silhouette_loss_brings_the_silhouettes_closer(small_arma
     run_morph(small_armadillo, tmp_path / "p", replace(s, mask_weight=0.0), show_progress=False)
     start = mask_l1(small_armadillo.coarse)
     after, photos_only = mask_l1(tmp_path / "m" / "morphed.ply"), mask_l1(tmp_path / "p" / "morphed.ply")
-    # measured: 0.01615 → 0.01492 with the masks, 0.01648 without (the photos alone leave the outlines where they are)
-    assert after < 0.95 * start and after < 0.95 * photos_only, (start, after, photos_only)
+    # measured: 0.01615 → 0.01349 with the masks (0.01492 with half-resolution masks, the default until 2026-11-29),
+    # 0.01648 without (the photos alone leave the outlines where they are)
+    assert after < 0.9 * start and after < 0.9 * photos_only, (start, after, photos_only)
     assert r.spikes == 0
     stage = MorphStage(small_armadillo, tmp_path / "fp", s)
     assert stage.fingerprint()["settings"]["mask_weight"] == MorphSettings.mask_weight == 2.0

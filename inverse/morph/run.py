@@ -269,18 +269,19 @@ class MorphSettings:
     #: and seeds as the step. Every silhouette then pulls with contrast 1, where the photos' own contrast can be
     #: small (a head's skin against the sky): josie@0's silhouettes moved from 0.37 to only 0.26 px off the truth's
     #: without it (the bunny's 0.58 → 0.15), and its fixed candidate went from −27.4 % to −42.9 % Chamfer with it at 1
-    #: (docs/morph.md: "The silhouettes on their own"). The default 2, at half resolution with one boundary sample,
-    #: met every target on the draws it was run on where the photos alone failed (josie@0–2, face000@0) and costs
-    #: 0.83–0.91 × the issue's recipe per iteration (docs/morph.md: "A cheaper mask, and the default"). 0 = photos
-    #: only (every run before 2026-11-29, evening).
+    #: (docs/morph.md: "The silhouettes on their own"). The default 2, with one boundary sample, met every target on
+    #: the draws it was run on where the photos alone failed (josie@0–2, face000@0) (docs/morph.md: "A cheaper mask,
+    #: and the default"). 0 = photos only (every run before 2026-11-29, evening).
     mask_weight: float = 2.0
     #: the silhouette L1 every ``mask_every``-th step only, at ``mask_every`` × the weight (the same mean gradient),
     #: its renders and the photos' masks at resolution // ``mask_downsample`` (coverage is an area: a coarser mask
     #: still places a silhouette to a fraction of its pixel). Each mask render costs about as much as the photo's
-    #: (its silhouettes' boundary samples dominate both); these make it cheaper (docs/morph.md: "A cheaper mask, and
-    #: the default").
+    #: (its silhouettes' boundary samples dominate both); these make it cheaper. The default is full resolution
+    #: since 2026-11-29 (ninth session): at 2, mpface@0 left more area facing against the truth than its input, and
+    #: full resolution gained Chamfer and PSNR on every draw compared (docs/morph.md: "Full-resolution masks, the
+    #: default").
     mask_every: int = 1
-    mask_downsample: int = 2
+    mask_downsample: int = 1
     seed: int = 0
 
     def __post_init__(self):
