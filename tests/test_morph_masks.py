@@ -99,7 +99,7 @@ def test_the_mask_integrator_skips_the_continuous_samples_and_changes_no_bit(sma
     """The mask scene's mesh is black under a constant sky: its continuous derivative is zero at every pixel, so
     ``mask_integrator`` takes no continuous samples. Oracle: the same render with them (``projective_integrator``:
     4 continuous samples a pixel, the same boundary count) gives the same image and the same vertex gradient, bit
-    for bit, for every render seed and both sample-count paths (the integrator's own counts, and a run-time spp)."""
+    for bit, at two render seeds and on both sample-count paths (the integrator's own counts, and a run-time spp)."""
     from inverse.morph import mask_integrator, mask_scene, projective_integrator, render_views
 
     meta = small_armadillo.meta
