@@ -138,7 +138,7 @@ def test_config_errors_name_the_parameter():
 
 @pytest.fixture(scope="module")
 def tiny_views(tmp_path_factory):
-    from generative.diffusion.renderer import load_intrinsic_views
+    from generative.diffrender.renderer import load_intrinsic_views
     from inverse.morph import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
 
     tmp = tmp_path_factory.mktemp("diffrender")
@@ -151,7 +151,7 @@ def tiny_views(tmp_path_factory):
 
 
 def _tiny_settings(**kw):
-    from generative.diffusion.renderer import DiffRenderSettings
+    from generative.diffrender.renderer import DiffRenderSettings
 
     base = dict(steps=6, max_seconds=None, batch=2, crop=16, widths=(8, 16), attention_levels=1, cross_dim=8,
                 checkpoint_every=2, threads=1)
@@ -186,7 +186,7 @@ def test_gbuffer_recomposition_matches_a_path_traced_render(tiny_views):
 @pytest.mark.slow
 def test_training_resumes_exactly_and_descends(tiny_views, tmp_path):
     from foundation.loop import read_checkpoint
-    from generative.diffusion.renderer import load_diffrender, train_diffrender
+    from generative.diffrender.renderer import load_diffrender, train_diffrender
 
     _, _, v = tiny_views
     s = _tiny_settings()
@@ -211,7 +211,7 @@ def test_training_lowers_the_loss_on_a_tiny_task(tiny_views, tmp_path, residual,
     """The v-loss on a fixed set of (pair, crop, t, noise) draws falls well under the untrained model's
     after 150 steps (measured: photo generated directly 0.79 → 0.37; residual over R, whose target at 32²
     and 4 spp is mostly Monte-Carlo noise, 0.95 → 0.69)."""
-    from generative.diffusion.renderer import _Pairs, load_diffrender, train_diffrender
+    from generative.diffrender.renderer import _Pairs, load_diffrender, train_diffrender
 
     _, _, v = tiny_views
     s = _tiny_settings(steps=150, lr=2e-3, checkpoint_every=200, residual=residual)
@@ -238,7 +238,7 @@ def test_renderer_samples_with_the_weights_moving_average(tiny_views, tmp_path):
     """load_diffrender returns the checkpoint's EMA weights (the shared mixin's average), not the last ones; with
     ema = 0 the two are the same."""
     from foundation.loop import read_checkpoint
-    from generative.diffusion.renderer import load_diffrender, train_diffrender
+    from generative.diffrender.renderer import load_diffrender, train_diffrender
 
     _, _, v = tiny_views
     for ema in (0.5, 0.0):
@@ -256,7 +256,7 @@ def test_background_residual_is_the_photos_noise_and_is_known(tiny_views):
     """Where no sample of a pixel hits the mesh, R is the environment the photo sees: photo − R there is zero-mean
     noise (mean within 2 % of the photo's there), so the model need not learn it; the training target is 0 there
     and maps back to R exactly."""
-    from generative.diffusion.renderer import coverage, from_target_space, model_to_photo, photo_to_model, \
+    from generative.diffrender.renderer import coverage, from_target_space, model_to_photo, photo_to_model, \
         target_space
 
     _, _, v = tiny_views
@@ -282,7 +282,7 @@ def test_draws_average_the_samples_of_one_view_in_model_space(tiny_views):
     (the view's seed) gives — the same numbers as calling :func:`sample` on that batch (rtol 1e-5); K = 1 is the
     single sample; the mean of K varies less between seeds than one sample does."""
     from generative.diffusion.core import ConditionalDiffusion
-    from generative.diffusion.renderer import SampleSettings, from_target_space, known_mask, local_condition, \
+    from generative.diffrender.renderer import SampleSettings, from_target_space, known_mask, local_condition, \
         render_views
 
     _, _, v = tiny_views
@@ -315,7 +315,7 @@ def test_draws_average_the_samples_of_one_view_in_model_space(tiny_views):
 
 @pytest.mark.slow
 def test_render_views_and_bad_inputs(tiny_views, tmp_path):
-    from generative.diffusion.renderer import SampleSettings, load_diffrender, local_condition, render_views, \
+    from generative.diffrender.renderer import SampleSettings, load_diffrender, local_condition, render_views, \
         train_diffrender
 
     _, _, v = tiny_views
@@ -327,7 +327,7 @@ def test_render_views_and_bad_inputs(tiny_views, tmp_path):
     again, _ = render_views(model, s, layers, SampleSettings(steps=3), show_progress=False)
     np.testing.assert_array_equal(out, again)
     # known background: where the G-buffer sees no mesh the render is R = A·I + S itself (the residual is held at 0)
-    from generative.diffusion.renderer import coverage
+    from generative.diffrender.renderer import coverage
 
     bg = coverage(layers) == 0
     assert 0.1 < bg.mean() < 0.9
@@ -368,7 +368,7 @@ def test_cli_errors_name_the_input(tiny_views, tmp_path, capsys):
 def test_residual_target_space_inverts_and_an_untrained_residual_returns_r(tiny_views):
     """photo → target → photo is the identity (residual over every pixel, and direct); a residual of 0 is the PBR
     recomposition R. (With the known background, see the test above.)"""
-    from generative.diffusion.renderer import from_target_space, target_space
+    from generative.diffrender.renderer import from_target_space, target_space
 
     _, _, v = tiny_views
     L = v.layers["morphed"]
@@ -386,7 +386,7 @@ def test_residual_target_space_inverts_and_an_untrained_residual_returns_r(tiny_
 
 
 def test_condition_to_layers_inverts_local_condition(tiny_views):
-    from generative.diffusion.renderer import condition_to_layers, local_condition
+    from generative.diffrender.renderer import condition_to_layers, local_condition
 
     _, _, v = tiny_views
     L = v.layers["coarse"]
@@ -399,7 +399,7 @@ def test_condition_to_layers_inverts_local_condition(tiny_views):
 def test_runs_from_before_the_residual_option_load_as_direct(tiny_views, tmp_path):
     """A checkpoint whose settings lack ``residual`` generated the photo itself: it must load as residual=False."""
     from foundation.checkpoint import load_tree, save_tree
-    from generative.diffusion.renderer import load_diffrender, train_diffrender
+    from generative.diffrender.renderer import load_diffrender, train_diffrender
 
     _, _, v = tiny_views
     train_diffrender([v], tmp_path / "old", _tiny_settings(steps=1), show_progress=False)
@@ -412,7 +412,7 @@ def test_runs_from_before_the_residual_option_load_as_direct(tiny_views, tmp_pat
 
 
 def test_decomposed_pairs_join_the_training_set(tiny_views):
-    from generative.diffusion.renderer import DECOMPOSED, IntrinsicViews, _Pairs
+    from generative.diffrender.renderer import DECOMPOSED, IntrinsicViews, _Pairs
 
     _, _, v = tiny_views
     extra = IntrinsicViews(v.photos[:3], {DECOMPOSED: {k: a[:3] for k, a in v.layers["coarse"].items()}}, [0, 1, 2],
@@ -429,7 +429,7 @@ def test_ground_truth_pairs_are_the_truths_own_intrinsics_and_must_be_loaded(tin
     recomposition is closer to the photos than the coarse mesh's (the coarse geometry and colours are degraded; the
     photos are the truth path traced), its layers exist only at train views (zeros elsewhere), they are cached (a
     second call renders nothing), and a run asking for them on views without them is refused by name."""
-    from generative.diffusion.renderer import TRUTH, _Pairs, with_truth_layers
+    from generative.diffrender.renderer import TRUTH, _Pairs, with_truth_layers
 
     tmp, bench, v = tiny_views
     t = with_truth_layers(v, bench, tmp / "morph", show_progress=False)
@@ -480,7 +480,7 @@ def test_bench_run_folders_follow_settings_and_data(tiny_views, tmp_path):
     sample count) or other settings name another folder, the same ones the same folder."""
     from dataclasses import replace as dc_replace
 
-    from generative.diffusion.renderer import GBufferSettings, load_intrinsic_views
+    from generative.diffrender.renderer import GBufferSettings, load_intrinsic_views
     from photoreal.benchmarks.diffrender import main_dir, run_dir
 
     tmp, bench, v = tiny_views

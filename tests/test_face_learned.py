@@ -15,10 +15,10 @@ import mi_plugins  # noqa: F401
 import mitsuba as mi
 
 from foundation.errors import CheckpointError, UsageError
-from generative.diffusion import face_data as fd
-from generative.diffusion import face_eval as fe
-from generative.diffusion import face_models as fm
-from generative.diffusion import face_run as fr
+from generative.face import data as fd
+from generative.face import evaluate as fe
+from generative.face import models as fm
+from generative.face import run as fr
 from photoreal.cli import main
 
 #: the module's tests share one toy run: keep them in one xdist worker (``--dist loadgroup`` in the Makefile)

@@ -16,9 +16,9 @@ import mitsuba as mi
 
 from foundation.assets import bundled_basis
 from foundation.errors import UsageError
-from generative.diffusion import material_data as md
-from generative.diffusion import material_eval as me
-from generative.diffusion import materials as mm
+from generative.btf import data as md
+from generative.btf import evaluate as me
+from generative.btf import model as mm
 from mi_plugins.neural_basis import check_pair, load_basis, load_material
 from photoreal.cli import main
 

@@ -564,11 +564,12 @@ def test_bench_seed_gets_its_own_work_folder(tmp_path):
     """``photoreal bench morph --seed k``: finished pool items are resumed by folder (their metrics.json), so another
     draw must not find seed 0's runs — each seed works in a folder of its own (seed 0 keeps the old name)."""
     from photoreal.benchmarks.morph import MorphBenchSettings, work_folder
-    from photoreal.cli import _settings, build_parser
+    from photoreal.cli import build_parser
+    from photoreal.cli.common import settings_from
 
     a = build_parser().parse_args(["bench", "morph", "--parts", "suite", "--suite", "josie", "--seed", "3",
                                    "--json", str(tmp_path / "m.json")])
-    s = _settings(MorphBenchSettings, a)
+    s = settings_from(MorphBenchSettings, a)
     assert s.seed == 3 and s.suite == ("josie",)
     assert work_folder(s, tmp_path) == tmp_path / "morph_work_seed3"
     assert work_folder(MorphBenchSettings(), tmp_path) == tmp_path / "morph_work"

@@ -62,11 +62,11 @@ from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import json_digest
 from foundation.scene import recompose
 from foundation.threads import torch_threads
-from generative.diffusion import (DECOMPOSED, ConditionalDiffusion, DecompDataSettings, DecompSettings,
-                                  DiffRenderSettings, GBufferSettings, IntrinsicViews, SampleSettings, count_parameters, decompose, diffusion_loss, heldout_psnr,
-                                  load_decomp_data, load_decomposer, load_diffrender, load_intrinsic_views,
-                                  make_scheduler, photographs, render_gbuffers, render_views, train_decomposer,
-                                  train_diffrender, training_flops)
+from generative.diffrender import (DecompDataSettings, decompose, DECOMPOSED, DecompSettings, DiffRenderSettings,
+                                   GBufferSettings, heldout_psnr, IntrinsicViews, load_decomp_data, load_decomposer,
+                                   load_diffrender, load_intrinsic_views, photographs, render_gbuffers, render_views,
+                                   SampleSettings, train_decomposer, train_diffrender)
+from generative.diffusion import ConditionalDiffusion, count_parameters, diffusion_loss, make_scheduler, training_flops
 from generative.gan import GanDataSettings, GanTrainSettings, load_heldout_predictions, load_paired_views, train_gan
 from inverse.morph import sensor_dict, truth_scene
 

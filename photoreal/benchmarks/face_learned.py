@@ -68,14 +68,14 @@ class FaceLearnedBenchSettings:
 
 
 def models_settings(s: FaceLearnedBenchSettings):
-    from generative.diffusion import (CompletionSettings, FaceDataSettings, FaceDecompSettings, FaceModelsSettings,
-                                      SuperResSettings)
+    from generative.face import (CompletionSettings, DecompSettings, FaceDataSettings, FaceModelsSettings,
+                                 SuperResSettings)
 
     return FaceModelsSettings(
         data=FaceDataSettings(train_instances=s.train_instances, eval_instances=s.eval_instances, seed=s.seed,
                               layout=s.layout),
         completion=CompletionSettings(max_seconds=s.completion_seconds, seed=s.seed),
-        decomposition=FaceDecompSettings(max_seconds=s.decomp_seconds, seed=s.seed),
+        decomposition=DecompSettings(max_seconds=s.decomp_seconds, seed=s.seed),
         superres=SuperResSettings(max_seconds=s.superres_seconds, seed=s.seed),
         variants=("cross_attention", "shared", "independent"))
 
@@ -96,7 +96,7 @@ def cross_model_fit(scan: str, work: Path, res: int, seed: int, show_progress: b
     from foundation.records import to_json
     from inverse.face import FaceBenchmarkSettings, FaceFitSettings, evaluate_fit, fit_face, load_benchmark, make_benchmark
 
-    from generative.diffusion import scan_path
+    from generative.face import scan_path
 
     cases = {
         "ggx_uv_directional": (FaceBenchmarkSettings(uv_res=res, seed=seed), FaceFitSettings(seed=seed)),
@@ -130,7 +130,7 @@ def astronaut(models, work: Path, seed: int) -> dict:
     from foundation.imageio import read_photo
     from inverse.face import PhotoFitSettings, photo_to_face
 
-    from generative.diffusion import photo_maps_fn
+    from generative.face import photo_maps_fn
 
     img = read_photo("astronaut")
     s = PhotoFitSettings(seed=seed)
@@ -148,8 +148,8 @@ def decomposition_seeds(s: FaceLearnedBenchSettings, ms, work: Path, ev, albedo,
                         show_progress: bool) -> dict:
     """Every variant retrained with each of ``s.ablation_seeds`` (``work/ablation_seed<k>/``, resumable); per variant
     and metric the values over all seeds (the main run's first), their mean and sample standard deviation."""
-    from generative.diffusion import (FaceDecompSettings, completion_albedo, decompose_maps, load_face_decomposer,
-                                      load_face_dataset, map_scores, train_face_decomposer)
+    from generative.face import (completion_albedo, decompose_maps, DecompSettings, load_decomposer, load_face_dataset,
+                                 map_scores, train_decomposer)
 
     train = load_face_dataset(work / "data", "train")
     albedo_train = completion_albedo(work, show_progress)
@@ -159,9 +159,9 @@ def decomposition_seeds(s: FaceLearnedBenchSettings, ms, work: Path, ev, albedo,
         values = {k: [dec[v][k]] for k in keys}
         for seed in s.ablation_seeds:
             run = work / f"ablation_seed{seed}" / f"decomposition_{v}"
-            ds = FaceDecompSettings(**{**asdict(ms.decomposition), "variant": v, "seed": seed})
-            train_face_decomposer(train, albedo_train, work / "completion", run, ds, show_progress=show_progress)
-            sc = map_scores(decompose_maps(load_face_decomposer(run, work / "completion"), ev, albedo, low.res),
+            ds = DecompSettings(**{**asdict(ms.decomposition), "variant": v, "seed": seed})
+            train_decomposer(train, albedo_train, work / "completion", run, ds, show_progress=show_progress)
+            sc = map_scores(decompose_maps(load_decomposer(run, work / "completion"), ev, albedo, low.res),
                             low.targets, low.seen, low.mask)
             for k in keys:
                 values[k].append(sc[k])
@@ -173,9 +173,9 @@ def decomposition_seeds(s: FaceLearnedBenchSettings, ms, work: Path, ev, albedo,
 def bench_face_learned(s: FaceLearnedBenchSettings, out_dir: Path, show_progress: bool = True) -> dict:
     from foundation.pool import PoolSettings
     from foundation.records import to_json
-    from generative.diffusion import (LearnedModels, at_resolution, baseline_maps, complete, decompose_maps,
-                                      default_maps, learned_maps, load_completion, load_face_decomposer, load_face_dataset,
-                                      load_superres, map_scores, relit_scores, train_face_models, upscale)
+    from generative.face import (at_resolution, baseline_maps, complete, decompose_maps, default_maps, learned_maps,
+                                 LearnedModels, load_completion, load_decomposer, load_face_dataset, load_superres,
+                                 map_scores, relit_scores, train_face_models, upscale)
 
     work = Path(out_dir) / "face_learned_work"
     ms = models_settings(s)
@@ -209,7 +209,7 @@ def bench_face_learned(s: FaceLearnedBenchSettings, out_dir: Path, show_progress
     dec = {"template_defaults": {k: v for k, v in map_scores(default_maps(albedo), low.targets, low.seen, low.mask).items()
                                  if k in dec_keys}}
     for v in ms.variants:
-        dm = load_face_decomposer(work / f"decomposition_{v}", work / "completion")
+        dm = load_decomposer(work / f"decomposition_{v}", work / "completion")
         sc = map_scores(decompose_maps(dm, ev, albedo, cs.res), low.targets, low.seen, low.mask)
         tr = summary[f"decomposition_{v}"]
         dec[v] = {**{k: sc[k] for k in dec_keys}, "trained_parameters": tr["parameters"],
@@ -225,7 +225,7 @@ def bench_face_learned(s: FaceLearnedBenchSettings, out_dir: Path, show_progress
                           "from": cs.res, "to": ev.res}
 
     # 6. end to end at the data resolution
-    models = LearnedModels(model, cs, load_face_decomposer(work / f"decomposition_{ms.variants[0]}", work / "completion"), sr,
+    models = LearnedModels(model, cs, load_decomposer(work / f"decomposition_{ms.variants[0]}", work / "completion"), sr,
                            layout=ms.data.layout)
     stages = {"baseline": baseline_maps(ev)}
     for st in ("completion", "decomposition", "full"):
@@ -275,7 +275,7 @@ def figure(ev, stages: dict, path: Path, n: int = 3) -> Path:
     import matplotlib.pyplot as plt
 
     from foundation.imageio import linear_to_srgb, save_figure
-    from generative.diffusion import normalise_albedo
+    from generative.face import normalise_albedo
 
     cols = ["photo (UV)", "baseline albedo", "learned albedo", "true albedo", "learned normal", "true normal",
             "learned roughness", "true roughness"]

@@ -91,7 +91,7 @@ class MatDiffBenchSettings:
 def _check_trained_on(run: Path, train) -> None:
     """``run`` must be a finished material-diffusion run on exactly ``train``'s materials (no held-out leak)."""
     from foundation.loop import read_checkpoint
-    from generative.diffusion import data_digest
+    from generative.btf import data_digest
 
     ckpt = run / "checkpoint.npz"
     if not ckpt.is_file():
@@ -112,7 +112,7 @@ class _Judge:
     """Decodes feature textures and scores them against the held-out materials."""
 
     def __init__(self, basis, classifier, held_dec: np.ndarray, train_dec: np.ndarray, channels: int):
-        from generative.diffusion import classify, mnv2_features
+        from generative.btf import classify, mnv2_features
 
         self.basis, self.classifier, self.channels = basis, classifier, channels
         self.res = held_dec.shape[2]  #: the training texture size
@@ -121,12 +121,12 @@ class _Judge:
         self.train_mn = mnv2_features(train_dec)
 
     def decode(self, features: np.ndarray) -> np.ndarray:
-        from generative.diffusion import decode_all
+        from generative.btf import decode_all
 
         return decode_all(self.basis, features, self.channels)
 
     def score(self, decoded: np.ndarray) -> dict:
-        from generative.diffusion import classify, mnv2_features
+        from generative.btf import classify, mnv2_features
 
         fm = mnv2_features(decoded)
         pred, fc = classify(self.classifier, decoded, fm)
@@ -136,7 +136,7 @@ class _Judge:
 
 def _keyword_eval(model, ms, judge: _Judge, prompts: list, families: np.ndarray, steps: int, guidance: float,
                   seed: int) -> dict:
-    from generative.diffusion import MaterialPrompt, sample_materials
+    from generative.btf import MaterialPrompt, sample_materials
 
     t = time.perf_counter()
     f = sample_materials(model, ms, [MaterialPrompt(p) for p in prompts], judge.res, steps, guidance, seed)
@@ -153,8 +153,8 @@ def _keyword_references(judge: _Judge, ms, train, held, seed: int, per_family: i
     Gaussian, (c) a member with randomised Fourier phases (its spectrum, not its structure), all in the model's
     space (cube root), and (d) the held-out fits with Gaussian noise of σ added in the model's space (the residual
     noise a sample may keep)."""
-    from generative.diffusion import (classify, family_gaussian_baseline, from_model_space, phase_randomised_baseline,
-                                      random_roll, to_model_space)
+    from generative.btf import (classify, family_gaussian_baseline, from_model_space, phase_randomised_baseline,
+                                random_roll, to_model_space)
 
     rng = np.random.default_rng(seed)
 
@@ -175,7 +175,7 @@ def _keyword_references(judge: _Judge, ms, train, held, seed: int, per_family: i
 
 
 def _seam(model, ms, judge: _Judge, size: int, n: int, seed: int, steps: int) -> float:
-    from generative.diffusion import MaterialPrompt, sample_materials, seam_ratio
+    from generative.btf import MaterialPrompt, sample_materials, seam_ratio
 
     f = sample_materials(model, ms, [MaterialPrompt()] * n, size, steps, 1.0, seed)
     return float(np.mean([seam_ratio(d[0]) for d in judge.decode(f)]))
@@ -195,12 +195,10 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
     from foundation.pool import PoolSettings, default_workers
     from foundation.files import read_json
     from foundation.records import from_json
-    from generative.diffusion import (ClassifierSettings, MaterialDataSettings, MaterialPrompt, MatDiffSettings,
-                                      aligned_flip, build_material_dataset, classify, copy_baseline, crop_baseline,
-                                      denoising_check,
-                                      gaussian_baseline, load_material_dataset, mean_pairwise, mnv2_features,
-                                      nearest_distances, sample_materials, save_sampler, train_classifier,
-                                      train_matdiff, load_matdiff)
+    from generative.btf import (aligned_flip, build_material_dataset, ClassifierSettings, classify, copy_baseline,
+                                crop_baseline, denoising_check, gaussian_baseline, load_matdiff, load_material_dataset,
+                                MatDiffSettings, MaterialDataSettings, MaterialPrompt, mean_pairwise, mnv2_features,
+                                nearest_distances, sample_materials, save_sampler, train_classifier, train_matdiff)
     from inverse.btf import FAMILIES
     from mi_plugins.neural_basis import load_basis
 
@@ -231,7 +229,7 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
         "keywords_seen": sorted({w for k in ds.keywords for w in k})}
     basis = load_basis(bundled_basis())
     with torch_threads(0):
-        from generative.diffusion import decode_all
+        from generative.btf import decode_all
 
         held_dec, train_dec = decode_all(basis, held.features), decode_all(basis, train.features)
         clf = train_classifier(train.swatches, train.families, work / "classifier",
@@ -312,7 +310,7 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
         # tiling
         result["seam_error"] = _seam(model, ms, judge, 2 * judge.res, 8, s.seed + 4, s.steps)  # 2× the training size
         result["seam_error_training_size"] = _seam(model, ms, judge, judge.res, 8, s.seed + 4, s.steps)
-        from generative.diffusion import seam_ratio
+        from generative.btf import seam_ratio
 
         result["seam_error_heldout_fits"] = float(np.mean([seam_ratio(d[0]) for d in held_dec]))
         result["seam_error_crop_baseline"] = float(np.mean([seam_ratio(d[0]) for d in judge.decode(methods["crop"][:8])]))
@@ -478,7 +476,7 @@ def samples_figure(work: Path, out: Path) -> str:
 
     from foundation.assets import bundled_basis
     from foundation.imageio import linear_to_srgb, save_figure
-    from generative.diffusion import decode_all
+    from generative.btf import decode_all
     from mi_plugins.neural_basis import load_basis
 
     z = np.load(work / "samples.npz")

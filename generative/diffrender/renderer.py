@@ -6,7 +6,7 @@ I = D / A, specular-and-emission S, world normal N), beside the benchmark's path
 By default only the morphed mesh's layers are training inputs (``sources``; the coarse ones can be
 added: the bench ablates it); held-out views are never trained on.
 
-The model (§3.2–3.3, :mod:`generative.diffusion.core`): local condition [A ‖ I ‖ S ‖ N] concatenated
+The model (§3.2–3.3, :mod:`generative.diffusion`): local condition [A ‖ I ‖ S ‖ N] concatenated
 with the noisy image (12 channels); global condition = MobileNetV2 tokens of the recomposition
 R = A·I + S (seed 000 eq. 4) of the whole view — ``global_source`` "R" (the seed), "AIS" (the three
 layers encoded separately: the recomposition ablation) or "none" (global features off). Training is
@@ -49,7 +49,7 @@ from foundation.progress import progress_bar
 from foundation.scene import recompose, split_intrinsics
 from inverse.morph import MorphBenchmark, morph_scene, sensor_dict, truth_scene
 
-from .core import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, check_size, diffusion_loss, load_trained,
+from generative.diffusion import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, check_size, diffusion_loss, load_trained,
                    make_scheduler, sample, train_stage)
 
 LAYERS = ("albedo", "irradiance", "specular", "normal")

@@ -46,9 +46,9 @@ from foundation import validate
 from foundation.errors import CheckpointError, UsageError
 from foundation.loop import RunState, Stage, TrainingSummary
 
-from .core import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, count_parameters, load_trained, make_scheduler,
+from generative.diffusion import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, count_parameters, load_trained, make_scheduler,
                    train_stage)
-from .face_data import FaceSet, TARGETS
+from .data import FaceSet, TARGETS
 
 #: lit (3), seen (1), covered (1), the baseline's albedo (3), position (3) and normal (3) in the face frame
 COND_CHANNELS = 14

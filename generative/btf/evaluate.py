@@ -29,8 +29,8 @@ import torch.nn.functional as F
 from foundation import validate
 from foundation.loop import RunState, Stage, StepResult, TrainingSummary
 
-from .core import OptimizerStage, train_stage
-from .material_data import FAMILIES, decode_swatches
+from generative.diffusion import OptimizerStage, train_stage
+from .data import FAMILIES, decode_swatches
 
 
 def decode_all(basis, features: np.ndarray, channels: int = 8) -> np.ndarray:
@@ -163,8 +163,8 @@ def denoising_check(model, s, features: np.ndarray, keywords: list, timesteps=(3
     leaves texel-scale noise in its samples (what `bench matdiff` found at CPU training budgets)."""
     from inverse.btf import gaussian_periodic
 
-    from .material_data import keyword_onehots
-    from .materials import cross_tokens, global_tokens, keyword_vector, make_material_scheduler, to_model_space
+    from .data import keyword_onehots
+    from .model import cross_tokens, global_tokens, keyword_vector, make_material_scheduler, to_model_space
 
     model.eval()
     x0 = torch.from_numpy(to_model_space(np.asarray(features, np.float32), s).astype(np.float32))

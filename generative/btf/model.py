@@ -48,8 +48,8 @@ from foundation import validate
 from foundation.errors import UsageError
 from foundation.loop import RunState, Stage, StepResult, TrainingSummary
 
-from .core import ConditionalDiffusion, DiffusionConfig, OptimizerStage, load_trained, train_stage
-from .material_data import SLOTS, VOCABULARY, MaterialSet, keyword_onehots
+from generative.diffusion import ConditionalDiffusion, DiffusionConfig, OptimizerStage, load_trained, train_stage
+from .data import SLOTS, VOCABULARY, MaterialSet, keyword_onehots
 
 FEATURE_DIM = 1280  #: MobileNetV2's last feature width
 EXEMPLAR_TOKENS = 16  #: a 4×4 feature map of the exemplar at 128²
@@ -401,13 +401,13 @@ def prior_keywords(run: str | Path, n: int, seed: int) -> list[list]:
     p = Path(run) / PRIOR_FILE
     if not p.is_file():
         raise UsageError(f"{p}: this run records no keyword prior (train it with this photoreal, or write one with "
-                         "generative.diffusion.save_keyword_prior)")
+                         "generative.btf.save_keyword_prior)")
     d = read_json(p, "keyword prior")
     try:
         triples, w = d["triples"], np.asarray(d["counts"], np.float64)
         if len(triples) != len(w) or not len(w) or (w <= 0).any():
             raise ValueError("triples and positive counts of one length")
-        from .material_data import SLOTS
+        from .data import SLOTS
 
         if any(not isinstance(t, list) or len(t) != len(SLOTS) or not all(isinstance(word, str) for word in t)
                for t in triples):
@@ -431,7 +431,7 @@ def train_matdiff(data: MaterialSet, out: str | Path, s: MatDiffSettings | None 
     so a run may resume on another device (the checkpoint is the same either way)."""
     import dataclasses
 
-    from .core import torch_device
+    from generative.diffusion import torch_device
 
     device = torch_device(device)
     s = s or MatDiffSettings()
@@ -609,7 +609,7 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
     from foundation.files import check_output_file
     from mi_plugins.neural_basis import NeuralMaterial, save_material
 
-    from .material_data import parse_keywords
+    from .data import parse_keywords
 
     out = check_output_file(out, "--out")
     if out.suffix != ".npz":

@@ -26,9 +26,9 @@ import numpy as np
 from foundation.errors import UsageError
 from foundation.files import read_json, write_json
 
-from .face_data import FaceDataSettings, build_face_dataset, load_face_dataset
-from .face_eval import LearnedModels
-from .face_models import (VARIANTS, CompletionSettings, DecompSettings, SuperResSettings, backbone_id, complete,
+from .data import FaceDataSettings, build_face_dataset, load_face_dataset
+from .evaluate import LearnedModels
+from .models import (VARIANTS, CompletionSettings, DecompSettings, SuperResSettings, backbone_id, complete,
                           load_completion, load_decomposer, load_superres, train_completion, train_decomposer,
                           train_superres)
 
@@ -135,8 +135,8 @@ def photo_maps_fn(models: LearnedModels):
     geometry, the baseline's albedo) → maps at the texture's resolution. The template's frame is the photo's image
     space (side +x, up +y, front +z); the albedo is brought to the baseline's level on the seen texels (the level the
     fitted lights explain the photo with)."""
-    from .face_data import FaceSet
-    from .face_eval import learned_maps
+    from .data import FaceSet
+    from .evaluate import learned_maps
 
     if models.layout != "template":
         # from-photo unwraps into the template's layout: maps learned in another read the wrong texels

@@ -461,8 +461,8 @@ def build_face_dataset(out: str | Path, s: FaceDataSettings | None = None, pool=
     write_json(index, {**want, "instances": []})  # claims the folder before any work
     registrations = ([save_registration(out, scan, s.uv_res) for scan in s.train_scans + (s.heldout_scan,)]
                      if s.layout == "template" else [])
-    items = [Item(instance_name(sp), "generative.diffusion.face_data:make_instance", (sp, s, str(out / f"{instance_name(sp)}.npz")),
-                  output=str(out / f"{instance_name(sp)}.npz"), loader="generative.diffusion.face_data:load_record")
+    items = [Item(instance_name(sp), "generative.face.data:make_instance", (sp, s, str(out / f"{instance_name(sp)}.npz")),
+                  output=str(out / f"{instance_name(sp)}.npz"), loader="generative.face.data:load_record")
              for sp in instance_specs(s)]
     report = run_items(items, pool or PoolSettings(workers=0, threads=0), desc="face instances", show_progress=progress)
     write_json(index, {**want, "instances": [r.value for r in report.results if r.ok],

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .face_data import FaceSet, mesh_of
+from .data import FaceSet, mesh_of
 
 DEFAULTS = {"roughness": 0.5, "specular": 0.35}  #: the template's skin defaults (inverse.face.PhotoFitSettings)
 
@@ -65,7 +65,7 @@ def learned_maps(d: FaceSet, m: LearnedModels, stages: str = "full", seed: int =
 
     ``stages``: ``completion`` (learned albedo + template defaults), ``decomposition`` (+ learned maps,
     bicubic to full size) or ``full`` (+ learned super-resolution)."""
-    from .face_models import at_resolution, complete, decompose_maps, upscale
+    from .models import at_resolution, complete, decompose_maps, upscale
 
     cs = m.completion_settings
     albedo = complete(m.completion, cs, d, seed=seed, samples=samples)

@@ -42,7 +42,7 @@ from foundation.progress import progress_bar
 from foundation.scene import recompose
 from foundation.threads import torch_threads
 
-from .core import OptimizerStage, load_trained, train_stage
+from generative.diffusion import OptimizerStage, load_trained, train_stage
 from .renderer import LAYERS, condition_to_layers, intrinsic_layers, local_condition, photo_to_model
 
 TEXTURES = ("brick", "grass", "gravel", "astronaut", "rocket", "hubble_deep_field", "color", "coffee")

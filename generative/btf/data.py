@@ -238,10 +238,10 @@ def build_material_dataset(out: str | Path, s: MaterialDataSettings | None = Non
     for m in btf_index["materials"]:
         stem = Path(m["file"]).stem
         sw = out / "swatch" / f"{stem}.npz"
-        items.append(Item(stem, "generative.diffusion.material_data:make_material",
+        items.append(Item(stem, "generative.btf.data:make_material",
                           (str(out / "btf" / m["file"]), m["family"], int(m["seed"]), str(basis),
                            str(out / "fit" / f"{stem}.npz"), str(sw), s),
-                          output=str(sw), loader="generative.diffusion.material_data:load_entry"))
+                          output=str(sw), loader="generative.btf.data:load_entry"))
     report = run_items(items, pool, desc="fit + swatches", show_progress=progress)
     entries = [r.value for r in report.results if r.ok]
     write_json(index, {**want, "materials": entries, "seconds_last_batch": report.seconds})

@@ -1,0 +1,106 @@
+"""`photoreal` command line: a thin layer over the library functions, one module per command group.
+
+Every option's default is read from the settings dataclass it fills (:func:`common.opt`), so the two never
+disagree; every option of a subcommand is used by it. Errors are one line naming the file or the flag: exit 2 for
+what the user gave (a flag value, a path, an input file), 1 for work that failed (PHOTOREAL_DEBUG=1 shows the
+traceback).
+
+Start-up stays fast: a group module imports only the standard library at its top, and :func:`main` builds the
+options of the one group that the command line names (``photoreal --help`` builds none), so the libraries behind
+the other groups (torch, diffusers, Mitsuba) are never imported for it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+#: command groups in the order ``photoreal --help`` lists them (module of this package: HELP, add(parser))
+GROUPS = ("render", "bench", "face", "morph", "btf", "gan", "diffrender", "demo")
+
+
+def _group(name: str):
+    return importlib.import_module(f"{__name__}.{name}")
+
+
+def build_parser(only: str | None | tuple[str, ...] = GROUPS) -> argparse.ArgumentParser:
+    """The parser; the groups in ``only`` get their options and subcommands, the others just their name and help."""
+    full = (only,) if isinstance(only, str) else tuple(only or ())
+    p = argparse.ArgumentParser(prog="photoreal", description="photoreal: coarse or low-quality 3D content rendered "
+                                "photo-realistically (Mitsuba 3 / Dr.Jit)")
+    sub = p.add_subparsers(dest="command", required=True)
+    for name in GROUPS:
+        mod = _group(name)
+        g = sub.add_parser(name, help=mod.HELP)
+        if name in full:
+            mod.add(g)
+    return p
+
+
+def _flags(parser: argparse.ArgumentParser, argv: list[str]) -> dict[str, str]:
+    """dest → option string of the subcommand that ran (to name flags, not field names, in errors)."""
+    out: dict[str, str] = {}
+
+    def walk(p: argparse.ArgumentParser) -> None:
+        for act in p._actions:
+            if isinstance(act, argparse._SubParsersAction):
+                for name, sp in act.choices.items():
+                    if name in argv:
+                        walk(sp)
+            elif act.option_strings:
+                out.setdefault(act.dest, max(act.option_strings, key=len))
+
+    walk(parser)
+    return out
+
+
+def _message(exc: BaseException, flags: dict[str, str]) -> str:
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    for dest, flag in flags.items():
+        if msg.startswith(dest + " ") or msg.startswith(dest + ":"):
+            return flag + msg[len(dest):]
+    return msg
+
+
+def _named_group(argv: list[str]) -> str | None:
+    """The command group the command line names: its first word that is not an option."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word if word in GROUPS else None
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    group = _named_group(argv)
+    try:
+        if group is not None:
+            import mi_plugins  # noqa: F401  (resolves libLLVM, picks and checks the variant)
+        parser = build_parser(group)
+    except ValueError as exc:  # e.g. PHOTOREAL_VARIANT names a variant the plugins cannot run on
+        print(f"photoreal: error: {exc}", file=sys.stderr)
+        return 2
+    args = parser.parse_args(argv)
+    from foundation.errors import PhotorealError
+
+    debug = os.environ.get("PHOTOREAL_DEBUG", "") not in ("", "0")
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        print("photoreal: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        if debug:
+            raise
+        code = getattr(exc, "exit_code", None)
+        if code is None:  # plain errors: a bad value or a missing file is the user's input; the rest, a failure
+            code = 2 if isinstance(exc, (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError,
+                                         ImportError)) else 1
+        msg = _message(exc, _flags(parser, argv))
+        if not isinstance(exc, (PhotorealError, ValueError, OSError, ImportError, RuntimeError, FloatingPointError)):
+            msg = f"internal error, {type(exc).__name__}: {msg} (PHOTOREAL_DEBUG=1 shows the traceback)"
+        print(f"photoreal: error: {msg}", file=sys.stderr)
+        return code
+

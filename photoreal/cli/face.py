@@ -1,0 +1,182 @@
+"""`photoreal face …`: face benchmarks, UV-space fits, one photo to a face, the learned stages."""
+
+from __future__ import annotations
+
+import argparse
+
+from .common import (
+    benchmark_dirs,
+    check_out_dir,
+    default_of,
+    opt,
+    pool_options,
+    pool_settings,
+    print_json,
+    run_batch,
+    settings_from,
+    usage,
+)
+
+HELP = "face material fitting in UV space (seed 003)"
+
+
+def _cmd_face_make_benchmark(a) -> int:
+    from foundation.files import check_output_dir
+    from inverse.face import FaceBenchmarkSettings, make_benchmark
+
+    check_output_dir(a.out, "benchmark.json", "--out", replace=True)
+    out = make_benchmark(a.scan, a.out, settings_from(FaceBenchmarkSettings, a))
+    print(f"benchmark: {out}")
+    return 0
+
+
+
+def _cmd_face_fit(a) -> int:
+    from foundation.pool import Item
+    from inverse.face import FaceFitSettings, RenderRefineSettings, fit_benchmark_dir
+
+    fs = settings_from(FaceFitSettings, a)
+    refine = RenderRefineSettings(iterations=a.refine_renders, seed=a.seed) if a.refine_renders else None
+    benches = benchmark_dirs(a.benchmark, "benchmark.json")
+    if len(benches) > 1 or a.out_dir:
+        if a.json or a.maps:
+            raise usage("--json and --maps name one benchmark's outputs; several go to --out-dir")
+        if not a.out_dir:
+            raise usage("several benchmarks: give --out-dir DIR (DIR/NAME/fit.json and DIR/NAME/maps each)")
+        out = check_out_dir(a.out_dir)
+        names = [b.name for b in benches]
+        if len(set(names)) != len(names):
+            raise usage("two benchmarks share a folder name; their fits would overwrite each other in --out-dir")
+        items = [Item(b.name, "inverse.face:fit_benchmark_item",
+                      (str(b), str(out / b.name / "fit.json"), str(out / b.name / "maps"), fs, refine),
+                      output=str(out / b.name / "fit.json")) for b in benches]
+        return run_batch(items, a, "face fits")
+    if not a.json:
+        raise usage("give --json FILE (or --out-dir for several benchmarks)")
+    r = fit_benchmark_dir(benches[0], a.json, a.maps, fs, refine=refine)
+    m = r.metrics
+    print_json({"albedo_psnr": m.albedo_psnr, "normal_err_deg": m.normal_err_deg, "relit_psnr": m.relit_psnr,
+            "seconds": m.seconds})
+    return 0
+
+
+def _cmd_face_from_photo(a) -> int:
+    from foundation.files import check_output_dir
+    from foundation.imageio import read_photo
+    from inverse.face import PhotoFitSettings, load_landmarks, photo_to_face
+
+    s = settings_from(PhotoFitSettings, a)
+    check_output_dir(a.out, "photo_face.json", "--out", replace=True)
+    maps_fn = None
+    if a.learned:
+        from generative.face import load_face_models, photo_maps_fn
+
+        maps_fn = photo_maps_fn(load_face_models(a.learned, a.variant))  # a bad run is named before any work
+    image = read_photo(a.image)
+    lm = load_landmarks(a.landmarks) if a.landmarks else None
+    r = photo_to_face(image, a.out, s, landmarks=lm, maps_fn=maps_fn)
+    print_json({"stages": r.stages, "landmark_reprojection_px": r.landmark_reprojection_px,
+            "rerender_psnr_visible_face": r.rerender_psnr_visible_face,
+            "visible_uv_fraction": r.visible_uv_fraction, "seconds": r.seconds})
+    return 0
+
+
+def _cmd_face_train_models(a) -> int:
+    from foundation.pool import ray_shutdown
+    from generative.face import (
+        CompletionSettings,
+        FaceDataSettings,
+        FaceModelsSettings,
+        SuperResSettings,
+        train_face_models,
+    )
+    from generative.face import DecompSettings as FaceDecompSettings
+
+    s = FaceModelsSettings(
+        data=settings_from(FaceDataSettings, a),
+        completion=CompletionSettings(max_seconds=a.completion_seconds, seed=a.seed),
+        decomposition=FaceDecompSettings(max_seconds=a.decomp_seconds, seed=a.seed),
+        superres=SuperResSettings(max_seconds=a.superres_seconds, seed=a.seed),
+        variants=tuple(a.variants))
+    try:
+        summary = train_face_models(a.out, s, pool_settings(a))
+    finally:
+        ray_shutdown()
+    print_json({k: {"parameters": v["parameters"], "steps": v["training"]["steps"],
+                "train_seconds": v["training"]["train_seconds"], "loss_last": v["training"]["loss_last"]}
+            for k, v in summary.items()})
+    return 0
+
+
+
+
+def add(parser: argparse.ArgumentParser) -> None:
+    """The group's options and subcommands, on its parser."""
+    from inverse.face import FaceBenchmarkSettings, FaceFitSettings, PhotoFitSettings, RenderRefineSettings
+
+
+    f = parser
+    fsub = f.add_subparsers(dest="face_cmd", required=True)
+    fm = fsub.add_parser("make-benchmark", help="ground truth + Mitsuba observations from an OBJ scan with texture")
+    fm.add_argument("--scan", required=True, help="OBJ with texture coordinates and a map_Kd texture")
+    fm.add_argument("--out", required=True, help="benchmark folder to create (absent, empty, or an earlier benchmark)")
+    opt(fm, FaceBenchmarkSettings, "uv_res")
+    opt(fm, FaceBenchmarkSettings, "n_lights", "--lights", help="directional training lights")
+    opt(fm, FaceBenchmarkSettings, "seed")
+    opt(fm, FaceBenchmarkSettings, "heldout_hdris", "--hdri", metavar="HDRI",
+         help="held-out relighting environments: bundled names or your own .exr files (copied into the benchmark); "
+              "the training photos stay under directional lights unless --lighting hdri")
+    opt(fm, FaceBenchmarkSettings, "observation_bsdf", choices=["ggx_uv", "principled"],
+         help="BSDF the observations are rendered with (principled: a model the fit does not know)")
+    opt(fm, FaceBenchmarkSettings, "lighting", choices=["directional", "hdri"],
+         help="each observation under one directional light, or under a real HDRI at a seeded rotation")
+    opt(fm, FaceBenchmarkSettings, "lighting_hdris", metavar="HDRI", help="environments of --lighting hdri")
+    opt(fm, FaceBenchmarkSettings, "max_depth", help="path length of the observations (> 2: interreflection)")
+    opt(fm, FaceBenchmarkSettings, "albedo_blur", type=float,
+         help="rendered albedo blurred by this many texels at 256² (subsurface-like spread; the truth is not blurred)")
+    fm.set_defaults(func=_cmd_face_make_benchmark)
+    ff = fsub.add_parser("fit", help="fit UV maps to benchmarks and score them (resumes from a checkpoint)")
+    ff.add_argument("benchmark", nargs="+", help="folder(s) made by make-benchmark, or a folder of them")
+    ff.add_argument("--json", default=None, help="metrics JSON of one benchmark (the checkpoint goes beside it)")
+    ff.add_argument("--out-dir", default=None, help="several benchmarks: DIR/NAME/fit.json and DIR/NAME/maps")
+    ff.add_argument("--maps", default=None, help="folder for the fitted maps (EXR + PNG)")
+    opt(ff, FaceFitSettings, "fit_lights", help="treat lighting as unknown and fit it jointly")
+    opt(ff, FaceFitSettings, "iterations", type=int, help="Adam steps per pyramid level")
+    ff.add_argument("--refine-renders", type=int, default=0, metavar="N",
+                    help=f"then refine N Adam steps through full camera renders (prb through ggx_uv; "
+                         f"suggested {default_of(RenderRefineSettings, 'iterations')}; default: 0, off)")
+    opt(ff, FaceFitSettings, "seed")
+    pool_options(ff)
+    ff.set_defaults(func=_cmd_face_fit)
+    fp = fsub.add_parser("from-photo", help="one photograph -> relightable face (landmarks, unwrap, delight, relight)")
+    fp.add_argument("image", help="image file, or 'astronaut' for scikit-image's photograph")
+    fp.add_argument("--out", required=True, help="output folder (absent, empty, or an earlier from-photo output)")
+    fp.add_argument("--landmarks", default=None, help="468x3 landmarks (.npy/.json) instead of running mediapipe")
+    opt(fp, PhotoFitSettings, "uv_res")
+    opt(fp, PhotoFitSettings, "seed")
+    fp.add_argument("--learned", default=None, metavar="RUN",
+                    help="replace fill, delighting and template defaults by the learned stages of a "
+                         "`face train-models` run (default: the optimisation baseline)")
+    fp.add_argument("--variant", default=None, help="decomposition variant of the run (default: the run's first)")
+    fp.set_defaults(func=_cmd_face_from_photo)
+    from generative.face import CompletionSettings, FaceDataSettings, SuperResSettings
+    from generative.face import DecompSettings as FaceDecompSettings
+
+    ft = fsub.add_parser("train-models", help="learned UV-space stages (seed 003 §2–§4): data from the training "
+                         "scan, completion diffusion (the backbone), LoRA decomposition, 2× super-resolution (resumes)")
+    ft.add_argument("--out", required=True, help="run folder (absent, empty, or this command's earlier run)")
+    for name in ("train_instances", "eval_instances", "uv_res", "spp", "seed"):
+        opt(ft, FaceDataSettings, name)
+    opt(ft, FaceDataSettings, "layout", choices=["template", "scan"],
+         help="UV layout of the maps: the face template's (what from-photo unwraps into) or the scans' own")
+    ft.add_argument("--completion-seconds", type=float, default=default_of(CompletionSettings, "max_seconds"),
+                    help="training budget of the completion model (default: %(default)s)")
+    ft.add_argument("--decomp-seconds", type=float, default=default_of(FaceDecompSettings, "max_seconds"),
+                    help="training budget of each decomposition variant (default: %(default)s)")
+    ft.add_argument("--superres-seconds", type=float, default=default_of(SuperResSettings, "max_seconds"),
+                    help="training budget of the upscaler (default: %(default)s)")
+    ft.add_argument("--variants", nargs="+", default=["cross_attention"],
+                    choices=["cross_attention", "shared", "independent"],
+                    help="decomposition variants to train; the first is the one from-photo uses (default: cross_attention)")
+    pool_options(ft)
+    ft.set_defaults(func=_cmd_face_train_models)
