@@ -93,7 +93,7 @@ def unravel_channels(arr: mi.Float, c: int) -> list[mi.Float]:
     Not ``dr.unravel``: in Dr.Jit 1.5 its backward pass *overwrites* the
     source's gradient, so when the same array is unravelled more than once
     (e.g. one shading call per light) only one call's gradient survives
-    (``tests/test_uv_shader.py::test_gradients_accumulate_over_lights``).
+    (``tests/plugins/test_uv_shader.py::test_gradients_accumulate_over_lights``).
     ``dr.gather`` accumulates correctly.
     """
     n = dr.width(arr) // c

@@ -22,7 +22,6 @@ from .benchmark import (TRUTH_NORMALS, ARTIFACT_REGIONS, Camera, MorphBenchmark,
                         truth_scene, truth_start_benchmark)
 from .evaluate import MorphEvaluation, evaluate_morph
 from .errors import ErrorReport, SurfaceErrors, benchmark_errors, benchmark_surface_errors, surface_errors
-from .gcn import GCNSettings, gcn_settings, run_gcn_morph
 from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (PleatReport, RepairReport, SpikeReport, TurnReport, border_zone, iron_border_turns, iron_spikes,
                         remesh, repair_flips, unfold_pleats)
@@ -31,6 +30,19 @@ from .run import (MORPH_SEED_MAX, PLANARITY_WHERE, PRIOR_TIES, Candidate, Colour
                   PlanarityDecision, StepSelection, TracePoint, candidate_settings, light_choice_draws, run_morph, start_mesh)
 from .suite import SUITE, KINDS, UNSEEN, suite_mesh
 from .scene import MODES, mask_integrator, mask_scene, morph_scene, photo_at, photo_masks, projective_integrator, render_views, saturated_silhouette
+
+# The GCN variant is the one part that needs torch: it loads on first use, so `import inverse.morph` (and
+# `photoreal morph … --help`) stays free of it.
+_LAZY = {"GCNSettings": "gcn", "gcn_settings": "gcn", "run_gcn_morph": "gcn"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "MORPH_SEED_MAX", "PLANARITY_WHERE", "PRIOR_TIES", "TRUTH_NORMALS", "ARTIFACT_REGIONS", "Camera", "ErrorReport", "SurfaceErrors", "benchmark_errors", "benchmark_surface_errors", "surface_errors", "Candidate", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",

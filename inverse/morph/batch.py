@@ -8,7 +8,6 @@ from foundation.files import write_json
 from foundation.records import to_json
 
 from .benchmark import load_morph_benchmark
-from .gcn import run_gcn_morph
 from .run import MorphResult, MorphSettings, run_morph
 
 
@@ -19,6 +18,8 @@ def run_item(bench_dir: str, out: str, s: MorphSettings, gcn: bool = False, trai
     ``train`` replaces the benchmark's training views (e.g. a few-views stability case); ``json_path`` also
     writes the metrics there. Resumable like :func:`run_morph`.
     """
+    from .gcn import run_gcn_morph  # torch: only where the GCN variant runs
+
     bench = load_morph_benchmark(bench_dir)
     if train is not None:
         bench.meta = dataclasses.replace(bench.meta, train=list(train))

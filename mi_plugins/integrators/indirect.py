@@ -30,7 +30,7 @@ draw the same random numbers for the same first bounce, so the first bounce canc
 costs two renders, the second one repeating the first's first bounce. This integrator draws the random numbers in
 ``path``'s order (emitter sample, BSDF sample, Russian roulette, at every vertex: ``src/integrators/path.cpp``) and
 adds a contribution only where its path is long enough, so one render equals the difference of the two to rounding
-(tested: ``tests/test_indirect.py``, against ``path`` at ``min_depth`` 1 and against the difference at 3).
+(tested: ``tests/plugins/test_indirect.py``, against ``path`` at ``min_depth`` 1 and against the difference at 3).
 
 A path of ``k`` segments is a camera ray, ``k − 2`` bounces and a last segment to a light: the emission a path finds
 after ``d`` bounces is a ``d + 1``-segment path, the emitter sample taken at its ``d``-th bounce (``d`` ≥ 1) a

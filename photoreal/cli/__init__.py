@@ -25,8 +25,9 @@ def _group(name: str):
     return importlib.import_module(f"{__name__}.{name}")
 
 
-def build_parser(only: str | None | tuple[str, ...] = GROUPS) -> argparse.ArgumentParser:
-    """The parser; the groups in ``only`` get their options and subcommands, the others just their name and help."""
+def build_parser(only: str | None | tuple[str, ...] = GROUPS, wanted: str | None = None) -> argparse.ArgumentParser:
+    """The parser; the groups in ``only`` get their subcommands, the others just their name and help. Of a group's
+    subcommands, ``wanted`` gets its options (all when None, none when "")."""
     full = (only,) if isinstance(only, str) else tuple(only or ())
     p = argparse.ArgumentParser(prog="photoreal", description="photoreal: coarse or low-quality 3D content rendered "
                                 "photo-realistically (Mitsuba 3 / Dr.Jit)")
@@ -35,7 +36,7 @@ def build_parser(only: str | None | tuple[str, ...] = GROUPS) -> argparse.Argume
         mod = _group(name)
         g = sub.add_parser(name, help=mod.HELP)
         if name in full:
-            mod.add(g)
+            mod.add(g, wanted)
     return p
 
 
@@ -64,21 +65,21 @@ def _message(exc: BaseException, flags: dict[str, str]) -> str:
     return msg
 
 
-def _named_group(argv: list[str]) -> str | None:
-    """The command group the command line names: its first word that is not an option."""
-    for word in argv:
-        if not word.startswith("-"):
-            return word if word in GROUPS else None
-    return None
+def _named(argv: list[str]) -> tuple[str | None, str | None]:
+    """The command group and the subcommand the command line names: its first two words that are not options
+    ("" for a group named without a subcommand: none gets its options)."""
+    words = [w for w in argv if not w.startswith("-")][:2]
+    group = words[0] if words and words[0] in GROUPS else None
+    return group, (words[1] if len(words) > 1 else "") if group else None
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    group = _named_group(argv)
+    group, wanted = _named(argv)
     try:
         if group is not None:
             import mi_plugins  # noqa: F401  (resolves libLLVM, picks and checks the variant)
-        parser = build_parser(group)
+        parser = build_parser(group, wanted)
     except ValueError as exc:  # e.g. PHOTOREAL_VARIANT names a variant the plugins cannot run on
         print(f"photoreal: error: {exc}", file=sys.stderr)
         return 2

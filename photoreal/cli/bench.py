@@ -206,26 +206,44 @@ def _cmd_bench_face_learned(a) -> int:
     return 0
 
 
+def _cmd_bench_startup(a) -> int:
+    from foundation.files import write_json
+
+    from ..benchmarks.startup import StartupBenchSettings, bench_startup
+
+    out = _bench_out(a)
+    result = bench_startup(settings_from(StartupBenchSettings, a))
+    write_json(out, result)
+    print_json({"python_s": result["python_s"], "slowest": result["slowest"],
+                "all_within_target": result["all_within_target"],
+                "median_s": {n: round(r["median_s"], 3) for n, r in result["commands"].items()}})
+    return 0
 
 
-def add(parser: argparse.ArgumentParser) -> None:
-    """The group's options and subcommands, on its parser."""
-    from inverse.morph import PRIOR_TIES, TRUTH_NORMALS
+def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
+    """The group's subcommands on its parser; only ``wanted`` (all when None) gets its options, so a command
+    imports the settings of the one subcommand it runs."""
+    sub = parser.add_subparsers(dest="what", required=True)
+    for name, (text, build) in _SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=text)
+        if wanted in (None, name):
+            build(p)
 
-    from ..benchmarks.face import FaceBenchSettings
-    from ..benchmarks.gan import GanBenchSettings
-    from ..benchmarks.morph import MorphBenchSettings
+
+def _add_plugins(bp: argparse.ArgumentParser) -> None:
     from ..benchmarks.plugins import PluginBenchSettings
-    from ..benchmarks.scale import ScaleBenchSettings
 
-    b = parser
-    bsub = b.add_subparsers(dest="what", required=True)
-    bp = bsub.add_parser("plugins", help="ggx_uv vs builtin principled on the same scene")
     for name in ("resolution", "spp", "repetitions", "rounds"):
         opt(bp, PluginBenchSettings, name)
     bp.set_defaults(func=_cmd_bench_plugins)
-    bm = bsub.add_parser("morph", help="geometry morphing: accuracy vs time, speed vs the tutorial recipe, stability, "
-                                       "the generalisation suite, the benchmark's framing")
+    bp.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+def _add_morph(bm: argparse.ArgumentParser) -> None:
+    from inverse.morph import PRIOR_TIES, TRUTH_NORMALS
+
+    from ..benchmarks.morph import MorphBenchSettings
+
     opt(bm, MorphBenchSettings, "parts", choices=["cases", "suite", "framing", "floor", "iteration"],
          help="cases: village/armadillo (speed, sweep, stability); suite: every suite mesh at the same defaults; "
               "framing: views and photo resolution swept on the first suite mesh; floor: each suite mesh morphed "
@@ -270,9 +288,11 @@ def add(parser: argparse.ArgumentParser) -> None:
                                                    "finished runs instead of recomputing them (default: removed)")
     pool_options(bm)
     bm.set_defaults(func=_cmd_bench_morph)
-    bms = bsub.add_parser("morph-seeds", help="the morph suite over several draws: `bench morph --parts suite "
-                                              "--seed K` results, one per seed, summed up per mesh (mean, worst, "
-                                              "at how many seeds every target holds) with a chart")
+    bm.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+def _add_morph_seeds(bms: argparse.ArgumentParser) -> None:
+
     bms.add_argument("results", nargs="+", help="bench morph JSON files with a suite, one per seed (a seed's suite "
                                                 "run in parts: its files, each with other meshes)")
     bms.add_argument("--against", nargs="+", metavar="RESULT",
@@ -280,28 +300,46 @@ def add(parser: argparse.ArgumentParser) -> None:
                           "the change per draw, its mean and standard error, wins and losses (sign test), targets "
                           "gained and lost, and a chart OUT_against.png")
     bms.set_defaults(func=_cmd_bench_morph_seeds)
-    bld = bsub.add_parser("morph-light-draws", help="every light choice of `bench morph --parts suite --keep-work` "
-                                                    "results scored again under other draws of the light estimate: "
-                                                    "how much of each choice the estimate's own noise decides")
+    bms.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+def _add_morph_light_draws(bld: argparse.ArgumentParser) -> None:
+
     bld.add_argument("results", nargs="+", help="bench morph JSON files with a suite, their work folders kept")
     bld.add_argument("--draws", type=int, default=4, help="draws of the estimate per run, the choice's own first "
                                                          "(default: 4)")
     bld.set_defaults(func=_cmd_bench_morph_light_draws)
-    bb = bsub.add_parser("btf", help="neural BTF: universal vs NeuMIP, width × texture sweep, render time")
+    bld.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+def _add_btf(bb: argparse.ArgumentParser) -> None:
+
     pool_options(bb)
     bb.set_defaults(func=_cmd_bench_btf)
-    bf = bsub.add_parser("face", help="face fitting: accuracy vs time over UV resolution, stability")
+    bb.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+def _add_face(bf: argparse.ArgumentParser) -> None:
+    from ..benchmarks.face import FaceBenchSettings
+
     opt(bf, FaceBenchSettings, "scan", help="josie, paul, or an OBJ path")
     bf.set_defaults(func=_cmd_bench_face)
-    bg = bsub.add_parser("gan", help="GAN refinement stages on held-out views")
+    bf.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+def _add_gan(bg: argparse.ArgumentParser) -> None:
+    from ..benchmarks.gan import GanBenchSettings
+
     bg.add_argument("--seconds-per-model", type=float, default=None,
                     help=f"training budget per GAN (default: {default_of(GanBenchSettings, 'seconds_per_model')} s; "
                          "the joint, CycleGAN and fine-tune budgets keep their proportions)")
     bg.set_defaults(func=_cmd_bench_gan)
+    bg.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+def _add_diffrender(bd: argparse.ArgumentParser) -> None:
     from ..benchmarks.diffrender import DiffRenderBenchSettings
 
-    bd = bsub.add_parser("diffrender", help="diffusion renderer vs PBR recomposition and the GANs on held-out views; "
-                         "decomposition network, ablations, steps × size sweep, an unseen mesh")
     opt(bd, DiffRenderBenchSettings, "train_seconds", type=float, help="the main model's training budget")
     opt(bd, DiffRenderBenchSettings, "ablation_seconds", type=float, help="training budget of each ablation run")
     opt(bd, DiffRenderBenchSettings, "decomp_seconds", type=float, help="decomposition network's training budget")
@@ -326,20 +364,24 @@ def add(parser: argparse.ArgumentParser) -> None:
          help="trainings and renders run this many at a time, one thread each (0: one after another, all threads)")
     opt(bd, DiffRenderBenchSettings, "seed")
     bd.set_defaults(func=_cmd_bench_diffrender)
+    bd.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+def _add_matdiff(bmd: argparse.ArgumentParser) -> None:
     from ..benchmarks.matdiff import MatDiffBenchSettings
 
-    bmd = bsub.add_parser("matdiff", help="material diffusion: keyword/exemplar conditioning, KID vs baselines, "
-                         "memorisation, seams, speed, ablations, dataset sweep (builds/continues its dataset first)")
     for name in ("data", "count", "train_seconds", "ablation_seconds", "samples", "steps", "guidance", "seed"):
         opt(bmd, MatDiffBenchSettings, name)
     opt(bmd, MatDiffBenchSettings, "main_run", help="finished `btf train-diffusion` run (e.g. trained with --device "
          "cuda) to evaluate instead of training the main model here; default: train here")
     opt(bmd, MatDiffBenchSettings, "ablations", "--no-ablations", help="skip the ablation runs")
     bmd.set_defaults(func=_cmd_bench_matdiff)
+    bmd.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+def _add_face_learned(bfl: argparse.ArgumentParser) -> None:
     from ..benchmarks.face_learned import FaceLearnedBenchSettings
 
-    bfl = bsub.add_parser("face-learned", help="learned face stages vs the optimisation baseline on a held-out scan: "
-                          "completion, decomposition variants, super-resolution, cross-model fit, end to end")
     for name in ("train_instances", "eval_instances", "completion_seconds", "decomp_seconds", "superres_seconds",
                  "relit_instances", "cross_uv_res", "workers", "seed"):
         opt(bfl, FaceLearnedBenchSettings, name)
@@ -349,11 +391,49 @@ def add(parser: argparse.ArgumentParser) -> None:
     opt(bfl, FaceLearnedBenchSettings, "cross_model", "--no-cross-model", help="skip the cross-model fit")
     opt(bfl, FaceLearnedBenchSettings, "astronaut", "--no-astronaut", help="skip the astronaut photograph")
     bfl.set_defaults(func=_cmd_bench_face_learned)
-    bs = bsub.add_parser("scale", help="a batch of renders serially, on a process pool and on Ray (identical?)")
+    bfl.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+def _add_scale(bs: argparse.ArgumentParser) -> None:
+    from ..benchmarks.scale import ScaleBenchSettings
+
     for name in ("items", "resolution", "spp"):
         opt(bs, ScaleBenchSettings, name)
     opt(bs, ScaleBenchSettings, "ray", "--no-ray", help="leave out the Ray configuration")
     opt(bs, ScaleBenchSettings, "material_item", "--no-material", help="leave out timing one BTF material")
     bs.set_defaults(func=_cmd_bench_scale)
-    for q in (bp, bm, bms, bld, bb, bf, bg, bd, bmd, bfl, bs):
-        q.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+    bs.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+def _add_startup(bst: argparse.ArgumentParser) -> None:
+    from ..benchmarks.startup import StartupBenchSettings
+
+    opt(bst, StartupBenchSettings, "repetitions")
+    opt(bst, StartupBenchSettings, "target_s", "--target", help="seconds a command must answer within")
+    bst.set_defaults(func=_cmd_bench_startup)
+    bst.add_argument("--json", required=True, help="output JSON path (charts and work folders go beside it)")
+
+
+_SUBCOMMANDS = {
+    "plugins": ("ggx_uv vs builtin principled on the same scene", _add_plugins),
+    "morph": ("geometry morphing: accuracy vs time, speed vs the tutorial recipe, stability, "
+                                       "the generalisation suite, the benchmark's framing", _add_morph),
+    "morph-seeds": ("the morph suite over several draws: `bench morph --parts suite "
+                                              "--seed K` results, one per seed, summed up per mesh (mean, worst, "
+                                              "at how many seeds every target holds) with a chart", _add_morph_seeds),
+    "morph-light-draws": ("every light choice of `bench morph --parts suite --keep-work` "
+                                                    "results scored again under other draws of the light estimate: "
+                                                    "how much of each choice the estimate's own noise decides", _add_morph_light_draws),
+    "btf": ("neural BTF: universal vs NeuMIP, width × texture sweep, render time", _add_btf),
+    "face": ("face fitting: accuracy vs time over UV resolution, stability", _add_face),
+    "gan": ("GAN refinement stages on held-out views", _add_gan),
+    "diffrender": ("diffusion renderer vs PBR recomposition and the GANs on held-out views; "
+                         "decomposition network, ablations, steps × size sweep, an unseen mesh", _add_diffrender),
+    "matdiff": ("material diffusion: keyword/exemplar conditioning, KID vs baselines, "
+                         "memorisation, seams, speed, ablations, dataset sweep (builds/continues its dataset first)", _add_matdiff),
+    "face-learned": ("learned face stages vs the optimisation baseline on a held-out scan: "
+                          "completion, decomposition variants, super-resolution, cross-model fit, end to end", _add_face_learned),
+    "scale": ("a batch of renders serially, on a process pool and on Ray (identical?)", _add_scale),
+    "startup": ("`photoreal … --help` and argument errors: median wall seconds, each in a "
+                                          "fresh interpreter, beside a bare Python", _add_startup),
+}

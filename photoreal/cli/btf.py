@@ -144,15 +144,19 @@ def _cmd_btf_generate(a) -> int:
 
 
 
-def add(parser: argparse.ArgumentParser) -> None:
-    """The group's options and subcommands, on its parser."""
-    from inverse.btf import BTFRenderSettings, OptimSettings, fit_settings, render_dataset, split_slices
-    from mi_plugins.neural_basis import BasisConfig
+def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
+    """The group's subcommands on its parser; only ``wanted`` (all when None) gets its options, so a command
+    imports the settings of the one subcommand it runs."""
+    sub = parser.add_subparsers(dest="btf_cmd", required=True)
+    for name, (text, build) in _SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=text)
+        if wanted in (None, name):
+            build(p)
 
 
-    t = parser
-    tsub = t.add_subparsers(dest="btf_cmd", required=True)
-    tr = tsub.add_parser("render-data", help="render BTFs from procedural/photo SVBRDFs (resumes: skips finished files)")
+def _add_render_data(tr: argparse.ArgumentParser) -> None:
+    from inverse.btf import BTFRenderSettings, render_dataset
+
     tr.add_argument("--out", required=True, help="dataset folder")
     tr.add_argument("--families", nargs="+", default=None, help="subset of the material families (default: all 8)")
     tr.add_argument("--per-family", type=int, default=arg_default(render_dataset, "per_family"),
@@ -161,7 +165,12 @@ def add(parser: argparse.ArgumentParser) -> None:
         opt(tr, BTFRenderSettings, name)
     pool_options(tr)
     tr.set_defaults(func=_cmd_btf_render_data)
-    tb = tsub.add_parser("train-basis", help="train the universal MLPs on a dataset (resumes from --checkpoint)")
+
+
+def _add_train_basis(tb: argparse.ArgumentParser) -> None:
+    from inverse.btf import OptimSettings
+    from mi_plugins.neural_basis import BasisConfig
+
     tb.add_argument("data", help="folder made by render-data")
     tb.add_argument("--out", required=True, help="basis .npz")
     opt(tb, OptimSettings, "iterations")
@@ -172,7 +181,11 @@ def add(parser: argparse.ArgumentParser) -> None:
     tb.add_argument("--checkpoint", default=None, help="default: OUT with .ckpt.npz")
     opt(tb, OptimSettings, "seed")
     tb.set_defaults(func=_cmd_btf_train_basis)
-    tf = tsub.add_parser("fit", help="fit materials' feature textures with the basis frozen (resumes)")
+
+
+def _add_fit(tf: argparse.ArgumentParser) -> None:
+    from inverse.btf import OptimSettings, fit_settings, split_slices
+
     tf.add_argument("btf", nargs="+", help="BTF .npz file(s) from render-data")
     tf.add_argument("--basis", required=True)
     tf.add_argument("--out", default=None, help="material .npz for the neural_btf plugin (one BTF)")
@@ -190,18 +203,21 @@ def add(parser: argparse.ArgumentParser) -> None:
     pool_options(tf)
     tf.set_defaults(func=_cmd_btf_fit)
 
-    from generative.btf import MatDiffSettings, MaterialDataSettings
 
-    td = tsub.add_parser("dataset", help="many fitted materials for the material diffusion model: BTFs, fits, "
-                         "path-traced swatches, keywords (resumes; every core)")
+def _add_dataset(td: argparse.ArgumentParser) -> None:
+    from generative.btf import MaterialDataSettings
+
     td.add_argument("--out", required=True, help="dataset folder")
     for name in ("count", "tex_res", "slices", "spp", "fit_iterations", "seed"):
         opt(td, MaterialDataSettings, name)
     td.add_argument("--basis", default=None, help="universal basis .npz (default: the bundled one)")
     pool_options(td)
     td.set_defaults(func=_cmd_btf_dataset)
-    tt = tsub.add_parser("train-diffusion", help="train the material diffusion model on a dataset's training "
-                         "materials (resumes)")
+
+
+def _add_train_diffusion(tt: argparse.ArgumentParser) -> None:
+    from generative.btf import MatDiffSettings
+
     tt.add_argument("data", help="folder made by `btf dataset`")
     tt.add_argument("--out", required=True, help="run folder (checkpoint.npz, metrics.json)")
     opt(tt, MatDiffSettings, "max_seconds", "--seconds", type=float, help="training budget (summed over resumes)")
@@ -210,8 +226,10 @@ def add(parser: argparse.ArgumentParser) -> None:
     tt.add_argument("--device", default="cpu", help="torch device of the model (cpu, cuda, cuda:N, mps; default: cpu); "
                     "a run resumes on any device")
     tt.set_defaults(func=_cmd_btf_train_diffusion)
-    tg = tsub.add_parser("generate", help="a new material from keywords and/or an exemplar image; loads in "
-                         "neural_btf with the basis the model was trained on")
+
+
+def _add_generate(tg: argparse.ArgumentParser) -> None:
+
     tg.add_argument("--run", default=None, help="run folder of `btf train-diffusion` (default: the bundled model, "
                     "scenes/assets/neural/matdiff, trained on a GPU; see its README)")
     tg.add_argument("--keywords", default=None, help="e.g. 'rough red leather' (family, colour, finish words)")
@@ -228,3 +246,16 @@ def add(parser: argparse.ArgumentParser) -> None:
                     "sampler.json; else 2)")
     tg.add_argument("--out", required=True, help="material .npz")
     tg.set_defaults(func=_cmd_btf_generate)
+
+
+_SUBCOMMANDS = {
+    "render-data": ("render BTFs from procedural/photo SVBRDFs (resumes: skips finished files)", _add_render_data),
+    "train-basis": ("train the universal MLPs on a dataset (resumes from --checkpoint)", _add_train_basis),
+    "fit": ("fit materials' feature textures with the basis frozen (resumes)", _add_fit),
+    "dataset": ("many fitted materials for the material diffusion model: BTFs, fits, "
+                         "path-traced swatches, keywords (resumes; every core)", _add_dataset),
+    "train-diffusion": ("train the material diffusion model on a dataset's training "
+                         "materials (resumes)", _add_train_diffusion),
+    "generate": ("a new material from keywords and/or an exemplar image; loads in "
+                         "neural_btf with the basis the model was trained on", _add_generate),
+}

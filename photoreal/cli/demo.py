@@ -21,8 +21,8 @@ def _cmd_demo(a) -> int:
 
 
 
-def add(parser: argparse.ArgumentParser) -> None:
-    """The group's options and subcommands, on its parser."""
+def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
+    """The command's options (it has no subcommands: ``wanted`` is not used)."""
 
     from ..demo import DemoSettings
 

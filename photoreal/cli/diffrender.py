@@ -59,13 +59,20 @@ def _cmd_diffrender(a) -> int:
     return 0
 
 
-def add(parser: argparse.ArgumentParser) -> None:
-    """The group's options and subcommands, on its parser."""
-    from generative.diffrender import TRAIN_SOURCES, DiffRenderSettings, SampleSettings
+def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
+    """The group's subcommands on its parser; only ``wanted`` (all when None) gets its options, so a command
+    imports the settings of the one subcommand it runs."""
+    parser.set_defaults(func=_cmd_diffrender)
+    sub = parser.add_subparsers(dest="dr_cmd", required=True)
+    for name, (text, build) in _SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=text)
+        if wanted in (None, name):
+            build(p)
 
-    g = parser
-    gs = g.add_subparsers(dest="dr_cmd", required=True)
-    t = gs.add_parser("train", help="train on morph benchmarks (morphed G-buffers → photos); resumes from OUT")
+
+def _add_train(t: argparse.ArgumentParser) -> None:
+    from generative.diffrender import TRAIN_SOURCES, DiffRenderSettings
+
     t.add_argument("benchmarks", nargs="+", help="folders made by `photoreal morph make-benchmark` (with --spp 1024, "
                    "as the bench: the photos are the targets, and their Monte-Carlo noise would be learned as well)")
     t.add_argument("--morph", nargs="+", default=None, help="their morph run folders, in order (default BENCHMARK/morph)")
@@ -90,7 +97,11 @@ def add(parser: argparse.ArgumentParser) -> None:
     opt(t, DiffRenderSettings, "threads", help="torch threads (0: all cores)")
     opt(t, DiffRenderSettings, "seed")
     t.add_argument("--json", default=None)
-    r = gs.add_parser("render", help="diffusion renders of a benchmark's views or of a scene's sensors (EXR + PNG)")
+
+
+def _add_render(r: argparse.ArgumentParser) -> None:
+    from generative.diffrender import SampleSettings
+
     r.add_argument("target", help="a morph benchmark folder, or a Mitsuba scene .xml (every sensor is rendered)")
     r.add_argument("--run", required=True, help="training folder of `diffrender train`")
     r.add_argument("--out", required=True, help="output folder")
@@ -106,6 +117,11 @@ def add(parser: argparse.ArgumentParser) -> None:
          "default: 8 at 1 step, the bench's choice, 1 for more steps)")
     opt(r, SampleSettings, "seed")
     r.add_argument("--json", default=None)
-    g.set_defaults(func=_cmd_diffrender)
+
+
+_SUBCOMMANDS = {
+    "train": ("train on morph benchmarks (morphed G-buffers → photos); resumes from OUT", _add_train),
+    "render": ("diffusion renders of a benchmark's views or of a scene's sensors (EXR + PNG)", _add_render),
+}
 
 

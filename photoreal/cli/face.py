@@ -110,14 +110,19 @@ def _cmd_face_train_models(a) -> int:
 
 
 
-def add(parser: argparse.ArgumentParser) -> None:
-    """The group's options and subcommands, on its parser."""
-    from inverse.face import FaceBenchmarkSettings, FaceFitSettings, PhotoFitSettings, RenderRefineSettings
+def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
+    """The group's subcommands on its parser; only ``wanted`` (all when None) gets its options, so a command
+    imports the settings of the one subcommand it runs."""
+    sub = parser.add_subparsers(dest="face_cmd", required=True)
+    for name, (text, build) in _SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=text)
+        if wanted in (None, name):
+            build(p)
 
 
-    f = parser
-    fsub = f.add_subparsers(dest="face_cmd", required=True)
-    fm = fsub.add_parser("make-benchmark", help="ground truth + Mitsuba observations from an OBJ scan with texture")
+def _add_make_benchmark(fm: argparse.ArgumentParser) -> None:
+    from inverse.face import FaceBenchmarkSettings
+
     fm.add_argument("--scan", required=True, help="OBJ with texture coordinates and a map_Kd texture")
     fm.add_argument("--out", required=True, help="benchmark folder to create (absent, empty, or an earlier benchmark)")
     opt(fm, FaceBenchmarkSettings, "uv_res")
@@ -135,7 +140,11 @@ def add(parser: argparse.ArgumentParser) -> None:
     opt(fm, FaceBenchmarkSettings, "albedo_blur", type=float,
          help="rendered albedo blurred by this many texels at 256² (subsurface-like spread; the truth is not blurred)")
     fm.set_defaults(func=_cmd_face_make_benchmark)
-    ff = fsub.add_parser("fit", help="fit UV maps to benchmarks and score them (resumes from a checkpoint)")
+
+
+def _add_fit(ff: argparse.ArgumentParser) -> None:
+    from inverse.face import FaceFitSettings, RenderRefineSettings
+
     ff.add_argument("benchmark", nargs="+", help="folder(s) made by make-benchmark, or a folder of them")
     ff.add_argument("--json", default=None, help="metrics JSON of one benchmark (the checkpoint goes beside it)")
     ff.add_argument("--out-dir", default=None, help="several benchmarks: DIR/NAME/fit.json and DIR/NAME/maps")
@@ -148,7 +157,11 @@ def add(parser: argparse.ArgumentParser) -> None:
     opt(ff, FaceFitSettings, "seed")
     pool_options(ff)
     ff.set_defaults(func=_cmd_face_fit)
-    fp = fsub.add_parser("from-photo", help="one photograph -> relightable face (landmarks, unwrap, delight, relight)")
+
+
+def _add_from_photo(fp: argparse.ArgumentParser) -> None:
+    from inverse.face import PhotoFitSettings
+
     fp.add_argument("image", help="image file, or 'astronaut' for scikit-image's photograph")
     fp.add_argument("--out", required=True, help="output folder (absent, empty, or an earlier from-photo output)")
     fp.add_argument("--landmarks", default=None, help="468x3 landmarks (.npy/.json) instead of running mediapipe")
@@ -159,11 +172,12 @@ def add(parser: argparse.ArgumentParser) -> None:
                          "`face train-models` run (default: the optimisation baseline)")
     fp.add_argument("--variant", default=None, help="decomposition variant of the run (default: the run's first)")
     fp.set_defaults(func=_cmd_face_from_photo)
+
+
+def _add_train_models(ft: argparse.ArgumentParser) -> None:
     from generative.face import CompletionSettings, FaceDataSettings, SuperResSettings
     from generative.face import DecompSettings as FaceDecompSettings
 
-    ft = fsub.add_parser("train-models", help="learned UV-space stages (seed 003 §2–§4): data from the training "
-                         "scan, completion diffusion (the backbone), LoRA decomposition, 2× super-resolution (resumes)")
     ft.add_argument("--out", required=True, help="run folder (absent, empty, or this command's earlier run)")
     for name in ("train_instances", "eval_instances", "uv_res", "spp", "seed"):
         opt(ft, FaceDataSettings, name)
@@ -180,3 +194,12 @@ def add(parser: argparse.ArgumentParser) -> None:
                     help="decomposition variants to train; the first is the one from-photo uses (default: cross_attention)")
     pool_options(ft)
     ft.set_defaults(func=_cmd_face_train_models)
+
+
+_SUBCOMMANDS = {
+    "make-benchmark": ("ground truth + Mitsuba observations from an OBJ scan with texture", _add_make_benchmark),
+    "fit": ("fit UV maps to benchmarks and score them (resumes from a checkpoint)", _add_fit),
+    "from-photo": ("one photograph -> relightable face (landmarks, unwrap, delight, relight)", _add_from_photo),
+    "train-models": ("learned UV-space stages (seed 003 §2–§4): data from the training "
+                         "scan, completion diffusion (the backbone), LoRA decomposition, 2× super-resolution (resumes)", _add_train_models),
+}

@@ -64,13 +64,20 @@ def _cmd_gan(a) -> int:
 
 
 
-def add(parser: argparse.ArgumentParser) -> None:
-    """The group's options and subcommands, on its parser."""
+def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
+    """The group's subcommands on its parser; only ``wanted`` (all when None) gets its options, so a command
+    imports the settings of the one subcommand it runs."""
+    parser.set_defaults(func=_cmd_gan)
+    sub = parser.add_subparsers(dest="gan_cmd", required=True)
+    for name, (text, build) in _SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=text)
+        if wanted in (None, name):
+            build(p)
+
+
+def _add_train(gt: argparse.ArgumentParser) -> None:
     from generative.gan import GanTrainSettings
 
-    g = parser
-    gsub = g.add_subparsers(dest="gan_cmd", required=True)
-    gt = gsub.add_parser("train", help="train one model on a morph benchmark + morph run (resumes from OUT)")
     gt.add_argument("benchmark", help="folder made by `photoreal morph make-benchmark`")
     gt.add_argument("--morph", default=None, help="morph run folder with morphed.ply (default BENCHMARK/morph)")
     gt.add_argument("--model", choices=["pix2pix", "cyclegan", "morph_gan_partial", "morph_gan", "joint"],
@@ -88,11 +95,19 @@ def add(parser: argparse.ArgumentParser) -> None:
                     help="generator outputs tanh directly (papers' head) instead of input + tanh correction")
     gt.add_argument("--json", default=None)
     opt(gt, GanTrainSettings, "seed")
-    ge = gsub.add_parser("eval", help="held-out metrics of a trained model")
+
+
+def _add_eval(ge: argparse.ArgumentParser) -> None:
+
     ge.add_argument("benchmark")
     ge.add_argument("--morph", default=None, help="morph run folder (default BENCHMARK/morph)")
     ge.add_argument("--run", required=True, help="training folder of `gan train`")
     ge.add_argument("--json", default=None)
-    g.set_defaults(func=_cmd_gan)
+
+
+_SUBCOMMANDS = {
+    "train": ("train one model on a morph benchmark + morph run (resumes from OUT)", _add_train),
+    "eval": ("held-out metrics of a trained model", _add_eval),
+}
 
 

@@ -118,14 +118,19 @@ def _cmd_morph_errors(a) -> int:
 
 
 
-def add(parser: argparse.ArgumentParser) -> None:
-    """The group's options and subcommands, on its parser."""
-    from inverse.morph import PLANARITY_WHERE, PRIOR_TIES, TRUTH_NORMALS, MorphBenchmarkSettings, MorphSettings
+def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
+    """The group's subcommands on its parser; only ``wanted`` (all when None) gets its options, so a command
+    imports the settings of the one subcommand it runs."""
+    sub = parser.add_subparsers(dest="morph_cmd", required=True)
+    for name, (text, build) in _SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=text)
+        if wanted in (None, name):
+            build(p)
 
 
-    m = parser
-    msub = m.add_subparsers(dest="morph_cmd", required=True)
-    mm = msub.add_parser("make-benchmark", help="ground truth + photos + degraded reconstruction")
+def _add_make_benchmark(mm: argparse.ArgumentParser) -> None:
+    from inverse.morph import TRUTH_NORMALS, MorphBenchmarkSettings
+
     mm.add_argument("--mesh", required=True, help="OBJ/PLY/OFF mesh, or 'village'")
     mm.add_argument("--out", required=True, help="benchmark folder (absent, empty, or an earlier benchmark)")
     opt(mm, MorphBenchmarkSettings, "n_views", "--views", help="photos on the drone orbit (every 4th is held out)")
@@ -145,7 +150,11 @@ def add(parser: argparse.ArgumentParser) -> None:
          help="path length of the photos; 2 = direct light only, what the morph renders (no interreflections to "
               "explain)")
     mm.set_defaults(func=_cmd_morph_make_benchmark)
-    mr = msub.add_parser("run", help="morph benchmarks' coarse meshes (resumes from their checkpoints)")
+
+
+def _add_run(mr: argparse.ArgumentParser) -> None:
+    from inverse.morph import PLANARITY_WHERE, PRIOR_TIES, MorphSettings
+
     mr.add_argument("benchmark", nargs="+", help="benchmark folder(s), or a folder of them")
     mr.add_argument("--out", default=None, help="output folder of one benchmark (default BENCHMARK/morph)")
     mr.add_argument("--out-dir", default=None, help="several benchmarks: DIR/NAME (default: each BENCHMARK/morph)")
@@ -249,11 +258,9 @@ def add(parser: argparse.ArgumentParser) -> None:
     pool_options(mr)
     mr.set_defaults(func=_cmd_morph_run)
 
-    me = msub.add_parser("errors", help="where meshes lie against a benchmark's truth: both Chamfer directions, its "
-                                        "open border against its interior, the input's error a result kept (in all "
-                                        "and per spatial scale), the area facing against the truth by how many "
-                                        "training views see it; signed-distance PLYs, PLYs marking the "
-                                        "triangles facing against the truth, and a figure of each")
+
+def _add_errors(me: argparse.ArgumentParser) -> None:
+
     me.add_argument("benchmark", help="folder made by `photoreal morph make-benchmark`")
     me.add_argument("results", nargs="+", help="result meshes (OBJ/PLY/OFF) or morph output folders (their morphed.ply)")
     me.add_argument("--out", required=True, help="folder for errors.json, errors_<name>.ply, facing_<name>.ply, "
@@ -263,12 +270,27 @@ def add(parser: argparse.ArgumentParser) -> None:
                     help="width of the truth's border band (default 2.5%% of its bounding-box diagonal)")
     me.set_defaults(func=_cmd_morph_errors)
 
-    ms_ = msub.add_parser("saturation", help="per training view, the pixels where the lighting is saturated (as "
-                                            "`morph run --saturation` sees it) and how many lie at the truth's "
-                                            "silhouette, where an edge's gradient is scaled by that light")
+
+def _add_saturation(ms_: argparse.ArgumentParser) -> None:
+    from inverse.morph import MorphSettings
+
     ms_.add_argument("benchmarks", nargs="+", help="folders made by `photoreal morph make-benchmark`")
     ms_.add_argument("--factor", type=float, default=MorphSettings.saturation,
                      help="the saturation level: this × the training photos' 99th percentile (default: the morph's "
                           "MorphSettings.saturation, %(default)s)")
     ms_.add_argument("--json", default=None, help="also write the report here")
     ms_.set_defaults(func=_cmd_morph_saturation)
+
+
+_SUBCOMMANDS = {
+    "make-benchmark": ("ground truth + photos + degraded reconstruction", _add_make_benchmark),
+    "run": ("morph benchmarks' coarse meshes (resumes from their checkpoints)", _add_run),
+    "errors": ("where meshes lie against a benchmark's truth: both Chamfer directions, its "
+                                        "open border against its interior, the input's error a result kept (in all "
+                                        "and per spatial scale), the area facing against the truth by how many "
+                                        "training views see it; signed-distance PLYs, PLYs marking the "
+                                        "triangles facing against the truth, and a figure of each", _add_errors),
+    "saturation": ("per training view, the pixels where the lighting is saturated (as "
+                                            "`morph run --saturation` sees it) and how many lie at the truth's "
+                                            "silhouette, where an edge's gradient is scaled by that light", _add_saturation),
+}

@@ -142,7 +142,7 @@ def tiny_views(tmp_path_factory):
     from inverse.morph import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
 
     tmp = tmp_path_factory.mktemp("diffrender")
-    mesh = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
+    mesh = Path(__file__).resolve().parents[2] / "scenes" / "assets" / "meshes" / "armadillo.ply"
     bench = load_morph_benchmark(make_morph_benchmark(mesh, tmp / "bench", MorphBenchmarkSettings(
         n_views=4, test_every=4, resolution=32, spp=4, coarse_vertices=600), show_progress=False))
     (tmp / "morph").mkdir()

@@ -9,7 +9,7 @@ import pytest
 from foundation import imageio
 from photoreal.cli import main
 
-SCENES = Path(__file__).resolve().parent.parent / "scenes"
+SCENES = Path(__file__).resolve().parents[2] / "scenes"
 
 
 def _run(argv, capsys):
@@ -164,7 +164,7 @@ def test_demo_writes_report(tmp_path, capsys):
 
 
 def test_face_from_photo_cli(tmp_path, capsys):
-    lm = Path(__file__).resolve().parent / "data" / "astronaut_landmarks.npy"
+    lm = Path(__file__).resolve().parents[1] / "data" / "astronaut_landmarks.npy"
     code, stdout, err = _run(["face", "from-photo", "astronaut", "--landmarks", str(lm), "--uv-res", "64",
                               "--out", str(tmp_path / "astro")], capsys)
     assert code == 0, err

@@ -14,7 +14,7 @@ from foundation.pool import Item, PoolSettings, ray_shutdown, run_items
 from foundation.scene import RenderSettings
 from photoreal.cli import main
 
-SCENES = Path(__file__).resolve().parent.parent / "scenes"
+SCENES = Path(__file__).resolve().parents[2] / "scenes"
 
 
 def _renders(out: Path, names=("material_test", "josie", "armadillo", "neural_materials")) -> list[Item]:
@@ -146,7 +146,7 @@ def test_a_worker_ends_when_its_driver_is_killed(tmp_path):
 
     # the killed driver cannot remove its temporary folders: keep them under tmp_path
     env = {**os.environ, "TMPDIR": str(tmp_path)}
-    driver = subprocess.Popen([sys.executable, "-c", code], cwd=Path(__file__).resolve().parent.parent, env=env)
+    driver = subprocess.Popen([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[2], env=env)
     try:
         t0 = time.time()
         while not pid_file.exists() and time.time() - t0 < 120 and driver.poll() is None:

@@ -16,11 +16,11 @@ import pytest
 
 from photoreal.cli import main
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 ASSETS = ROOT / "scenes" / "assets"
 PAUL = ASSETS / "face" / "cyberheads" / "paul.obj"
 ARMADILLO = ASSETS / "meshes" / "armadillo.ply"
-LANDMARKS = Path(__file__).resolve().parent / "data" / "astronaut_landmarks.npy"
+LANDMARKS = Path(__file__).resolve().parents[1] / "data" / "astronaut_landmarks.npy"
 
 
 def run(argv, capsys) -> tuple[int, str]:

@@ -11,7 +11,7 @@ from foundation.assets import envmap
 from foundation.metrics import psnr
 from foundation.scene import RenderSettings, recompose, render_scene
 
-HDRI = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "hdri" / "courtyard.exr"
+HDRI = Path(__file__).resolve().parents[2] / "scenes" / "assets" / "hdri" / "courtyard.exr"
 
 
 def _scene(integrator: dict, bsdf_sphere: dict, bsdf_floor: dict, res: int = 64, rfilter: str = "gaussian") -> mi.Scene:

@@ -16,7 +16,7 @@ import mitsuba as mi
 
 from foundation.assets import envmap
 
-HDRI = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "hdri" / "courtyard.exr"
+HDRI = Path(__file__).resolve().parents[2] / "scenes" / "assets" / "hdri" / "courtyard.exr"
 
 
 def _scene(integrator: dict) -> mi.Scene:

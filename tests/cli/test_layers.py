@@ -12,7 +12,7 @@ Layers, bottom to top (a module may import its own layer and those below):
 Features of one layer never import each other; they may import a shared core of their layer (``SHARED``), which
 imports none of them. A module outside a feature uses only the names the
 feature's package exports (``from inverse.morph import run_morph``), never a submodule or a private name.
-Every import counts, also those inside functions. Run ``python tests/test_layers.py [ROOT]`` for the report.
+Every import counts, also those inside functions. Run ``python tests/cli/test_layers.py [ROOT]`` for the report.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 LAYERS = {"mi_plugins": 0, "foundation": 1, "inverse": 2, "generative": 3, "photoreal": 4}
 FEATURE_LAYERS = ("inverse", "generative")
 SHARED = {"generative.diffusion"}  #: cores a layer's features build on (public names only)

@@ -15,7 +15,7 @@ import pytest
 
 from photoreal.cli import build_parser
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 MARKDOWN = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), ROOT / "scenes" / "assets" / "README.md"]
 
 

@@ -286,7 +286,7 @@ def test_joint_training_descends_through_generator_and_renderer(tmp_path):
     from generative.gan.joint import JointSettings, JointStage, train_joint
     from inverse.morph import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
 
-    mesh = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
+    mesh = Path(__file__).resolve().parents[2] / "scenes" / "assets" / "meshes" / "armadillo.ply"
     bdir = make_morph_benchmark(mesh, tmp_path / "bench", MorphBenchmarkSettings(
         n_views=4, test_every=4, resolution=32, spp=4, coarse_vertices=600), show_progress=False)
     bench = load_morph_benchmark(bdir)
@@ -335,7 +335,7 @@ def test_cli_errors_name_the_bad_path(tmp_path, capsys):
     # A benchmark folder without a morph run: the missing morphed mesh is named.
     from inverse.morph import MorphBenchmarkSettings, make_morph_benchmark
 
-    mesh = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
+    mesh = Path(__file__).resolve().parents[2] / "scenes" / "assets" / "meshes" / "armadillo.ply"
     bdir = make_morph_benchmark(mesh, tmp_path / "bench", MorphBenchmarkSettings(
         n_views=4, resolution=32, spp=2, coarse_vertices=300), show_progress=False)
     nomorph = tmp_path / "nomorph"
@@ -438,7 +438,7 @@ def test_finetunes_start_from_the_two_stage_model_and_mesh(tmp_path):
     from generative.gan.train import load_heldout_predictions
     from inverse.morph import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
 
-    mesh = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
+    mesh = Path(__file__).resolve().parents[2] / "scenes" / "assets" / "meshes" / "armadillo.ply"
     bench = load_morph_benchmark(make_morph_benchmark(mesh, tmp_path / "bench", MorphBenchmarkSettings(
         n_views=4, test_every=4, resolution=32, spp=4, coarse_vertices=600), show_progress=False))
     (tmp_path / "morph").mkdir()

@@ -10,7 +10,7 @@ from inverse.face.fit import FaceFitSettings, evaluate_fit, fit_face, integrate_
 from foundation.mesh import MeshError, load_obj
 from inverse.face.uv_bake import bake_geometry
 
-SCANS = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "face" / "cyberheads"
+SCANS = Path(__file__).resolve().parents[2] / "scenes" / "assets" / "face" / "cyberheads"
 JOSIE = SCANS / "josie.obj"
 
 
@@ -152,7 +152,7 @@ def test_cli_errors(tmp_path, capsys):
 
 # -- one photograph to a relightable face ----------------------------------------------------------
 
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 def test_umeyama_recovers_a_known_similarity():

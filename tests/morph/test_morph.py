@@ -16,7 +16,7 @@ from inverse.morph import MorphSettings, run_gcn_morph, run_morph
 from foundation.mesh import load_mesh_any, write_ply
 from inverse.morph import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark
 
-ARMADILLO = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "meshes" / "armadillo.ply"
+ARMADILLO = Path(__file__).resolve().parents[2] / "scenes" / "assets" / "meshes" / "armadillo.ply"
 
 
 def _sphere(r=1.0, n=40):
@@ -937,7 +937,7 @@ def test_iron_spikes_smooths_a_triangle_the_ironing_would_flip():
     from foundation.mesh_metrics import spike_mask, spikes, vertex_neighbours_mean
     from inverse.morph import iron_spikes
 
-    d = np.load(Path(__file__).parent / "data" / "face000_border_spikes.npz")
+    d = np.load(Path(__file__).resolve().parents[1] / "data" / "face000_border_spikes.npz")
     v, v0, f = d["v"].astype(np.float64), d["v_start"].astype(np.float64), d["f"].astype(np.int64)
     bad = spike_mask(v0, v, f, 3.0, edge_lengths(v0, f))
     assert bad.sum() == 2 and spikes(v0, v, f)["inverted_triangles"] == 0
@@ -969,7 +969,7 @@ def test_iron_border_turns_unrolls_face000s_curled_border():
     from foundation.mesh_metrics import triangle_areas
     from inverse.morph import border_zone, iron_border_turns
 
-    d = np.load(Path(__file__).parent / "data" / "face000_border_curl.npz")
+    d = np.load(Path(__file__).resolve().parents[1] / "data" / "face000_border_curl.npz")
     v, v0, f = d["v"].astype(np.float64), d["v_start"].astype(np.float64), d["f"].astype(np.int64)
     n_truth = d["n_truth"].astype(np.float64)
     n0 = face_normals(v0, f)
@@ -1964,7 +1964,7 @@ def test_a_benchmark_can_photograph_its_truth_flat_as_the_chamfer_measures_it(tm
     stored photos exactly (it reads the setting), and on a truth with few vertices (josie, 1,600) the flat photos
     differ from the smooth ones made with the same seeds (same noise) by more than their rounding; an old benchmark
     (no such field) loads as "vertex"; a bad value is named."""
-    josie = Path(__file__).resolve().parent.parent / "scenes" / "assets" / "face" / "cyberheads" / "josie.obj"
+    josie = Path(__file__).resolve().parents[2] / "scenes" / "assets" / "face" / "cyberheads" / "josie.obj"
     s = MorphBenchmarkSettings(n_views=4, resolution=32, spp=8, coarse_vertices=300)
     smooth = load_morph_benchmark(make_morph_benchmark(josie, tmp_path / "smooth", s, show_progress=False))
     flat = load_morph_benchmark(make_morph_benchmark(josie, tmp_path / "flat", replace(s, truth_normals="face"),
