@@ -32,17 +32,9 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 --dist loadgroup -m "not slow"
 
+# Every benchmark of the registry (photoreal/benchmarks/__init__.py) with its defaults: out/bench/NAME.json.
 bench: $(STAMP)
-	mkdir -p out/bench
-	$(BIN)/photoreal bench plugins --json out/bench/plugins.json
-	$(BIN)/photoreal bench face --json out/bench/face.json
-	$(BIN)/photoreal bench morph --json out/bench/morph.json
-	$(BIN)/photoreal bench btf --json out/bench/btf.json
-	$(BIN)/photoreal bench gan --json out/bench/gan.json
-	$(BIN)/photoreal bench scale --json out/bench/scale.json
-	$(BIN)/photoreal bench diffrender --json out/bench/diffrender.json
-	$(BIN)/photoreal bench matdiff --json out/bench/matdiff.json
-	$(BIN)/photoreal bench face-learned --json out/bench/face_learned.json
+	$(BIN)/photoreal bench all --out-dir out/bench
 
 clean:
 	rm -rf out .pytest_cache

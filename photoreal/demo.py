@@ -8,6 +8,7 @@ into ``index.html`` in name order. Benchmark tables come from the JSON files in 
 from __future__ import annotations
 
 import html
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +21,8 @@ from foundation.files import check_output_dir, read_json, write_json, write_text
 from foundation.metrics import psnr
 from foundation.records import to_json
 from foundation.scene import RenderSettings, load_scene, recompose, render_scene
+
+from .benchmarks import json_name, work_folder
 
 
 @dataclass
@@ -138,10 +141,11 @@ def _table(rows: list[dict], cols: list[str]) -> str:
 
 
 def _bench_json(bench_dir: Path | None, name: str) -> dict | None:
-    """A benchmark's JSON from ``bench_dir`` if it is there (tables in the report); None otherwise."""
-    if bench_dir is None or not (Path(bench_dir) / name).is_file():
+    """Benchmark ``name``'s JSON (as `photoreal bench all` names it) from ``bench_dir`` if it is there; else None."""
+    path = None if bench_dir is None else Path(bench_dir) / json_name(name)
+    if path is None or not path.is_file():
         return None
-    return read_json(Path(bench_dir) / name, "benchmark result")
+    return read_json(path, "benchmark result")
 
 
 def demo_face(out_dir: Path, uv_res: int = 256, seed: int = 0, bench_dir: Path | None = None,
@@ -186,7 +190,7 @@ def demo_face(out_dir: Path, uv_res: int = 256, seed: int = 0, bench_dir: Path |
             + _figure("face/observation.png", "one observation (view 0, light 0)")
             + "<div>" + "".join(figs) + "</div>" + _table(rows, ["metric", "value"])
             + "<h3>Relit under held-out HDRIs</h3><div>" + "".join(relit_figs) + "</div>")
-    fb = _bench_json(bench_dir, "face.json")
+    fb = _bench_json(bench_dir, "face")
     if fb is not None:
         body += "<h3>Speed vs accuracy and stability (<code>photoreal bench face</code>)</h3>"
         body += _table(fb["sweep"], ["uv_res", "seconds", "relit_psnr", "albedo_psnr", "normal_err_deg"])
@@ -323,7 +327,7 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
             + "<p>Where the orientation is wrong: the triangles facing against the truth (the suite's facing "
               "target; the row's label gives their share of the area), from the camera that sees most of them.</p>"
             + _figure("morph/errors/facing.png", "triangles facing against the truth"))
-    mb = _bench_json(bench_dir, "morph.json")
+    mb = _bench_json(bench_dir, "morph")
     if mb is not None:
         body += "<h3>Benchmark (<code>photoreal bench morph</code>)</h3>"
         for case, r in mb["cases"].items():
@@ -358,7 +362,7 @@ def demo_btf(out_dir: Path, s: DemoSettings, bench_dir: Path | None = None) -> d
             "(<code>photoreal btf fit</code>).</p>"
             f"<div><figure><img style='width:480px' src='neural_materials.png'><figcaption>"
             f"{settings.resolution[0]}×{settings.resolution[1]}, {settings.spp} spp, {seconds:.1f} s</figcaption></figure></div>")
-    b = _bench_json(bench_dir, "btf.json")
+    b = _bench_json(bench_dir, "btf")
     if b is not None:
         body += "<h3>Held-out slice PSNR per family (<code>photoreal bench btf</code>, seed 002 Table 1 / Fig. 4)</h3>"
         body += _table(b["table"] + [{"family": "mean", "psnr_universal": b["psnr_universal_mean"],
@@ -394,7 +398,7 @@ def demo_matdiff(out_dir: Path, s: DemoSettings, bench_dir: Path | None = None) 
             "all of them (<code>photoreal btf generate</code>).</p>"
             f"<div><figure><img style='width:480px' src='generated_materials.png'><figcaption>"
             f"{settings.resolution[0]}×{settings.resolution[1]}, {settings.spp} spp, {seconds:.1f} s</figcaption></figure></div>")
-    b = _bench_json(bench_dir, "matdiff.json")
+    b = _bench_json(bench_dir, "matdiff")
     if b is not None and "verdict" in b:
         rows = [{"method": k, "kid_classifier": b["kid_classifier"][k], "kid_mnv2": b["kid_mnv2"][k],
                  "nn_distance_ratio": b["nn_distance_ratio_all"].get(k, "")} for k in b["kid_mnv2"]]
@@ -444,6 +448,7 @@ def run_demo(out_dir: str | Path, s: DemoSettings, bench_dir: str | Path | None 
     results["scale"] = demo_scale(out_dir, bench_dir)
     results["diffrender"] = demo_diffrender(out_dir, bench_dir)
     results["face_learned"] = demo_face_learned(out_dir, bench_dir)
+    results["benchmarks"] = demo_benchmarks(out_dir, bench_dir)
     if s.plugin_bench:
         bench = bench_plugins(PluginBenchSettings(resolution=128, spp=32, repetitions=3, rounds=2))
         write_json(out_dir / "bench_plugins.json", bench)
@@ -451,6 +456,35 @@ def run_demo(out_dir: str | Path, s: DemoSettings, bench_dir: str | Path | None 
         results["bench_plugins"] = {k: bench[k] for k in ("ggx_uv_ms", "principled_ms", "ggx_uv_vs_principled")}
     write_json(out_dir / "demo.json", results)
     return write_index(out_dir)
+
+
+def demo_benchmarks(out_dir: Path, bench_dir: Path | None) -> dict:
+    """One table of every registered benchmark whose JSON is in ``bench_dir``: the figures its summary shows, and
+    the command that makes it."""
+    from .benchmarks import REGISTRY, summary
+
+    rows, found = [], {}
+    for name, entry in REGISTRY.items():
+        result = _bench_json(bench_dir, name)
+        if result is None:
+            continue
+        try:
+            shown = summary(name, result)
+        except (KeyError, TypeError):  # a result written by an older version of the benchmark
+            continue
+        found[name] = sorted(shown)
+        text = json.dumps(shown, default=str)
+        rows.append(f"<tr><th>{html.escape(name)}</th><td><code>photoreal bench {html.escape(name)} --json "
+                    f"{html.escape(json_name(name))}</code></td><td><small>{html.escape(text[:600])}"
+                    f"{'…' if len(text) > 600 else ''}</small></td></tr>")
+    missing = [n for n, e in REGISTRY.items() if e.in_all and n not in found]
+    body = (f"<table><tr><th>benchmark</th><th>command</th><th>summary</th></tr>{''.join(rows)}</table>" if rows
+            else "<p>No benchmark results in the bench folder.</p>")
+    if missing:
+        body += (f"<p>Not run yet: {html.escape(', '.join(missing))} (<code>photoreal bench all --out-dir "
+                 f"{html.escape(str(bench_dir or 'out/bench'))}</code> runs every one).</p>")
+    add_section(out_dir, "90_benchmarks", "Every benchmark", body)
+    return found
 
 
 def _copy_chart(result: dict, bench_dir: Path | None, dest: Path) -> bool:
@@ -469,7 +503,7 @@ def _copy_chart(result: dict, bench_dir: Path | None, dest: Path) -> bool:
 
 def demo_gan(out_dir: Path, bench_dir: Path | None = None) -> dict | None:
     """The `photoreal bench gan` table and chart (held-out views), when that JSON exists; no training here."""
-    b = _bench_json(bench_dir, "gan.json")
+    b = _bench_json(bench_dir, "gan")
     if b is None:
         return None
     Path(out_dir).mkdir(parents=True, exist_ok=True)
@@ -506,7 +540,7 @@ def demo_gan(out_dir: Path, bench_dir: Path | None = None) -> dict | None:
 
 def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None:
     """The `photoreal bench diffrender` tables, side-by-side views and sweep chart, when that JSON exists."""
-    b = _bench_json(bench_dir, "diffrender.json")
+    b = _bench_json(bench_dir, "diffrender")
     if b is None or "ablation" not in b:
         return None
     out_dir = Path(out_dir)
@@ -582,7 +616,7 @@ def _seed_spread(spread: dict | None) -> str:
 
 def demo_face_learned(out_dir: Path, bench_dir: Path | None = None) -> dict | None:
     """The `photoreal bench face-learned` tables and map figure, when that JSON exists (no training here)."""
-    b = _bench_json(bench_dir, "face_learned.json")
+    b = _bench_json(bench_dir, "face-learned")
     if b is None or "end_to_end" not in b:
         return None
     out_dir = Path(out_dir)
@@ -624,7 +658,7 @@ def demo_face_learned(out_dir: Path, bench_dir: Path | None = None) -> dict | No
             for pic in ("albedo.png", "relit_studio.png", "relit_sunset.png"):
                 src = Path(v.get("folder", "")) / pic
                 if not src.is_file() and bench_dir is not None:  # the bench folder was moved: look beside its JSON
-                    src = Path(bench_dir) / "face_learned_work" / Path(v.get("folder", "")).name / pic
+                    src = work_folder("face-learned", None, Path(bench_dir) / json_name("face-learned")) / Path(v.get("folder", "")).name / pic
                 if src.is_file():
                     name = f"face_learned_astronaut_{k}_{pic}"
                     shutil.copyfile(src, out_dir / name)
@@ -638,7 +672,7 @@ def demo_face_learned(out_dir: Path, bench_dir: Path | None = None) -> dict | No
 
 def demo_scale(out_dir: Path, bench_dir: Path | None = None) -> dict | None:
     """The `photoreal bench scale` table and chart (serial vs process pool vs Ray), when that JSON exists."""
-    b = _bench_json(bench_dir, "scale.json")
+    b = _bench_json(bench_dir, "scale")
     if b is None:
         return None
     rows = [{"run": "serial, one thread per item", "seconds": b["serial_s"]},

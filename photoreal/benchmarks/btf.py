@@ -46,7 +46,7 @@ from mi_plugins.neural_basis import Basis, BasisConfig, CoopNet, NeuralMaterial,
 
 @dataclass
 class BTFBenchSettings:
-    data_dir: str | None = None             #: train/ and heldout/ subfolders (rendered if missing); None: OUT/btf_data
+    data_dir: str | None = None             #: train/ and heldout/ subfolders (rendered if missing); None: WORK/data
     train_per_family: int = 4               #: 8 families × 4 = 32 training materials (issue default)
     render: BTFRenderSettings = field(default_factory=BTFRenderSettings)
     widths: tuple[int, ...] = (16, 32, 64)
@@ -189,12 +189,13 @@ def _chart(result: dict, path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def bench_btf(s: BTFBenchSettings, out_dir: Path, show_progress: bool = True, pool: PoolSettings | None = None) -> dict:
-    """The whole bench (see the module docstring). ``pool`` renders the dataset and runs the held-out fits
-    (independent items) on worker processes or Ray; trainings and every timing run here, alone."""
-    out_dir = Path(out_dir)
-    work = out_dir / "btf_work"
-    data_dir = Path(s.data_dir) if s.data_dir else out_dir / "btf_data"
+def bench_btf(s: BTFBenchSettings, work: Path, show_progress: bool = True, pool: PoolSettings | None = None) -> dict:
+    """The whole bench (see the module docstring), in ``work``: the BTF data (``data/``, rendered once), the bases
+    and fits, and the demo's assets (``assets/``: the chosen basis and the held-out materials fitted in it).
+    ``pool`` renders the dataset and runs the held-out fits (independent items) on worker processes or Ray;
+    trainings and every timing run here, alone."""
+    work = Path(work)
+    data_dir = Path(s.data_dir) if s.data_dir else work / "data"
     pool = pool or PoolSettings(workers=default_workers(), threads=1)
     t_start = time.perf_counter()
     render_dataset(data_dir / "heldout", per_family=1, settings=s.render, base_seed=1000 + s.seed,
@@ -283,7 +284,7 @@ def bench_btf(s: BTFBenchSettings, out_dir: Path, show_progress: bool = True, po
     thr = mlp_throughput(bases[s.default_width], s.mlp_evals, s.seed)
 
     # Demo assets: chosen basis + the held-out materials fitted in it.
-    assets = out_dir / "btf_assets"
+    assets = work / "assets"
     save_basis(assets / "basis.npz", bases[chosen["width"]])
     for d, m in zip(held_mats, mats[(chosen["width"], chosen["tex_res"])]):
         save_material(assets / f"{d.meta['family']}.npz", m)
@@ -316,6 +317,24 @@ def bench_btf(s: BTFBenchSettings, out_dir: Path, show_progress: bool = True, po
         "settings": asdict(s),
         "seconds": time.perf_counter() - t_start,
     }
-    _chart(result, out_dir / "btf_speed_accuracy.png")
-    result["chart"] = str(out_dir / "btf_speed_accuracy.png")
     return result
+
+
+# -- the benchmark protocol (photoreal.benchmarks) -------------------------------------------------------------------
+
+SETTINGS = BTFBenchSettings
+POOL = True
+SUMMARY = ("psnr_universal_mean", "psnr_per_material_mean", "neural_btf_ms", "principled_ms", "neural_btf_vs_principled",
+           "mlp_evals_per_s_drjit", "mlp_evals_per_s_torch", "chosen")
+
+
+def run(s: BTFBenchSettings, work: Path, pool, show_progress: bool) -> dict:
+    return bench_btf(s, work, show_progress, pool)
+
+
+def options(p) -> None:
+    """Its settings are the issue's protocol (no flags beyond the runner's)."""
+
+
+def charts(result: dict, json_path: Path, work: Path | None) -> dict:
+    return {"chart": str(_chart(result, Path(json_path).parent / "btf_speed_accuracy.png"))}

@@ -70,7 +70,7 @@ from generative.diffusion import ConditionalDiffusion, count_parameters, diffusi
 from generative.gan import GanDataSettings, GanTrainSettings, load_heldout_predictions, load_paired_views, train_gan
 from inverse.morph import sensor_dict, truth_scene
 
-from .gan import GanBenchSettings, _prepare
+from .gan import GanBenchSettings, prepare_case
 
 PAIRED = ("psnr", "one_minus_ssim", "flip", "mse")
 
@@ -374,14 +374,14 @@ def _case_views(work: str, gb: GanBenchSettings, cases: tuple[str, ...], input_s
     """The cases' views (G-buffers cached by :func:`item_prepare`)."""
     out = []
     for c in cases:
-        bench, mdir, _ = _prepare(c, Path(work), gb, False)
+        bench, mdir, _ = prepare_case(c, Path(work), gb, False)
         out.append(load_intrinsic_views(bench, mdir, GBufferSettings(spp=input_spp), show_progress=False))
     return out
 
 
 def item_prepare(case: str, work: str, gb: GanBenchSettings, input_spp: int, gan_renders: bool) -> str:
     """A case's benchmark and morph, and the input renders the methods read (G-buffers; the GANs' renders)."""
-    bench, mdir, _ = _prepare(case, Path(work), gb, False)
+    bench, mdir, _ = prepare_case(case, Path(work), gb, False)
     load_intrinsic_views(bench, mdir, GBufferSettings(spp=input_spp), show_progress=False)
     if gan_renders:
         load_paired_views(bench, mdir, GanDataSettings(spp=input_spp), show_progress=False)
@@ -404,7 +404,7 @@ def item_diffrender(work: str, gb: GanBenchSettings, cases: tuple[str, ...], inp
 
 def item_gan(case: str, work: str, gb: GanBenchSettings, input_spp: int, gs: GanTrainSettings) -> str:
     """One GAN baseline on one case (its held-out predictions are saved with the run)."""
-    bench, mdir, _ = _prepare(case, Path(work), gb, False)
+    bench, mdir, _ = prepare_case(case, Path(work), gb, False)
     data = load_paired_views(bench, mdir, GanDataSettings(spp=input_spp), show_progress=False)
     train_gan(data, Path(work) / case / gs.model, gs, show_progress=False)
     return case
@@ -412,7 +412,7 @@ def item_gan(case: str, work: str, gb: GanBenchSettings, input_spp: int, gs: Gan
 
 def item_references(case: str, work: str, gb: GanBenchSettings, ids: list[int], spp: int, photos_clean: bool) -> str:
     """A case's references at held-out views ``ids`` (:func:`cached_references`), rendered into its cache."""
-    bench, mdir, _ = _prepare(case, Path(work), gb, False)
+    bench, mdir, _ = prepare_case(case, Path(work), gb, False)
     cached_references(bench, mdir, ids, spp, photos_clean)
     return case
 
@@ -433,10 +433,9 @@ def _gan_settings(s: DiffRenderBenchSettings, name: str) -> GanTrainSettings:
                             residual=name != "cyclegan", seed=s.seed)
 
 
-def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Path = "out/bench",
-                     show_progress: bool = True) -> dict:
-    s = s or DiffRenderBenchSettings()
-    work = Path(out_dir) / "diffrender_work"
+def bench_diffrender(s: DiffRenderBenchSettings, work: Path, show_progress: bool = True) -> dict:
+    """The bench in ``work``: everything trained is kept there and reused by later runs."""
+    work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     gb = s.gan_settings()
@@ -449,7 +448,7 @@ def bench_diffrender(s: DiffRenderBenchSettings | None = None, out_dir: str | Pa
               for c in every]
     timing["prepare_and_decomposer"] = _run_batch(prep, s, "benchmarks, morphs, decomposer", show_progress,
                                                  item_seconds)
-    prepared = {c: _prepare(c, work, gb, show_progress)[:2] for c in every}
+    prepared = {c: prepare_case(c, work, gb, show_progress)[:2] for c in every}
     views = {c: load_intrinsic_views(b, m, GBufferSettings(spp=s.input_spp), show_progress=show_progress)
              for c, (b, m) in prepared.items()}
     train_views = [views[c] for c in s.cases]
@@ -714,7 +713,7 @@ def sweep_chart(result: dict, path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 1, show_progress: bool = False) -> Path:
+def views_figure(result: dict, work: str | Path, path: Path, per_case: int = 1, show_progress: bool = False) -> Path:
     """Side by side for the first held-out view(s) of every case: the coarse G-buffer layers (A, I, S, N), PBR
     of the coarse and morphed meshes, CycleGAN, Morph-GAN, the diffusion render (sampling seed 0, as the bench)
     and the photo. Reads the trained runs of the bench's work folder; trains nothing."""
@@ -725,13 +724,13 @@ def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 
 
     from foundation.imageio import save_figure
 
-    from .gan import _prepare as prepare
+    from .gan import prepare_case as prepare
 
     if "main_run" not in result:
         raise UsageError("the diffrender result predates `main_run` (the main model's folder): rerun "
                          "`photoreal bench diffrender`, which reuses every finished training run")
     s = DiffRenderBenchSettings(**result["settings"])
-    work = Path(out_dir) / "diffrender_work"
+    work = Path(work)
     gb = s.gan_settings()
     trained = load_diffrender(work / result["main_run"])
     rows = []
@@ -765,3 +764,48 @@ def views_figure(result: dict, out_dir: str | Path, path: Path, per_case: int = 
                         fontsize=7)
     fig.suptitle("Held-out views: G-buffers of the coarse mesh, PBR, GANs, diffusion renderer, photo", fontsize=9)
     return save_figure(fig, path)
+
+
+# -- the benchmark protocol (photoreal.benchmarks) -------------------------------------------------------------------
+
+SETTINGS = DiffRenderBenchSettings
+SUMMARY = ("heldout", "unseen", "kid_mnv2", "fid_mnv2", "kid_mnv2_clean", "decomposition_psnr", "chosen",
+           "sample_seconds_128", "train_flops_fraction", "verdict")
+
+
+def run(s: DiffRenderBenchSettings, work: Path, pool, show_progress: bool) -> dict:
+    return bench_diffrender(s, work, show_progress)
+
+
+def charts(result: dict, json_path: Path, work: Path | None) -> dict:
+    out = Path(json_path)
+    return {"chart": str(sweep_chart(result, out.with_name(out.stem + "_sweep.png"))),
+            "views_figure": str(views_figure(result, work, out.with_name(out.stem + "_views.png")))}
+
+
+def options(p) -> None:
+    from photoreal.options import opt
+
+    opt(p, DiffRenderBenchSettings, "train_seconds", type=float, help="the main model's training budget")
+    opt(p, DiffRenderBenchSettings, "ablation_seconds", type=float, help="training budget of each ablation run")
+    opt(p, DiffRenderBenchSettings, "decomp_seconds", type=float, help="decomposition network's training budget")
+    opt(p, DiffRenderBenchSettings, "decomp_scenes", help="procedural scenes for the decomposition network")
+    opt(p, DiffRenderBenchSettings, "sweep_steps", nargs="+", type=int, help="DDIM steps of the sweep")
+    opt(p, DiffRenderBenchSettings, "seeds", help="sampling seeds of the main model's held-out renders")
+    opt(p, DiffRenderBenchSettings, "guidance")
+    opt(p, DiffRenderBenchSettings, "mean_draws", type=int,
+         help="the sweep's means of one-step samples per view it tries (1: none)")
+    opt(p, DiffRenderBenchSettings, "sweep_guidance", type=float, help="guidance weights tried with those means")
+    opt(p, DiffRenderBenchSettings, "tolerance_rel", type=float,
+         help="the choice: cheapest within this fraction of the sweep's best ꟻLIP")
+    opt(p, DiffRenderBenchSettings, "input_spp", help="samples per pixel of every method's input renders")
+    opt(p, DiffRenderBenchSettings, "photo_spp", help="samples per pixel of the benchmarks' photos (the targets)")
+    opt(p, DiffRenderBenchSettings, "reference_spp", help="samples per pixel of the noise-free references")
+    opt(p, DiffRenderBenchSettings, "validation", nargs="*",
+         help="meshes never trained on that choose the main model's size at the main budget (none: the sweep's)")
+    opt(p, DiffRenderBenchSettings, "gans", "--no-gans", help="skip training the GAN baselines")
+    opt(p, DiffRenderBenchSettings, "gan_seconds", type=float, help="pix2pix / Morph-GAN budget each")
+    opt(p, DiffRenderBenchSettings, "cyclegan_seconds", type=float)
+    opt(p, DiffRenderBenchSettings, "workers",
+         help="trainings and renders run this many at a time, one thread each (0: one after another, all threads)")
+    opt(p, DiffRenderBenchSettings, "seed")

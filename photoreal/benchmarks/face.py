@@ -59,8 +59,9 @@ def _run_case(scan: Path, work: Path, name: str, bs: FaceBenchmarkSettings, fs: 
     return m
 
 
-def bench_face(s: FaceBenchSettings, out_dir: Path | None = None, show_progress: bool = True) -> dict:
-    """Accuracy vs time over UV resolution, plus a stability table; returns the JSON dict."""
+def bench_face(s: FaceBenchSettings, show_progress: bool = True) -> dict:
+    """Accuracy vs time over UV resolution, plus a stability table; returns the JSON dict (the benchmarks and fits
+    live in a temporary folder: every case is fitted and timed afresh)."""
     scan = s.scan_path()
     work = Path(tempfile.mkdtemp(prefix="photoreal_face_bench_"))
     stability_cases = {
@@ -118,8 +119,6 @@ def bench_face(s: FaceBenchSettings, out_dir: Path | None = None, show_progress:
         "stability": stability,
         "settings": asdict(s),
     }
-    if out_dir is not None:
-        result["chart"] = str(face_chart(result, Path(out_dir) / "face_speed_accuracy.png"))
     return result
 
 
@@ -147,3 +146,25 @@ def face_chart(result: dict, path: Path) -> Path:
     ax[1].axhline(5, color="gray", ls="--", lw=0.8)
     fig.suptitle(f"face fitting: accuracy vs time; chosen {result['chosen_uv_res']}²")
     return save_figure(fig, path)
+
+
+# -- the benchmark protocol (photoreal.benchmarks) -------------------------------------------------------------------
+
+SETTINGS = FaceBenchSettings
+WORK = False
+SUMMARY = ("albedo_psnr", "normal_err_deg", "roughness_mae", "specular_mae", "relit_psnr", "relit_flip",
+           "fit_seconds_256", "chosen_uv_res")
+
+
+def run(s: FaceBenchSettings, work, pool, show_progress: bool) -> dict:
+    return bench_face(s, show_progress)
+
+
+def options(p) -> None:
+    from photoreal.options import opt
+
+    opt(p, FaceBenchSettings, "scan", help="josie, paul, or an OBJ path")
+
+
+def charts(result: dict, json_path: Path, work: Path | None) -> dict:
+    return {"chart": str(face_chart(result, Path(json_path).parent / "face_speed_accuracy.png"))}

@@ -21,7 +21,7 @@ baseline, on a scan kept out of training, plus the existing fit on observations 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -170,14 +170,15 @@ def decomposition_seeds(s: FaceLearnedBenchSettings, ms, work: Path, ev, albedo,
     return out
 
 
-def bench_face_learned(s: FaceLearnedBenchSettings, out_dir: Path, show_progress: bool = True) -> dict:
+def bench_face_learned(s: FaceLearnedBenchSettings, work: Path, show_progress: bool = True) -> dict:
+    """The bench in ``work``: a `photoreal face train-models` run (reused by later bench runs) and the figures'
+    inputs."""
     from foundation.pool import PoolSettings
-    from foundation.records import to_json
     from generative.face import (at_resolution, baseline_maps, complete, decompose_maps, default_maps, learned_maps,
                                  LearnedModels, load_completion, load_decomposer, load_face_dataset, load_superres,
                                  map_scores, relit_scores, train_face_models, upscale)
 
-    work = Path(out_dir) / "face_learned_work"
+    work = Path(work)
     ms = models_settings(s)
     t0 = time.perf_counter()
     summary = train_face_models(work, ms, PoolSettings(workers=s.workers, threads=1) if s.workers else None,
@@ -262,7 +263,7 @@ def bench_face_learned(s: FaceLearnedBenchSettings, out_dir: Path, show_progress
                                                     > e["baseline"].get("relit", {}).get("psnr", 0)) if idx else None,
     }
     result["settings"] = asdict(s)
-    result["figure"] = str(figure(ev, stages, Path(out_dir) / "face_learned_maps.png"))
+    result["figure"] = str(figure(ev, stages, work.parent / "face_learned_maps.png"))
     return result
 
 
@@ -297,3 +298,26 @@ def figure(ev, stages: dict, path: Path, n: int = 3) -> Path:
                 ax[r, c].set_title(cols[c], fontsize=8)
     fig.suptitle("held-out scan: learned stages vs the optimisation baseline and the truth")
     return save_figure(fig, path)
+
+
+# -- the benchmark protocol (photoreal.benchmarks) -------------------------------------------------------------------
+
+SETTINGS = FaceLearnedBenchSettings
+SUMMARY = ("completion", "decomposition", "superres", "end_to_end", "verdict")
+
+
+def run(s: FaceLearnedBenchSettings, work: Path, pool, show_progress: bool) -> dict:
+    return bench_face_learned(s, work, show_progress)
+
+
+def options(p) -> None:
+    from photoreal.options import opt
+
+    for name in ("train_instances", "eval_instances", "completion_seconds", "decomp_seconds", "superres_seconds",
+                 "relit_instances", "cross_uv_res", "workers", "seed"):
+        opt(p, FaceLearnedBenchSettings, name)
+    opt(p, FaceLearnedBenchSettings, "layout", choices=["template", "scan"], help="UV layout of the learned stages")
+    opt(p, FaceLearnedBenchSettings, "ablation_seeds", type=int,
+         help="retrain every decomposition variant with these seeds too: the ablation's spread over training seeds")
+    opt(p, FaceLearnedBenchSettings, "cross_model", "--no-cross-model", help="skip the cross-model fit")
+    opt(p, FaceLearnedBenchSettings, "astronaut", "--no-astronaut", help="skip the astronaut photograph")

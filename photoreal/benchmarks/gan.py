@@ -46,9 +46,11 @@ class GanBenchSettings:
     seconds_per_model: float = 120.0  #: training wall-time budget of each two-stage GAN
     #: CycleGAN trains two generators and two discriminators (~4× the work per step) from the paper's tanh head;
     #: with the residual head it stays at the identity (cycle + identity losses hold it there; measured).
-    cyclegan_seconds: float = 360.0
-    joint_seconds: float = 180.0  #: budget of joint training (it also morphs the mesh)
-    finetune_seconds: float = 90.0  #: extra budget of each fine-tune of the two-stage Morph-GAN (joint / mesh fixed)
+    #: None: 3 × seconds_per_model
+    cyclegan_seconds: float | None = None
+    joint_seconds: float | None = None  #: budget of joint training (it also morphs the mesh); None: 1.5 × per model
+    #: extra budget of each fine-tune of the two-stage Morph-GAN (joint / mesh fixed); None: 0.75 × per model
+    finetune_seconds: float | None = None
     morph_iterations: int = 100
     crop: int = 64
     batch: int = 4
@@ -59,6 +61,10 @@ class GanBenchSettings:
 
     def __post_init__(self):
         validate.integer("photo_spp", self.photo_spp, 1, 1 << 16)
+        validate.positive("seconds_per_model", self.seconds_per_model)
+        for name, share in (("cyclegan_seconds", 3.0), ("joint_seconds", 1.5), ("finetune_seconds", 0.75)):
+            if getattr(self, name) is None:  # the other budgets keep their proportions to the two-stage GANs'
+                setattr(self, name, share * self.seconds_per_model)
         for name in ("seconds_per_model", "cyclegan_seconds", "joint_seconds", "finetune_seconds"):
             validate.positive(name, getattr(self, name))
         validate.integer("morph_iterations", self.morph_iterations, 1)
@@ -67,7 +73,7 @@ class GanBenchSettings:
         validate.seed("seed", self.seed)
 
 
-def _prepare(case: str, work: Path, s: GanBenchSettings, show_progress: bool):
+def prepare_case(case: str, work: Path, s: GanBenchSettings, show_progress: bool):
     bdir, mdir = work / case / "benchmark", work / case / "morph"
     if not (bdir / "morph_benchmark.json").is_file():
         make_morph_benchmark(source(case), bdir, MorphBenchmarkSettings(spp=s.photo_spp, seed=s.seed),
@@ -85,7 +91,7 @@ def _prepare(case: str, work: Path, s: GanBenchSettings, show_progress: bool):
 
 
 def bench_case(case: str, work: Path, s: GanBenchSettings, bar, show_progress: bool = False) -> dict:
-    bench, mdir, morph = _prepare(case, work, s, show_progress)
+    bench, mdir, morph = prepare_case(case, work, s, show_progress)
     data = load_paired_views(bench, mdir, show_progress=show_progress)
     t = data.test
     heldout = {"input": _metrics(mean_metrics(data.rendered[t], data.photos[t])),
@@ -174,10 +180,9 @@ def _mean_over(cases: dict, key: str) -> dict:
     return rows
 
 
-def bench_gan(s: GanBenchSettings, out_dir: Path, show_progress: bool = True) -> dict:
-    """Run the bench; work (benchmarks, morph runs, checkpoints) under ``out_dir/gan_work`` — a rerun resumes."""
-    out_dir = Path(out_dir)
-    work = out_dir / "gan_work"
+def bench_gan(s: GanBenchSettings, work: Path, show_progress: bool = True) -> dict:
+    """Run the bench; work (benchmarks, morph runs, checkpoints) under ``work`` — a rerun resumes."""
+    work = Path(work)
     t0 = time.perf_counter()
     with progress_bar(total=(len(MODELS) + 2) * len(s.cases), desc="bench gan", unit="model",
                       disable=not show_progress) as bar:
@@ -187,7 +192,6 @@ def bench_gan(s: GanBenchSettings, out_dir: Path, show_progress: bool = True) ->
               "infer_ms_per_image": _mean_over(cases, "infer_ms_per_image"), "cases": cases,
               "ordering": ordering(heldout), "artifact_regions": _mean_regions(cases),
               "settings": asdict(s), "seconds": time.perf_counter() - t0}
-    result["chart"] = str(gan_chart(result, out_dir / "gan_speed_accuracy.png"))
     return result
 
 
@@ -240,3 +244,24 @@ def gan_chart(result: dict, path: Path) -> Path:
         ax.legend(fontsize=7)
     fig.suptitle("GAN refinement: held-out error vs training time")
     return save_figure(fig, path)
+
+
+# -- the benchmark protocol (photoreal.benchmarks) -------------------------------------------------------------------
+
+SETTINGS = GanBenchSettings
+SUMMARY = ("heldout", "train_seconds", "infer_ms_per_image", "ordering")
+
+
+def run(s: GanBenchSettings, work: Path, pool, show_progress: bool) -> dict:
+    return bench_gan(s, work, show_progress)
+
+
+def charts(result: dict, json_path: Path, work: Path | None) -> dict:
+    return {"chart": str(gan_chart(result, Path(json_path).parent / "gan_speed_accuracy.png"))}
+
+
+def options(p) -> None:
+    from photoreal.options import opt
+
+    opt(p, GanBenchSettings, "seconds_per_model",
+        help="training budget per GAN; the joint, CycleGAN and fine-tune budgets keep their proportions to it")

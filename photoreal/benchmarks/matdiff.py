@@ -26,7 +26,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -189,8 +189,8 @@ def _short_eval(model, ms, judge, held, s: MatDiffBenchSettings) -> dict:
     return r
 
 
-def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "out/bench",
-                  show_progress: bool = True) -> dict:
+def bench_matdiff(s: MatDiffBenchSettings, work: Path, show_progress: bool = True) -> dict:
+    """The bench in ``work`` (trained runs and samples are kept there and reused by later runs)."""
     from foundation.assets import bundled_basis
     from foundation.pool import PoolSettings, default_workers
     from foundation.files import read_json
@@ -202,8 +202,7 @@ def bench_matdiff(s: MatDiffBenchSettings | None = None, out_dir: str | Path = "
     from inverse.btf import FAMILIES
     from mi_plugins.neural_basis import load_basis
 
-    s = s or MatDiffBenchSettings()
-    work = Path(out_dir) / "matdiff_work"
+    work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
     result: dict = {"settings": asdict(s)}
     t0 = time.perf_counter()
@@ -432,7 +431,7 @@ def _verdict(r: dict) -> dict:
     }
 
 
-def charts(result: dict, out: Path) -> list[str]:
+def speed_charts(result: dict, out: Path) -> list[str]:
     """Speed / quality vs steps, and the dataset sweep and ablations."""
     import matplotlib
 
@@ -492,3 +491,31 @@ def samples_figure(work: Path, out: Path) -> str:
             ax[r, i].axis("off")
     fig.tight_layout()
     return str(save_figure(fig, out))
+
+
+# -- the benchmark protocol (photoreal.benchmarks) -------------------------------------------------------------------
+
+SETTINGS = MatDiffBenchSettings
+SUMMARY = ("classifier_accuracy_real", "keyword_accuracy", "kid_classifier", "kid_mnv2", "nn_distance_ratio", "diversity",
+           "exemplar_flip", "seam_error", "sample_seconds", "chosen_steps", "chosen_guidance", "keyword_accuracy_chosen",
+           "verdict")
+
+
+def run(s: MatDiffBenchSettings, work: Path, pool, show_progress: bool) -> dict:
+    return bench_matdiff(s, work, show_progress)
+
+
+def charts(result: dict, json_path: Path, work: Path | None) -> dict:
+    out = Path(json_path)
+    return {"charts": speed_charts(result, out.with_name(out.stem + "_speed.png")),
+            "samples_figure": samples_figure(work, out.with_name(out.stem + "_samples.png"))}
+
+
+def options(p) -> None:
+    from photoreal.options import opt
+
+    for name in ("data", "count", "train_seconds", "ablation_seconds", "samples", "steps", "guidance", "seed"):
+        opt(p, MatDiffBenchSettings, name)
+    opt(p, MatDiffBenchSettings, "main_run", help="finished `btf train-diffusion` run (e.g. trained with --device "
+         "cuda) to evaluate instead of training the main model here; default: train here")
+    opt(p, MatDiffBenchSettings, "ablations", "--no-ablations", help="skip the ablation runs")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -14,7 +13,7 @@ from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
 from inverse.morph import (KINDS, MORPH_SEED_MAX, PRIOR_TIES, SUITE, TRUTH_NORMALS, UNSEEN, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
-                           candidate_settings, light_choice_draws, load_morph_benchmark, make_morph_benchmark, run_morph, silhouette_margins,
+                           candidate_settings, load_morph_benchmark, make_morph_benchmark, run_morph, silhouette_margins,
                            start_mesh, suite_mesh, benchmark_surface_errors, truth_start_benchmark)
 
 
@@ -49,9 +48,6 @@ class MorphBenchSettings:
     cost_mesh: str = "village"  #: the "iteration" part's mesh (a suite mesh, "village" or "armadillo")
     cost_iterations: int = 25  #: steps per timed block of the "iteration" part
     cost_rounds: int = 3  #: timed blocks per recipe, interleaved (the median is reported)
-    #: keep ``OUT/morph_work`` (benchmarks, meshes, checkpoints) after the bench: a rerun then re-reads the
-    #: finished runs instead of recomputing them (the default removes it: ~1 GB for the whole bench)
-    keep_work: bool = False
     #: every benchmark's draw (photos' noise, views) and every run's render seeds; another seed works in
     #: ``OUT/morph_work_seed<k>``, so that it never resumes from (or overwrites) another draw's finished runs
     seed: int = 0
@@ -283,7 +279,7 @@ def _suite_bench(name: str, work: Path, bs: MorphBenchmarkSettings, tag: str = "
     return make_morph_benchmark(src, out, bs, show_progress=False)
 
 
-def _normals_tag(s: MorphBenchSettings) -> str:
+def normals_tag(s: MorphBenchSettings) -> str:
     return "" if s.truth_normals == "vertex" else f"_{s.truth_normals}"
 
 
@@ -293,7 +289,7 @@ def _suite_benchmark_settings(s: MorphBenchSettings) -> MorphBenchmarkSettings:
 
 def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
     """Every suite mesh morphed with the same defaults (the pool runs them side by side)."""
-    tag = _normals_tag(s)
+    tag = normals_tag(s)
     benches = {n: _suite_bench(n, work, _suite_benchmark_settings(s), tag) for n in s.suite}
     settings = MorphSettings(iterations=s.iterations, seed=s.seed, prior_ties=s.prior_ties,
                              adam_quantile=s.adam_quantile, lr=s.lr, step_select_quantile=s.step_select_quantile,
@@ -339,7 +335,7 @@ def floor_row(m: MorphResult, colour_only: MorphResult) -> dict:
 def bench_floor(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_progress: bool) -> dict:
     """Every suite mesh's morph started at its ground truth (:func:`truth_start_benchmark`), constant λ, beside
     the same run with positions frozen (colours fitted to the truth's geometry)."""
-    items, tag = [], _normals_tag(s)
+    items, tag = [], normals_tag(s)
     for n in s.suite:
         bench = _suite_bench(n, work, _suite_benchmark_settings(s), tag)
         start = work / f"truth_start_{n}{tag}"
@@ -492,20 +488,18 @@ def ratio_by_round(blocks: dict[str, list[dict]], ref: str) -> dict:
     return out
 
 
-def work_folder(s: MorphBenchSettings, out_dir: str | Path) -> Path:
-    """Where the bench keeps its benchmarks and runs: one folder per seed (finished runs are resumed by folder)."""
-    return Path(out_dir) / ("morph_work" if s.seed == 0 else f"morph_work_seed{s.seed}")
+def work_name(s: MorphBenchSettings) -> str:
+    """The bench's work folder: one per seed (finished runs are resumed by folder; ~1 GB for the whole bench)."""
+    return "morph_work" if s.seed == 0 else f"morph_work_seed{s.seed}"
 
 
-def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True,
+def bench_morph(s: MorphBenchSettings, work: Path, show_progress: bool = True,
                 pool: PoolSettings | None = None) -> dict:
-    """Run the bench in ``out_dir/morph_work`` (kept while it runs: a killed bench resumes; removed at the end
-    unless ``s.keep_work``)."""
+    """Run the bench's parts in ``work`` (a rerun re-reads every finished run in it)."""
     from foundation.pool import default_workers
 
     cores = default_workers()
     pool = pool or PoolSettings(workers=cores, threads=1)
-    work = work_folder(s, out_dir)
     t0 = time.perf_counter()
     result: dict = {"settings": asdict(s)}
     if "cases" in s.parts:
@@ -515,10 +509,8 @@ def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True
                                              "psnr_heldout_morphed", "spikes", "s_per_iter_10k_4views_128",
                                              "s_per_iter_baseline", "sweep", "chosen_vertices")})
         result.update(chamfer_reduction=first["chamfer_reduction"], cases=cases)
-        result["chart"] = str(morph_chart(result, Path(out_dir) / "morph_speed_accuracy.png"))
     if "suite" in s.parts:
         result["suite"] = bench_suite(work, s, pool, show_progress)
-        result["suite_chart"] = str(suite_chart(result["suite"], Path(out_dir) / "morph_suite.png"))
     if "framing" in s.parts:
         result["framing"] = bench_framing(work, s, pool, show_progress)
     if "floor" in s.parts:
@@ -526,8 +518,6 @@ def bench_morph(s: MorphBenchSettings, out_dir: Path, show_progress: bool = True
     if "iteration" in s.parts:
         result["iteration_cost"] = bench_iteration_cost(work, s, show_progress)
     result["seconds"] = time.perf_counter() - t0
-    if not s.keep_work:
-        shutil.rmtree(work, ignore_errors=True)
     return result
 
 
@@ -604,315 +594,79 @@ def morph_chart(result: dict, path: Path) -> Path:
     return save_figure(fig, path)
 
 
-# -- the suite over several draws ----------------------------------------------------------------------------------
+# -- the benchmark protocol (photoreal.benchmarks) -------------------------------------------------------------------
+
+SETTINGS = MorphBenchSettings
+POOL = True
 
 
-def _suite_of(path: Path, data: dict) -> tuple[int, dict]:
-    """(seed, suite) of one ``bench morph`` JSON; a file without a suite, or without its settings, is named."""
-    from foundation.errors import UsageError
-
-    suite, settings = data.get("suite"), data.get("settings")
-    if not isinstance(suite, dict) or not isinstance(suite.get("meshes"), dict) or not isinstance(settings, dict):
-        raise UsageError(f"{path}: not a `photoreal bench morph` result with a suite (run it with --parts suite)")
-    seed = settings.get("seed", 0)  # results written before --seed existed are seed 0's
-    if not isinstance(seed, int) or isinstance(seed, bool):
-        raise UsageError(f"{path}: settings.seed is {seed!r}, not an integer")
-    return seed, suite
+def run(s: MorphBenchSettings, work: Path, pool, show_progress: bool) -> dict:
+    return bench_morph(s, work, show_progress, pool)
 
 
-def _merged_suites(a: dict, b: dict) -> dict:
-    """Two parts of one draw's suite (disjoint meshes) as one: rows joined, the mean and the failing list remade."""
-    meshes = {**a["meshes"], **b["meshes"]}
-    mean = {k: float(np.mean([r[k] for r in meshes.values()])) for k in MEAN_KEYS
-            if all(k in r for r in meshes.values())}
-    return {**a, "meshes": meshes, "mean": mean, "failing": {**a.get("failing", {}), **b.get("failing", {})}}
+def charts(result: dict, json_path: Path, work: Path | None) -> dict:
+    out = {}
+    if "cases" in result:
+        out["chart"] = str(morph_chart(result, Path(json_path).parent / "morph_speed_accuracy.png"))
+    if "suite" in result:
+        out["suite_chart"] = str(suite_chart(result["suite"], Path(json_path).parent / "morph_suite.png"))
+    return out
 
 
-def recorded_run_settings(settings: dict) -> dict:
-    """The settings of a ``bench morph`` result that change its runs, as the file recorded them; a file written
-    before a field existed ran at what is now its default (vertex normals, uniform Adam's maximum, lr 0.05), except
-    the step choice, the saturation mask and the silhouette loss: files before them ran without (quantile 1,
-    saturation 0, mask weight 0; before its cheaper form, masks every step at full resolution with one sample count
-    for the photo's and the silhouettes' gradients)."""
-    d = MorphBenchSettings()
-    got = {k: settings.get(k) or getattr(d, k) for k in ("iterations", "truth_normals", "adam_quantile", "lr")}
-    return {**got, "step_select_quantile": settings.get("step_select_quantile") or 1.0,
-            "saturation": settings.get("saturation") or 0.0, "mask_weight": settings.get("mask_weight") or 0.0,
-            "mask_every": settings.get("mask_every") or 1, "mask_downsample": settings.get("mask_downsample") or 1,
-            "boundary_spp": settings.get("boundary_spp")}
+def summary(result: dict) -> dict:
+    shown = {k: result[k] for k in ("chamfer_input", "chamfer_morphed", "chamfer_reduction", "psnr_heldout_input",
+                                    "psnr_heldout_morphed", "spikes", "s_per_iter_10k_4views_128",
+                                    "s_per_iter_baseline", "chosen_vertices") if k in result}
+    if "suite" in result:
+        shown.update(suite_mean=result["suite"]["mean"], suite_failing=result["suite"]["failing"])
+    if "iteration_cost" in result:
+        c = result["iteration_cost"]
+        shown.update(s_per_iteration=c["s_per_iteration"], iteration_cost_ratio=c["ratio"],
+                     iteration_cost_ratio_by_round={k: round(v["median"], 4) for k, v in c["ratio_by_round"].items()})
+    return shown
 
 
-def seeds_summary(paths: list[str | Path]) -> dict:
-    """The suite over several draws (``photoreal bench morph --seed K`` results, one file per seed): per mesh its
-    figures at each seed, their mean and worst, and at how many seeds it meets every target; per seed the meshes that
-    pass. Files must agree on everything but the seed (cap, truth shading): draws of one experiment. Files of one
-    seed with different meshes are parts of one draw and are merged; a mesh some seeds lack is reported over the
-    seeds that have it (``seeds`` says which)."""
-    from foundation.errors import UsageError
-    from foundation.files import read_json
+def options(p) -> None:
+    from inverse.morph import PRIOR_TIES, TRUTH_NORMALS
+    from photoreal.options import opt
 
-    runs: dict[int, dict] = {}
-    where: dict[int, list[Path]] = {}
-    same: dict | None = None
-    for p in map(Path, paths):
-        data = read_json(p, "bench morph result")
-        seed, suite = _suite_of(p, data)
-        s = data["settings"]
-        fixed = recorded_run_settings(s)
-        if same is None:
-            same, first = fixed, p
-        elif fixed != same:
-            raise UsageError(f"{p}: settings {fixed} differ from {first}'s {same}: not draws of one experiment")
-        if seed in runs:  # one draw run in parts (e.g. the suite, then the unseen meshes): merged, meshes disjoint
-            again = sorted(set(runs[seed]["meshes"]) & set(suite["meshes"]))
-            if again:
-                raise UsageError(f"{p}: seed {seed} again with {', '.join(again)} (also in "
-                                 f"{', '.join(map(str, where[seed]))}): one result per mesh and draw")
-            runs[seed] = _merged_suites(runs[seed], suite)
-            where[seed].append(p)
-        else:
-            runs[seed], where[seed] = suite, [p]
-    seeds = sorted(runs)
-    if len(seeds) < 2:
-        raise UsageError("the suite over draws needs results of at least two seeds")
-    names = list(dict.fromkeys(n for k in seeds for n in runs[k]["meshes"]))
-    meshes = {}
-    for n in names:
-        at = {k: runs[k]["meshes"][n] for k in seeds if n in runs[k]["meshes"]}
-        cr = np.array([r["chamfer_reduction"] for r in at.values()])
-        pg = np.array([r["psnr_gain_db"] for r in at.values()])
-        meshes[n] = {
-            "kind": next(iter(at.values())).get("kind"), "seeds": list(at),
-            "per_seed": {str(k): {"chamfer_reduction": r["chamfer_reduction"], "psnr_gain_db": r["psnr_gain_db"],
-                                  "spike_vertices": r["spike_vertices"], "inverted_triangles": r["inverted_triangles"],
-                                  "facing_area": r["facing_against_truth_area"],
-                                  "normal_consistency": r["normal_consistency"], "seconds": r["seconds"],
-                                  "passes": r["passes"],
-                                  "failing": [c for c, ok in r["checks"].items() if not ok]} for k, r in at.items()},
-            "chamfer_reduction": {"mean": float(cr.mean()), "worst": float(cr.min()), "best": float(cr.max()),
-                                  "sd": float(cr.std(ddof=1)) if len(cr) > 1 else None},
-            "psnr_gain_db": {"mean": float(pg.mean()), "worst": float(pg.min()), "best": float(pg.max())},
-            "spike_vertices_max": int(max(r["spike_vertices"] for r in at.values())),
-            "inverted_triangles_max": int(max(r["inverted_triangles"] for r in at.values())),
-            "passes": int(sum(r["passes"] for r in at.values())), "of": len(at)}
-    per_seed = {str(k): {"files": [str(p) for p in where[k]], "passing": sum(r["passes"] for r in runs[k]["meshes"].values()),
-                         "of": len(runs[k]["meshes"]), "mean": runs[k]["mean"], "failing": runs[k]["failing"]}
-                for k in seeds}
-    return {"seeds": seeds, "settings": same, "targets": TARGETS, "meshes": meshes, "per_seed": per_seed,
-            "every_seed_pass": [n for n, m in meshes.items() if m["passes"] == m["of"]],
-            "chamfer_reduction_mean": float(np.mean([m["chamfer_reduction"]["mean"] for m in meshes.values()])),
-            "chamfer_reduction_worst_mean": float(np.mean([m["chamfer_reduction"]["worst"] for m in meshes.values()])),
-            "psnr_gain_db_mean": float(np.mean([m["psnr_gain_db"]["mean"] for m in meshes.values()]))}
-
-
-def seeds_chart(summary: dict, path: Path) -> Path:
-    """Per mesh, its Chamfer reduction and held-out PSNR gain at every draw (one marker per seed), the mean as a
-    bar, the targets as lines: how far one draw's verdict can be trusted."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from foundation.imageio import save_figure
-
-    names = list(summary["meshes"])
-    x = np.arange(len(names))
-    fig, ax = plt.subplots(1, 2, figsize=(max(8.0, 0.9 * len(names) + 3), 4))
-    for j, (key, scale, target, label) in enumerate((
-            ("chamfer_reduction", 100.0, TARGETS["chamfer_reduction"] * 100, "Chamfer reduction (%)"),
-            ("psnr_gain_db", 1.0, TARGETS["psnr_gain_db"], "held-out PSNR gain (dB)"))):
-        a = ax[j]
-        a.bar(x, [summary["meshes"][n][key]["mean"] * scale for n in names], color="0.85", label="mean")
-        for i, k in enumerate(summary["seeds"]):
-            at = [(xi, summary["meshes"][n]["per_seed"][str(k)]) for xi, n in zip(x, names)
-                  if str(k) in summary["meshes"][n]["per_seed"]]
-            xs = np.array([xi for xi, _ in at]) + 0.12 * (i - (len(summary["seeds"]) - 1) / 2)
-            ys = np.array([r[key] * scale for _, r in at])
-            ok = np.array([r["passes"] for _, r in at], bool)
-            line, = a.plot(xs[ok], ys[ok], "o", ms=5, label=f"seed {k}")
-            # a draw that misses any target (not only this panel's): hollow
-            a.plot(xs[~ok], ys[~ok], "o", ms=5, mfc="none", color=line.get_color())
-        a.axhline(target, color="tab:red", ls="--", lw=0.8, label="target")
-        # how many draws each mesh ran and passed: a mesh run at one draw only is not "held at every draw"
-        a.set_xticks(x, [f"{n} {summary['meshes'][n]['passes']}/{summary['meshes'][n]['of']}" for n in names],
-                     rotation=45, ha="right", fontsize=8)
-        a.set_ylabel(label)
-        a.grid(alpha=0.3, axis="y")
-    ax[0].legend(fontsize=7, title="hollow: a target missed", title_fontsize=7)
-    n_pass = len(summary["every_seed_pass"])
-    runs = sorted({m["of"] for m in summary["meshes"].values()})  # a mesh need not run at every seed
-    fig.suptitle(f"morph suite over {len(summary['seeds'])} seeds: {n_pass} of {len(names)} meshes meet every "
-                 "target at every draw they ran" + (f" ({runs[0]}–{runs[-1]} draws a mesh)" if len(runs) > 1 else "")
-                 + "; ticks: draws passed / run")
-    return save_figure(fig, path)
-
-
-def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True) -> dict:
-    """Every light choice of ``bench morph --parts suite --keep-work`` results (their work folders beside them)
-    scored again under ``draws`` draws of the light estimate (:func:`inverse.morph.run.light_choice_draws`; draw 0
-    is the choice's own): per mesh-draw the light run's advantage at each draw and its spread, and the choices
-    another draw of the estimate would overturn."""
-    from tqdm import tqdm
-
-    from foundation.errors import UsageError
-    from foundation.files import read_json
-
-    validate.integer("draws", draws, 1, 64)
-    todo = []
-    for p in map(Path, paths):
-        data = read_json(p, "bench morph result")
-        seed, suite = _suite_of(p, data)
-        got = recorded_run_settings(data["settings"])
-        bs = MorphBenchSettings(seed=seed, truth_normals=got["truth_normals"])
-        work, tag = work_folder(bs, p.parent), _normals_tag(bs)
-        if not work.is_dir():
-            raise UsageError(f"{p}: its work folder {work} is gone (run the bench with --keep-work)")
-        s = MorphSettings(iterations=got["iterations"], seed=seed, adam_quantile=got["adam_quantile"], lr=got["lr"],
-                          step_select_quantile=got["step_select_quantile"], saturation=got["saturation"],
-                          **{k: got[k] for k in SILHOUETTE_FIELDS})
-        todo += [(f"{n}@{seed}", work / f"bench_{n}{tag}", work / f"suite_{n}{tag}", s) for n in suite["meshes"]]
-    todo = [t for t in todo if (t[2] / "lambda_select" / "light_decision.json").is_file()]  # others made none
-    rows = {key: light_choice_draws(load_morph_benchmark(bench), out, s, draws)
-            for key, bench, out, s in tqdm(todo, desc="light choices", disable=not show_progress)}
-    if not rows:
-        raise UsageError("no light choice in these results' work folders (made where the photos were asked, "
-                         "light_select_every > 0)")
-    sd = np.array([r["advantage_sd"] for r in rows.values() if r["advantage_sd"] is not None])
-    return {"draws": draws, "rows": rows,
-            # draw 0 is the choice's own: equal to its stored score up to the threads' summation order (~1e-7)
-            "draw0_vs_stored_max": max((abs(r["advantage"][0] - r["stored_advantage"]) for r in rows.values()
-                                        if r["stored_advantage"] is not None), default=None),
-            "advantage_sd": {"min": float(sd.min()), "median": float(np.median(sd)), "max": float(sd.max())}
-            if len(sd) else None,
-            "margin": sorted({r["margin"] for r in rows.values()}),
-            "overturned_by_a_draw": {k: r["draws_against_stored"] for k, r in rows.items()
-                                     if r["draws_against_stored"]}}
-
-
-def light_draws_chart(result: dict, path: Path) -> Path:
-    """Per mesh-draw, the light run's validation advantage at each draw of the estimate (the choice's own filled),
-    the margin it had to clear as a line: how close each choice sits to the line against the draws' spread."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from foundation.imageio import save_figure
-
-    keys = list(result["rows"])
-    fig, ax = plt.subplots(figsize=(max(8.0, 0.32 * len(keys) + 2), 4))
-    for x, k in enumerate(keys):
-        adv = np.array(result["rows"][k]["advantage"]) * 100
-        ax.plot([x] * (len(adv) - 1), adv[1:], "o", ms=4, mfc="none", color="tab:blue")
-        ax.plot([x], adv[:1], "o", ms=5, color="tab:blue" if result["rows"][k]["kept"] else "0.4")
-    for m in result["margin"]:
-        ax.axhline(m * 100, color="tab:red", ls="--", lw=0.8, label=f"margin {m * 100:g} %")
-    ax.axhline(0, color="0.5", lw=0.5)
-    ax.set_xticks(range(len(keys)), keys, rotation=60, ha="right", fontsize=7)
-    ax.set_ylabel("light run's validation advantage (%)")
-    ax.grid(alpha=0.3, axis="y")
-    ax.legend(fontsize=7)
-    sd = result["advantage_sd"]
-    fig.suptitle(f"light choices under {result['draws']} draws of the estimate (filled: the choice's own; blue: kept)"
-                 + (f"; SD {sd['min'] * 100:.2f}–{sd['max'] * 100:.2f} points" if sd else ""), fontsize=9)
-    return save_figure(fig, path)
-
-
-def _sign_test(wins: int, losses: int) -> float:
-    """Two-sided sign test: the chance of a split at least this uneven if either side were as likely (ties out)."""
-    from math import comb
-
-    n = wins + losses
-    if n == 0:
-        return 1.0
-    k = min(wins, losses)
-    return min(1.0, 2.0 * sum(comb(n, i) for i in range(k + 1)) / 2.0 ** n)
-
-
-def seeds_compare(new: dict, base: dict) -> dict:
-    """Two settings of the suite over the same draws (two :func:`seeds_summary` results), paired by mesh and seed:
-    what one change did, beside how much a draw alone moves a mesh. Per pair the change in Chamfer reduction and PSNR
-    gain (new − base; positive: the new is better) and whether every target holds in each; over the pairs the mean
-    change with its standard error, wins and losses with a two-sided sign test, the targets gained and lost."""
-    from foundation.errors import UsageError
-
-    if new["settings"] != base["settings"]:
-        raise UsageError(f"the two sets differ in {new['settings']} against {base['settings']}: not the same "
-                         "experiment under two settings")
-    pairs, meshes = [], {}
-    for n, m in new["meshes"].items():
-        b = base["meshes"].get(n)
-        common = [k for k in m["per_seed"] if b is not None and k in b["per_seed"]]
-        if not common:
-            continue
-        rows = []
-        for k in sorted(common, key=int):
-            x, y = m["per_seed"][k], b["per_seed"][k]
-            rows.append({"seed": int(k), "chamfer_reduction": {"base": y["chamfer_reduction"],
-                                                               "new": x["chamfer_reduction"]},
-                         "chamfer_delta": x["chamfer_reduction"] - y["chamfer_reduction"],
-                         "psnr_delta_db": x["psnr_gain_db"] - y["psnr_gain_db"],
-                         "passes": {"base": y["passes"], "new": x["passes"]},
-                         "failing": {"base": y["failing"], "new": x["failing"]}})
-        pairs += [(n, r) for r in rows]
-        meshes[n] = {"per_seed": rows, "chamfer_delta_mean": float(np.mean([r["chamfer_delta"] for r in rows])),
-                     "passes": {"base": sum(r["passes"]["base"] for r in rows),
-                                "new": sum(r["passes"]["new"] for r in rows), "of": len(rows)}}
-    if not pairs:
-        raise UsageError("the two sets share no mesh at any seed: nothing to compare")
-    d = np.array([r["chamfer_delta"] for _, r in pairs])
-    g = np.array([r["psnr_delta_db"] for _, r in pairs])
-    wins, losses = int((d > 0).sum()), int((d < 0).sum())
-
-    def spread(x: np.ndarray) -> dict:
-        sd = float(x.std(ddof=1)) if len(x) > 1 else None
-        return {"mean": float(x.mean()), "sd": sd, "se": None if sd is None else sd / np.sqrt(len(x))}
-
-    return {"pairs": len(pairs), "seeds": sorted({r["seed"] for _, r in pairs}), "meshes": meshes,
-            "chamfer_delta": spread(d), "psnr_delta_db": spread(g),
-            "wins": wins, "losses": losses, "sign_test_p": _sign_test(wins, losses),
-            "passes": {"base": sum(r["passes"]["base"] for _, r in pairs),
-                       "new": sum(r["passes"]["new"] for _, r in pairs), "of": len(pairs)},
-            "gained": [f"{n}@{r['seed']}" for n, r in pairs if r["passes"]["new"] and not r["passes"]["base"]],
-            "lost": [f"{n}@{r['seed']}" for n, r in pairs if r["passes"]["base"] and not r["passes"]["new"]],
-            "every_seed_pass": {"base": [n for n, m in meshes.items() if m["passes"]["base"] == m["passes"]["of"]],
-                                "new": [n for n, m in meshes.items() if m["passes"]["new"] == m["passes"]["of"]]}}
-
-
-def compare_chart(comparison: dict, path: Path) -> Path:
-    """Per mesh the change in Chamfer reduction at each draw (new − base, points; above zero the new is better):
-    ▲ a draw that now meets every target and did not, ▼ one that no longer does, ● no change of verdict."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from foundation.imageio import save_figure
-
-    names = list(comparison["meshes"])
-    seeds = comparison["seeds"]
-    x = np.arange(len(names))
-    fig, ax = plt.subplots(figsize=(max(7.0, 0.7 * len(names) + 3), 4))
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for i, k in enumerate(seeds):
-        labelled = False  # one legend entry per seed
-        for xi, n in zip(x, names):
-            r = next((r for r in comparison["meshes"][n]["per_seed"] if r["seed"] == k), None)
-            if r is None:
-                continue
-            p = r["passes"]
-            marker = "^" if p["new"] and not p["base"] else "v" if p["base"] and not p["new"] else "o"
-            ax.plot(xi + 0.12 * (i - (len(seeds) - 1) / 2), r["chamfer_delta"] * 100, marker, ms=6,
-                    color=colours[i % len(colours)], label=None if labelled else f"seed {k}")
-            labelled = True
-    ax.axhline(0.0, color="0.3", lw=0.8)
-    ax.set_xticks(x, names, rotation=45, ha="right", fontsize=8)
-    ax.set_ylabel("Chamfer reduction, new − base (points)")
-    ax.grid(alpha=0.3, axis="y")
-    ax.legend(fontsize=7, title="▲ gained every target, ▼ lost", title_fontsize=7)
-    c, p = comparison["chamfer_delta"], comparison["passes"]
-    se = f" ± {c['se'] * 100:.2f}" if c["se"] is not None else ""
-    fig.suptitle(f"new against base over {comparison['pairs']} mesh-draws: Chamfer "
-                 f"{c['mean'] * 100:+.2f}{se} points, {comparison['wins']} better / {comparison['losses']} worse; "
-                 f"every target {p['base']} → {p['new']} of {p['of']}", fontsize=9)
-    return save_figure(fig, path)
+    opt(p, MorphBenchSettings, "parts", choices=["cases", "suite", "framing", "floor", "iteration"],
+         help="cases: village/armadillo (speed, sweep, stability); suite: every suite mesh at the same defaults; "
+              "framing: views and photo resolution swept on the first suite mesh; floor: each suite mesh morphed "
+              "from its own ground truth (how far the method drifts from the answer); iteration: seconds per "
+              "iteration of today's defaults against the recipe issue 17 was filed against, same mesh, in turns")
+    opt(p, MorphBenchSettings, "floor_iterations", help="iterations of the truth-start runs (--parts floor)")
+    opt(p, MorphBenchSettings, "truth_normals", choices=list(TRUTH_NORMALS),
+         help="shading of the suite's and floor's photographed truths (face: flat, as the Chamfer measures them; "
+              "their folders get _face)")
+    opt(p, MorphBenchSettings, "prior_ties", choices=list(PRIOR_TIES),
+         help="the suite's tied prior choices: keep (the run with the prior continues unless beaten by the margin) "
+              "or drop (the run without continues unless beaten by the margin)")
+    opt(p, MorphBenchSettings, "adam_quantile", type=float,
+         help="the suite's runs: MorphSettings.adam_quantile (use a fresh --json folder: trials of another value "
+              "are refused by name)")
+    opt(p, MorphBenchSettings, "lr", type=float, help="the suite's runs' position learning rate (MorphSettings.lr)")
+    opt(p, MorphBenchSettings, "step_select_quantile", type=float,
+         help="the suite's runs ask the validation photos about this quantile step (MorphSettings.step_select_quantile; "
+              "1: no such choice)")
+    opt(p, MorphBenchSettings, "saturation", type=float,
+         help="the suite's runs leave pixels brighter than this × the photos' 99th percentile out of the loss "
+              "(MorphSettings.saturation; 0: every pixel counts)")
+    opt(p, MorphBenchSettings, "mask_weight", type=float,
+         help="the suite's runs add a silhouette L1 against the photos' masks at this weight "
+              "(MorphSettings.mask_weight; 0: photos only)")
+    opt(p, MorphBenchSettings, "boundary_spp", type=int, help="the suite's runs' silhouette samples per pixel "
+         "(MorphSettings.boundary_spp; the image takes 4)")
+    opt(p, MorphBenchSettings, "mask_every", help="the suite's runs render the masks every this many steps, at "
+         "this × the weight (MorphSettings.mask_every)")
+    opt(p, MorphBenchSettings, "mask_downsample", help="the suite's runs render the masks at the photos' resolution "
+         "// this (MorphSettings.mask_downsample)")
+    opt(p, MorphBenchSettings, "seed", help="another draw of every benchmark (photos' noise, views) and of every "
+                                               "morph's render seeds (work folder: OUT/morph_work_seed<k>)")
+    opt(p, MorphBenchSettings, "cost_mesh", help="the mesh of --parts iteration")
+    opt(p, MorphBenchSettings, "cost_iterations", help="steps per timed block (--parts iteration)")
+    opt(p, MorphBenchSettings, "cost_rounds", help="timed blocks per recipe, in turns (--parts iteration)")
+    opt(p, MorphBenchSettings, "cases")
+    opt(p, MorphBenchSettings, "suite", help="suite meshes (village and armadillo may be added; paul, face000 "
+                                               "and bracket are meshes the defaults never saw)")
+    opt(p, MorphBenchSettings, "iterations", help="morph iterations of the main and suite runs")

@@ -141,3 +141,21 @@ def bench_plugins(s: PluginBenchSettings, show_progress: bool = True) -> dict:
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
         "scene": "armadillo + floor, forest.exr envmap, path tracer; every surface uses the plugin",
     }
+
+
+# -- the benchmark protocol (photoreal.benchmarks) -------------------------------------------------------------------
+
+SETTINGS = PluginBenchSettings
+WORK = False
+SUMMARY = ("ggx_uv_ms", "principled_ms", "ggx_uv_vs_principled", "compile_s")
+
+
+def run(s: PluginBenchSettings, work, pool, show_progress: bool) -> dict:
+    return bench_plugins(s, show_progress)
+
+
+def options(p) -> None:
+    from photoreal.options import opt
+
+    for name in ("resolution", "spp", "repetitions", "rounds"):
+        opt(p, PluginBenchSettings, name)

@@ -85,8 +85,9 @@ def _material_item_seconds(work: Path) -> dict:
     return {"render_s": t1 - t0, "fit_s": t2 - t1, "settings": asdict(BTFRenderSettings())}
 
 
-def bench_scale(s: ScaleBenchSettings, out_dir: Path, show_progress: bool = True) -> dict:
-    work = Path(out_dir) / "scale_work"
+def bench_scale(s: ScaleBenchSettings, work: Path, show_progress: bool = True) -> dict:
+    """Every configuration renders the same items afresh in ``work`` (cleared before each and at the end)."""
+    work = Path(work)
     shutil.rmtree(work, ignore_errors=True)
     cores = default_workers()
     keys = [it.key for it in _items(s, work)]
@@ -137,7 +138,6 @@ def bench_scale(s: ScaleBenchSettings, out_dir: Path, show_progress: bool = True
         result["ray_overhead_per_item_s"] = (seconds["ray_2"] - seconds["pool_2"]) / n
     if s.material_item:
         result["material_item"] = _material_item_seconds(work)
-    result["chart"] = str(scale_chart(result, Path(out_dir) / "scale_throughput.png"))
     shutil.rmtree(work, ignore_errors=True)
     return result
 
@@ -166,3 +166,26 @@ def scale_chart(result: dict, path: Path) -> Path:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     return save_figure(fig, path)
+
+
+# -- the benchmark protocol (photoreal.benchmarks) -------------------------------------------------------------------
+
+SETTINGS = ScaleBenchSettings
+SUMMARY = ("items", "serial_s", "pool_s", "ray_s", "speedup_pool_2", "ray_overhead_per_item_s", "identical")
+
+
+def run(s: ScaleBenchSettings, work: Path, pool, show_progress: bool) -> dict:
+    return bench_scale(s, work, show_progress)
+
+
+def charts(result: dict, json_path: Path, work: Path | None) -> dict:
+    return {"chart": str(scale_chart(result, Path(json_path).parent / "scale_throughput.png"))}
+
+
+def options(p) -> None:
+    from photoreal.options import opt
+
+    for name in ("items", "resolution", "spp"):
+        opt(p, ScaleBenchSettings, name)
+    opt(p, ScaleBenchSettings, "ray", "--no-ray", help="leave out the Ray configuration")
+    opt(p, ScaleBenchSettings, "material_item", "--no-material", help="leave out timing one BTF material")

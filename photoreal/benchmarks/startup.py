@@ -87,3 +87,26 @@ def bench_startup(s: StartupBenchSettings, show_progress: bool = True) -> dict:
     return {"settings": asdict(s), "entry": " ".join(Path(e).name for e in entry), "python_s": py,
             "commands": table, "slowest": max(table, key=lambda n: table[n]["median_s"]),
             "all_within_target": not slow, "over_target": slow, "cores": os.cpu_count()}
+
+
+# -- the benchmark protocol (photoreal.benchmarks) -------------------------------------------------------------------
+
+SETTINGS = StartupBenchSettings
+WORK = False
+
+
+def run(s: StartupBenchSettings, work, pool, show_progress: bool) -> dict:
+    return bench_startup(s, show_progress)
+
+
+def summary(result: dict) -> dict:
+    return {"python_s": result["python_s"], "slowest": result["slowest"],
+            "all_within_target": result["all_within_target"],
+            "median_s": {n: round(r["median_s"], 3) for n, r in result["commands"].items()}}
+
+
+def options(p) -> None:
+    from photoreal.options import opt
+
+    opt(p, StartupBenchSettings, "repetitions")
+    opt(p, StartupBenchSettings, "target_s", "--target", help="seconds a command must answer within")

@@ -6,17 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from .common import (
-    arg_default,
-    check_out_dir,
-    default_of,
-    opt,
-    pool_options,
-    pool_settings,
-    run_batch,
-    settings_from,
-    usage,
-)
+from ..options import arg_default, default_of, opt, settings_from
+from .common import check_out_dir, pool_options, pool_settings, run_batch, usage
 
 HELP = "universal neural BTF: data, basis training, per-material fitting (seed 002)"
 

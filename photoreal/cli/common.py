@@ -1,58 +1,12 @@
-"""What every command group shares: options filled from settings dataclasses, batches on a pool, output
-folders, usage errors."""
+"""What the command groups share beside their options (:mod:`photoreal.options`): batches on a pool, output
+folders, usage errors, printing."""
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
-from typing import Any
-
-
-def default_of(cls: type, name: str) -> Any:
-    f = {f.name: f for f in dataclasses.fields(cls)}[name]
-    if f.default is not dataclasses.MISSING:
-        return f.default
-    if f.default_factory is not dataclasses.MISSING:
-        return f.default_factory()
-    raise KeyError(f"{cls.__name__}.{name} has no default")
-
-
-def arg_default(func, name: str) -> Any:
-    """The default of a library function's parameter (for options that fill a function argument)."""
-    import inspect
-
-    return inspect.signature(func).parameters[name].default
-
-
-def opt(p: argparse.ArgumentParser, cls: type, name: str, *flags: str, help: str = "", **kw) -> None:
-    """``--flag`` filling ``cls.name``; its default (shown in --help) is the dataclass's."""
-    default = default_of(cls, name)
-    if isinstance(default, bool) and "action" not in kw:
-        kw["action"] = "store_false" if default else "store_true"
-    elif "type" not in kw and "action" not in kw:
-        kw["type"] = type(default) if isinstance(default, (int, float, str)) else str
-    if isinstance(default, tuple) and "nargs" not in kw:
-        kw["nargs"] = "+"
-    shown = " ".join(map(str, default)) if isinstance(default, tuple) else default
-    if isinstance(default, bool) or "default" in help:
-        text = help
-    else:
-        text = f"{help} (default: {shown})" if help else f"default: {shown}"
-    p.add_argument(*(flags or (f"--{name.replace('_', '-')}",)), dest=name, default=default, help=text, **kw)
-
-
-def settings_from(cls: type, a: argparse.Namespace, **extra):
-    """``cls`` from the parsed options that name its fields (plus ``extra``)."""
-    names = {f.name for f in dataclasses.fields(cls)}
-    kw = {k: v for k, v in vars(a).items() if k in names}
-    for k, v in list(kw.items()):
-        if isinstance(default_of(cls, k), tuple) and isinstance(v, list):
-            kw[k] = tuple(v)
-    kw.update(extra)
-    return cls(**kw)
 
 
 def print_json(d: dict) -> None:

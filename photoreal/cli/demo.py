@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import opt, settings_from
+from ..options import opt, settings_from
 
 HELP = "render the built-in scenes and write an HTML report"
 

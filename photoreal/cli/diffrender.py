@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import opt, print_json, settings_from, usage
+from ..options import opt, settings_from
+from .common import print_json, usage
 
 HELP = "intrinsic-conditioned diffusion renderer: G-buffers (A, I, S, N) → photo (seed 000)"
 

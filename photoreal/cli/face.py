@@ -4,18 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from .common import (
-    benchmark_dirs,
-    check_out_dir,
-    default_of,
-    opt,
-    pool_options,
-    pool_settings,
-    print_json,
-    run_batch,
-    settings_from,
-    usage,
-)
+from ..options import default_of, opt, settings_from
+from .common import benchmark_dirs, check_out_dir, pool_options, pool_settings, print_json, run_batch, usage
 
 HELP = "face material fitting in UV space (seed 003)"
 

@@ -6,7 +6,8 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from .common import default_of, opt, print_json
+from ..options import default_of, opt
+from .common import print_json
 
 HELP = "GAN refinement of renders: pix2pix, CycleGAN, Morph-GAN, joint (REAL-DIBS §3, §5)"
 

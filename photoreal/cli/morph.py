@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import benchmark_dirs, check_out_dir, opt, pool_options, print_json, run_batch, settings_from, usage
+from ..options import opt, settings_from
+from .common import benchmark_dirs, check_out_dir, pool_options, print_json, run_batch, usage
 
 HELP = "geometry morphing of coarse meshes against photos (REAL-DIBS §4)"
 

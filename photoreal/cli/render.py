@@ -7,7 +7,8 @@ import dataclasses
 import json
 from pathlib import Path
 
-from .common import check_out_dir, opt, pool_options, run_batch, usage
+from ..options import opt
+from .common import check_out_dir, pool_options, run_batch, usage
 
 HELP = "render Mitsuba XML scenes (our plugins register themselves)"
 

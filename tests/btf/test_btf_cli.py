@@ -98,7 +98,8 @@ def test_errors_name_the_file(tiny_data, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_bench_btf_writes_the_promised_json(tmp_path):
-    from photoreal.benchmarks.btf import BTFBenchSettings, bench_btf
+    from photoreal.benchmarks import run_benchmark
+    from photoreal.benchmarks.btf import BTFBenchSettings
 
     s = BTFBenchSettings(data_dir=str(tmp_path / "data"), train_per_family=1,
                          render=BTFRenderSettings(tex_res=8, slices=8, spp=2, mesh_res=16),
@@ -107,7 +108,10 @@ def test_bench_btf_writes_the_promised_json(tmp_path):
                          render_resolution=16, render_spp=2, render_reps=1, mlp_evals=1 << 12)
     from foundation.pool import PoolSettings
 
-    r = bench_btf(s, tmp_path / "bench", show_progress=False, pool=PoolSettings(workers=0, threads=0))
+    r = run_benchmark("btf", s, tmp_path / "bench" / "btf.json", pool=PoolSettings(workers=0, threads=0),
+                      show_progress=False)
+    assert json.loads((tmp_path / "bench" / "btf.json").read_text())["chosen"] == r["chosen"]
+    assert (tmp_path / "bench" / "btf_work" / "assets" / "basis.npz").is_file()  # everything kept in its work
     for k in ("psnr_universal_mean", "psnr_per_material_mean", "neural_btf_ms", "principled_ms",
               "neural_btf_vs_principled", "mlp_evals_per_s_drjit", "mlp_evals_per_s_torch"):
         assert np.isfinite(r[k]) and r[k] > 0, k

@@ -332,10 +332,10 @@ def test_a_bench_work_folder_made_with_other_photos_is_refused(tiny_morph, tmp_p
     """The GAN and diffusion-renderer benches reuse their work folders; a benchmark there whose photos had another
     sample count (the diffusion bench's 1024 vs the GAN bench's 64) would mix two benchmarks' results silently."""
     from foundation.errors import UsageError
-    from photoreal.benchmarks.gan import GanBenchSettings, _prepare
+    from photoreal.benchmarks.gan import GanBenchSettings, prepare_case
 
     shutil.copytree(tiny_morph, tmp_path / "village" / "benchmark")
     with pytest.raises(UsageError, match=r"village/benchmark: its photos were rendered at 2 spp.*1024 \(photo_spp\)"):
-        _prepare("village", tmp_path, GanBenchSettings(photo_spp=1024), show_progress=False)
+        prepare_case("village", tmp_path, GanBenchSettings(photo_spp=1024), show_progress=False)
     with pytest.raises(UsageError, match="photo_spp"):
         GanBenchSettings(photo_spp=0)

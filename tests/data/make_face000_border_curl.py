@@ -1,6 +1,6 @@
 """Cut ``face000_border_curl.npz`` out of a stored morph result (see make_face000_border_curl.md).
 
-Usage: python make_face000_border_curl.py WORK_DIR OUT.npz  (WORK_DIR: `bench morph --keep-work`'s morph_work)."""
+Usage: python make_face000_border_curl.py WORK_DIR OUT.npz  (WORK_DIR: `bench morph`'s morph_work)."""
 import glob
 import sys
 

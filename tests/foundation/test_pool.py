@@ -140,7 +140,7 @@ def test_a_worker_ends_when_its_driver_is_killed(tmp_path):
 
     pid_file, done_file = tmp_path / "pid", tmp_path / "done"
     code = ("from foundation.pool import Item, PoolSettings, run_items\n"
-            f"run_items([Item('slow', 'tests.test_pool:_sleeper', ({str(pid_file)!r}, {str(done_file)!r}, 30.0))], "
+            f"run_items([Item('slow', 'tests.foundation.test_pool:_sleeper', ({str(pid_file)!r}, {str(done_file)!r}, 30.0))], "
             "PoolSettings(workers=1, threads=1), show_progress=False)\n")
     import os
 

@@ -563,16 +563,17 @@ def test_generated_suite_meshes_are_closed_outward_and_of_known_volume(tmp_path)
 def test_bench_seed_gets_its_own_work_folder(tmp_path):
     """``photoreal bench morph --seed k``: finished pool items are resumed by folder (their metrics.json), so another
     draw must not find seed 0's runs — each seed works in a folder of its own (seed 0 keeps the old name)."""
-    from photoreal.benchmarks.morph import MorphBenchSettings, work_folder
+    from photoreal.benchmarks import work_folder
+    from photoreal.benchmarks.morph import MorphBenchSettings
     from photoreal.cli import build_parser
-    from photoreal.cli.common import settings_from
+    from photoreal.options import settings_from
 
     a = build_parser().parse_args(["bench", "morph", "--parts", "suite", "--suite", "josie", "--seed", "3",
                                    "--json", str(tmp_path / "m.json")])
     s = settings_from(MorphBenchSettings, a)
     assert s.seed == 3 and s.suite == ("josie",)
-    assert work_folder(s, tmp_path) == tmp_path / "morph_work_seed3"
-    assert work_folder(MorphBenchSettings(), tmp_path) == tmp_path / "morph_work"
+    assert work_folder("morph", s, tmp_path / "m.json") == tmp_path / "morph_work_seed3"
+    assert work_folder("morph", MorphBenchSettings(), tmp_path / "m.json") == tmp_path / "morph_work"
     with pytest.raises(UsageError, match="seed"):
         MorphBenchSettings(seed=-1)
     from inverse.morph import MORPH_SEED_MAX  # the runs' own bound, refused before any benchmark is made
@@ -624,7 +625,7 @@ def test_suite_chart_tells_every_mesh_apart(tmp_path):
 def test_suite_over_draws_sums_up_each_mesh(tmp_path, capsys):
     """``photoreal bench morph-seeds``: per mesh the mean, worst and best over the draws and the draws where every
     target holds; files that are not draws of one experiment are refused by name, nothing written."""
-    from photoreal.benchmarks.morph import seeds_summary
+    from photoreal.benchmarks.morph_seeds import seeds_summary
     from photoreal.cli import main
 
     a = _suite_file(tmp_path / "s0.json", 0, {"josie": (0.323, 3.76, 0.0178, 0.0146),
@@ -676,7 +677,7 @@ def test_light_draws_refuses_results_without_their_runs(tmp_path, capsys):
     r = _suite_file(tmp_path / "r.json", 0, {"josie": (0.3, 3.0, 0.01, 0.01)})
     out = tmp_path / "draws.json"
     assert main(["bench", "morph-light-draws", str(r), "--json", str(out)]) == 2
-    assert re.search(r"r.json: its work folder .*morph_work is gone \(run the bench with --keep-work\)",
+    assert re.search(r"r.json: its work folder .*morph_work is gone \(the bench keeps it unless run with --clean\)",
                      capsys.readouterr().err)
     (tmp_path / "morph_work" / "suite_josie" / "lambda_select").mkdir(parents=True)
     assert main(["bench", "morph-light-draws", str(r), "--json", str(out)]) == 2
@@ -696,7 +697,7 @@ def test_two_settings_compared_draw_by_draw(tmp_path, capsys):
     figures against their closed forms; overlapping parts and sets of other experiments are refused, nothing written."""
     from math import comb
 
-    from photoreal.benchmarks.morph import seeds_compare, seeds_summary
+    from photoreal.benchmarks.morph_seeds import seeds_compare, seeds_summary
     from photoreal.cli import main
 
     base = [_suite_file(tmp_path / "b0.json", 0, {"josie": (0.32, 3.8, 0.02, 0.015), "cow": (0.49, 8.7, 0.02, 0.01)}),
