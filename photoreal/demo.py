@@ -425,8 +425,10 @@ def demo_matdiff(out_dir: Path, s: DemoSettings, bench_dir: Path | None = None) 
     return {"seconds": seconds}
 
 
-def run_demo(out_dir: str | Path, s: DemoSettings, bench_dir: str | Path | None = None) -> Path:
+def run_demo(out_dir: str | Path = "out/demo", s: DemoSettings | None = None,
+             bench_dir: str | Path | None = None) -> Path:
     """Render every section into ``out_dir`` and write ``index.html``; bench tables from ``bench_dir``'s JSON."""
+    s = s or DemoSettings()
     from .benchmarks.plugins import PluginBenchSettings, bench_plugins
 
     out_dir = check_output_dir(out_dir, "index.html", "--out")

@@ -51,6 +51,7 @@ def field_docs(cls: type) -> dict[str, str]:
 
 def _add(p: argparse.ArgumentParser, source: tuple, name: str, default: Any, flags: tuple[str, ...], help: str,
          kw: dict) -> argparse.Action:
+    dest = kw.pop("dest", name)
     if isinstance(default, bool) and "action" not in kw:
         kw["action"] = "store_false" if default else "store_true"
     elif "type" not in kw and "action" not in kw:
@@ -62,14 +63,14 @@ def _add(p: argparse.ArgumentParser, source: tuple, name: str, default: Any, fla
         text = help
     else:
         text = f"{help} (default: {shown})" if help else f"default: {shown}"
-    act = p.add_argument(*(flags or (f"--{name.replace('_', '-')}",)), dest=name, default=default, help=text, **kw)
+    act = p.add_argument(*(flags or (f"--{dest.replace('_', '-')}",)), dest=dest, default=default, help=text, **kw)
     act.source = source
     return act
 
 
 def opt(p: argparse.ArgumentParser, cls: type, name: str, *flags: str, help: str = "", **kw) -> argparse.Action:
     """``--flag`` filling ``cls.name``; its default (shown in --help) is the dataclass's, its help the field's
-    ``#:`` comment unless given."""
+    ``#:`` comment unless given. ``dest=`` names the parsed value otherwise (one field of several settings)."""
     return _add(p, (cls, name), name, default_of(cls, name), flags, help or field_docs(cls).get(name, ""), kw)
 
 

@@ -601,7 +601,7 @@ def _shown(path) -> str:
 
 
 def generate_material(run: str | Path, out: str | Path, keywords: str | None = None, image: str | Path | None = None,
-                      seed: int = 0, size: int = 0, steps: int | None = None, guidance: float | None = None,
+                      seed: int = 0, size: int = 32, steps: int | None = None, guidance: float | None = None,
                       from_prior: bool = False) -> dict:
     """`photoreal btf generate`: one material from a trained model, written as a ``neural_btf`` material .npz
     (fitted-material layout; meta names the basis it decodes through). Returns its summary. ``steps`` and
@@ -625,7 +625,9 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
         guidance = rec["guidance"] if guidance is None else guidance
     validate.integer("steps", steps, 1, 1000)
     validate.non_negative("guidance", guidance)
-    size = int(size) or 32
+    validate.integer("size", size, 4, 4096)
+    if size % 4:
+        raise UsageError(f"size must be a multiple of 4 (the model's feature grid; it tiles seamlessly), got {size}")
     if from_prior and keywords:
         raise UsageError("give --keywords or --from-prior, not both")
     # a keyword triple drawn from the training materials' (the null token alone collapses to few families: docs/material-diffusion.md)

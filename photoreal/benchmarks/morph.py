@@ -12,7 +12,7 @@ from foundation import validate
 from foundation.assets import ARMADILLO, pymeshlab_sample
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import to_json
-from inverse.morph import (KINDS, MORPH_SEED_MAX, PRIOR_TIES, SUITE, TRUTH_NORMALS, UNSEEN, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
+from inverse.morph import (KINDS, MORPH_SEED_MAX, SUITE, TRUTH_NORMALS, UNSEEN, Candidate, MorphBenchmarkSettings, MorphResult, MorphSettings, MorphStage,
                            candidate_settings, load_morph_benchmark, make_morph_benchmark, run_morph, silhouette_margins,
                            start_mesh, suite_mesh, benchmark_surface_errors, truth_start_benchmark)
 
@@ -79,17 +79,16 @@ class MorphBenchSettings:
         """The silhouette loss's settings and the boundary samples, as the runs' :class:`MorphSettings` take them."""
         return {k: getattr(self, k) for k in SILHOUETTE_FIELDS}
 
+    def suite_settings(self) -> MorphSettings:
+        """The suite's runs: today's defaults with this bench's fields of :class:`MorphSettings` (which checks them)."""
+        return MorphSettings(iterations=self.iterations, seed=self.seed, prior_ties=self.prior_ties,
+                             adam_quantile=self.adam_quantile, lr=self.lr,
+                             step_select_quantile=self.step_select_quantile, saturation=self.saturation,
+                             **self.silhouette_fields())
+
     def __post_init__(self):
         validate.one_of("truth_normals", self.truth_normals, TRUTH_NORMALS)
-        validate.one_of("prior_ties", self.prior_ties, PRIOR_TIES)
-        validate.in_range("adam_quantile", self.adam_quantile, 0.0, 1.0, lo_open=True)
-        validate.positive("lr", self.lr)
-        validate.in_range("step_select_quantile", self.step_select_quantile, 0.0, 1.0, lo_open=True)
-        validate.non_negative("saturation", self.saturation)
-        validate.non_negative("mask_weight", self.mask_weight)
-        validate.integer("mask_every", self.mask_every, 1)
-        validate.integer("mask_downsample", self.mask_downsample, 1, 16)
-        validate.optional(validate.integer, "boundary_spp", self.boundary_spp, 1, 1 << 16)
+        self.suite_settings()  # the fields copied from MorphSettings are checked by it, once
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
                      "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
@@ -291,9 +290,7 @@ def bench_suite(work: Path, s: MorphBenchSettings, pool: PoolSettings, show_prog
     """Every suite mesh morphed with the same defaults (the pool runs them side by side)."""
     tag = normals_tag(s)
     benches = {n: _suite_bench(n, work, _suite_benchmark_settings(s), tag) for n in s.suite}
-    settings = MorphSettings(iterations=s.iterations, seed=s.seed, prior_ties=s.prior_ties,
-                             adam_quantile=s.adam_quantile, lr=s.lr, step_select_quantile=s.step_select_quantile,
-                             saturation=s.saturation, **s.silhouette_fields())
+    settings = s.suite_settings()
     for b in benches.values():  # the start remeshes made here, once, before the workers read them (stored_remesh)
         start_mesh(load_morph_benchmark(b), settings)
     items = [_item(n, benches[n], work / f"suite_{n}{tag}", settings) for n in s.suite]

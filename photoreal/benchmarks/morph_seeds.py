@@ -295,9 +295,11 @@ def summary(result: dict) -> dict:
 
 
 def options(p) -> None:
+    from photoreal.options import opt
+
     p.add_argument("results", nargs="+", help="bench morph JSON files with a suite, one per seed (a seed's suite "
                                               "run in parts: its files, each with other meshes)")
-    p.add_argument("--against", nargs="+", metavar="RESULT", default=(),
-                   help="the same draws under other settings (e.g. before a change): paired by mesh and seed, the "
-                        "change per draw, its mean and standard error, wins and losses (sign test), targets gained "
-                        "and lost, and a chart OUT_against.png")
+    opt(p, MorphSeedsSettings, "against", metavar="RESULT",
+        help="the same draws under other settings (e.g. before a change): paired by mesh and seed, the change per "
+             "draw, its mean and standard error, wins and losses (sign test), targets gained and lost, and a chart "
+             "OUT_against.png")

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from ..options import arg_default, default_of, opt, settings_from
+from ..options import arg_opt, opt, settings_from
 from .common import check_out_dir, pool_options, pool_settings, run_batch, usage
 
 HELP = "universal neural BTF: data, basis training, per-material fitting (seed 002)"
@@ -150,8 +150,7 @@ def _add_render_data(tr: argparse.ArgumentParser) -> None:
 
     tr.add_argument("--out", required=True, help="dataset folder")
     tr.add_argument("--families", nargs="+", default=None, help="subset of the material families (default: all 8)")
-    tr.add_argument("--per-family", type=int, default=arg_default(render_dataset, "per_family"),
-                    help=f"materials per family (default: {arg_default(render_dataset, 'per_family')})")
+    arg_opt(tr, render_dataset, "per_family", type=int, help="materials per family")
     for name in ("tex_res", "slices", "spp", "max_depth", "seed"):
         opt(tr, BTFRenderSettings, name)
     pool_options(tr)
@@ -181,13 +180,10 @@ def _add_fit(tf: argparse.ArgumentParser) -> None:
     tf.add_argument("--basis", required=True)
     tf.add_argument("--out", default=None, help="material .npz for the neural_btf plugin (one BTF)")
     tf.add_argument("--out-dir", default=None, help="folder for several materials: DIR/NAME.npz")
-    tf.add_argument("--iterations", type=int, default=arg_default(fit_settings, "iterations"),
-                    help=f"Adam steps (default: {arg_default(fit_settings, 'iterations')})")
-    tf.add_argument("--batch", type=int, default=default_of(OptimSettings, "batch"),
-                    help=f"samples per step (default: {default_of(OptimSettings, 'batch')})")
+    arg_opt(tf, fit_settings, "iterations", type=int, help="Adam steps")
+    opt(tf, OptimSettings, "batch", type=int, help="samples per step")
     opt(tf, OptimSettings, "tex_res", help="feature texture resolution (0 = the BTF's)")
-    tf.add_argument("--heldout-fraction", type=float, default=arg_default(split_slices, "heldout_fraction"),
-                    help=f"slices held out for the PSNR (default: {arg_default(split_slices, 'heldout_fraction')})")
+    arg_opt(tf, split_slices, "heldout_fraction", type=float, help="slices held out for the PSNR")
     tf.add_argument("--checkpoint", default=None, help="default: OUT with .ckpt.npz")
     tf.add_argument("--json", default=None)
     opt(tf, OptimSettings, "seed")
@@ -207,19 +203,21 @@ def _add_dataset(td: argparse.ArgumentParser) -> None:
 
 
 def _add_train_diffusion(tt: argparse.ArgumentParser) -> None:
-    from generative.btf import MatDiffSettings
+    from generative.btf import MatDiffSettings, train_matdiff
 
     tt.add_argument("data", help="folder made by `btf dataset`")
     tt.add_argument("--out", required=True, help="run folder (checkpoint.npz, metrics.json)")
     opt(tt, MatDiffSettings, "max_seconds", "--seconds", type=float, help="training budget (summed over resumes)")
     for name in ("steps", "batch", "train_crop", "lr", "widths", "attention_levels", "ema", "seed"):
         opt(tt, MatDiffSettings, name, **({"type": int} if name == "widths" else {}))
-    tt.add_argument("--device", default="cpu", help="torch device of the model (cpu, cuda, cuda:N, mps; default: cpu); "
-                    "a run resumes on any device")
+    arg_opt(tt, train_matdiff, "device", help="torch device of the model (cpu, cuda, cuda:N, mps); a run resumes on "
+            "any device")
     tt.set_defaults(func=_cmd_btf_train_diffusion)
 
 
 def _add_generate(tg: argparse.ArgumentParser) -> None:
+    from generative.btf import generate_material
+
 
     tg.add_argument("--run", default=None, help="run folder of `btf train-diffusion` (default: the bundled model, "
                     "scenes/assets/neural/matdiff, trained on a GPU; see its README)")
@@ -229,8 +227,8 @@ def _add_generate(tg: argparse.ArgumentParser) -> None:
                     "the run's training materials (keyword_prior.json)")
     tg.add_argument("--unconditional", action="store_true", help="neither keywords nor image (the null condition: "
                     "its samples collapse to few families; --from-prior is the better random material)")
-    tg.add_argument("--seed", type=int, default=0)
-    tg.add_argument("--size", type=int, default=32, help="texels per side (any multiple of 4: tiles seamlessly)")
+    arg_opt(tg, generate_material, "seed", type=int)
+    arg_opt(tg, generate_material, "size", type=int, help="texels per side (any multiple of 4: tiles seamlessly)")
     tg.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the run's sampler.json, which "
                     "`bench matdiff` writes; else 25)")
     tg.add_argument("--guidance", type=float, default=None, help="classifier-free guidance (default: the run's "

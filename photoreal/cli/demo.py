@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..options import opt, settings_from
+from ..options import arg_opt, opt, settings_from
 
 HELP = "render the built-in scenes and write an HTML report"
 
@@ -24,10 +24,10 @@ def _cmd_demo(a) -> int:
 def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
     """The command's options (it has no subcommands: ``wanted`` is not used)."""
 
-    from ..demo import DemoSettings
+    from ..demo import DemoSettings, run_demo
 
     d = parser
-    d.add_argument("--out", default="out/demo", help="report folder (default: out/demo)")
+    arg_opt(d, run_demo, "out_dir", "--out", dest="out", help="report folder")
     d.add_argument("--bench-dir", default=None,
                    help="folder with `photoreal bench` JSON files for the report's tables (default: OUT/../bench)")
     opt(d, DemoSettings, "resolution", help="image side of the renders (the face's camera renders: at most 192)")

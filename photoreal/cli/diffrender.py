@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..options import opt, settings_from
+from ..options import arg_opt, opt, settings_from
 from .common import print_json, usage
 
 HELP = "intrinsic-conditioned diffusion renderer: G-buffers (A, I, S, N) → photo (seed 000)"
@@ -101,16 +101,15 @@ def _add_train(t: argparse.ArgumentParser) -> None:
 
 
 def _add_render(r: argparse.ArgumentParser) -> None:
-    from generative.diffrender import SampleSettings
+    from generative.diffrender import SampleSettings, render_benchmark, render_scene_file
 
     r.add_argument("target", help="a morph benchmark folder, or a Mitsuba scene .xml (every sensor is rendered)")
     r.add_argument("--run", required=True, help="training folder of `diffrender train`")
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--morph", default=None, help="benchmark: morph run folder (default BENCHMARK/morph)")
-    r.add_argument("--source", choices=["morphed", "coarse"], default="morphed", help="benchmark: whose G-buffers")
-    r.add_argument("--views", choices=["test", "all"], default="test", help="benchmark: held-out views or all")
-    r.add_argument("--spp", type=int, default=32, help="scene: samples per pixel of the G-buffers (default: 32, as "
-                   "the bench's)")
+    arg_opt(r, render_benchmark, "source", choices=["morphed", "coarse"], help="benchmark: whose G-buffers")
+    arg_opt(r, render_benchmark, "views", choices=["test", "all"], help="benchmark: held-out views or all")
+    arg_opt(r, render_scene_file, "spp", type=int, help="scene: samples per pixel of the G-buffers (as the bench's)")
     opt(r, SampleSettings, "steps", "--ddim-steps", help="DDIM steps")
     opt(r, SampleSettings, "guidance", type=float, help="classifier-free guidance weight on the global condition "
          "(default: 1 for a mean of draws, 1.5 for single samples: the bench's choices)")

@@ -165,7 +165,7 @@ def _add_from_photo(fp: argparse.ArgumentParser) -> None:
 
 
 def _add_train_models(ft: argparse.ArgumentParser) -> None:
-    from generative.face import CompletionSettings, FaceDataSettings, SuperResSettings
+    from generative.face import CompletionSettings, FaceDataSettings, FaceModelsSettings, SuperResSettings
     from generative.face import DecompSettings as FaceDecompSettings
 
     ft.add_argument("--out", required=True, help="run folder (absent, empty, or this command's earlier run)")
@@ -173,15 +173,14 @@ def _add_train_models(ft: argparse.ArgumentParser) -> None:
         opt(ft, FaceDataSettings, name)
     opt(ft, FaceDataSettings, "layout", choices=["template", "scan"],
          help="UV layout of the maps: the face template's (what from-photo unwraps into) or the scans' own")
-    ft.add_argument("--completion-seconds", type=float, default=default_of(CompletionSettings, "max_seconds"),
-                    help="training budget of the completion model (default: %(default)s)")
-    ft.add_argument("--decomp-seconds", type=float, default=default_of(FaceDecompSettings, "max_seconds"),
-                    help="training budget of each decomposition variant (default: %(default)s)")
-    ft.add_argument("--superres-seconds", type=float, default=default_of(SuperResSettings, "max_seconds"),
-                    help="training budget of the upscaler (default: %(default)s)")
-    ft.add_argument("--variants", nargs="+", default=["cross_attention"],
-                    choices=["cross_attention", "shared", "independent"],
-                    help="decomposition variants to train; the first is the one from-photo uses (default: cross_attention)")
+    opt(ft, CompletionSettings, "max_seconds", "--completion-seconds", dest="completion_seconds", type=float,
+        help="training budget of the completion model")
+    opt(ft, FaceDecompSettings, "max_seconds", "--decomp-seconds", dest="decomp_seconds", type=float,
+        help="training budget of each decomposition variant")
+    opt(ft, SuperResSettings, "max_seconds", "--superres-seconds", dest="superres_seconds", type=float,
+        help="training budget of the upscaler")
+    opt(ft, FaceModelsSettings, "variants", choices=["cross_attention", "shared", "independent"],
+        help="decomposition variants to train; the first is the one from-photo uses")
     pool_options(ft)
     ft.set_defaults(func=_cmd_face_train_models)
 

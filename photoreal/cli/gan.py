@@ -6,7 +6,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from ..options import default_of, opt
+from ..options import opt
 from .common import print_json
 
 HELP = "GAN refinement of renders: pix2pix, CycleGAN, Morph-GAN, joint (REAL-DIBS §3, §5)"
@@ -81,9 +81,8 @@ def _add_train(gt: argparse.ArgumentParser) -> None:
 
     gt.add_argument("benchmark", help="folder made by `photoreal morph make-benchmark`")
     gt.add_argument("--morph", default=None, help="morph run folder with morphed.ply (default BENCHMARK/morph)")
-    gt.add_argument("--model", choices=["pix2pix", "cyclegan", "morph_gan_partial", "morph_gan", "joint"],
-                    default=default_of(GanTrainSettings, "model"),
-                    help=f"default: {default_of(GanTrainSettings, 'model')}; joint: mesh and Morph-GAN together")
+    opt(gt, GanTrainSettings, "model", choices=["pix2pix", "cyclegan", "morph_gan_partial", "morph_gan", "joint"],
+        help="joint: mesh and Morph-GAN together")
     gt.add_argument("--out", required=True, help="training folder (checkpoint.npz, metrics.json)")
     opt(gt, GanTrainSettings, "steps")
     opt(gt, GanTrainSettings, "max_seconds", "--seconds", type=float, help="wall-time budget (summed over resumes)")

@@ -276,9 +276,8 @@ def _add_saturation(ms_: argparse.ArgumentParser) -> None:
     from inverse.morph import MorphSettings
 
     ms_.add_argument("benchmarks", nargs="+", help="folders made by `photoreal morph make-benchmark`")
-    ms_.add_argument("--factor", type=float, default=MorphSettings.saturation,
-                     help="the saturation level: this × the training photos' 99th percentile (default: the morph's "
-                          "MorphSettings.saturation, %(default)s)")
+    opt(ms_, MorphSettings, "saturation", "--factor", dest="factor", type=float,
+        help="the saturation level: this × the training photos' 99th percentile (the morph's own)")
     ms_.add_argument("--json", default=None, help="also write the report here")
     ms_.set_defaults(func=_cmd_morph_saturation)
 
