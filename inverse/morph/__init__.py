@@ -5,7 +5,11 @@ module             what
 =================  ==========================================================================
 ``benchmark``      benchmarks with ground truth: photos, degraded reconstruction, artifact masks
 ``scene``          the scene a morph renders (vertex colours under the benchmark's HDRI)
-``run``            the morph (large steps, planarity prior) as a stage of the shared loop
+``settings``       the settings of a run (:class:`MorphSettings`)
+``stage``          the morph (large steps, planarity prior) as a stage of the shared loop
+``select``         the choices the validation photos make (λ, priors, step, light), each from the same start
+``results``        what a run records: trace, decisions, the result
+``run``            :func:`run_morph`: the choices where the settings leave any, then the stage
 ``prior``          edge-preserving planarity prior and plane detection
 ``mesh_edit``      isotropic remeshing, undoing and repairing folds
 ``gcn``            the shape-aware GCN variant, trained through the renderer (``dr.wrap``)
@@ -26,8 +30,12 @@ from .prior import dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (PleatReport, RepairReport, SpikeReport, TurnReport, border_zone, iron_border_turns, iron_spikes,
                         remesh, repair_flips, unfold_pleats)
 from .batch import load_result, run_item
-from .run import (MORPH_SEED_MAX, PLANARITY_WHERE, PRIOR_TIES, Candidate, ColourPriorDecision, ColourSelection, MorphResult, MorphSettings, MorphStage,
-                  PlanarityDecision, StepSelection, TracePoint, candidate_settings, light_choice_draws, run_morph, start_mesh)
+from .results import (Candidate, ColourPriorDecision, ColourSelection, MorphResult, PlanarityDecision, StepSelection,
+                      TracePoint)
+from .run import run_morph
+from .select import candidate_settings, light_choice_draws
+from .settings import MORPH_SEED_MAX, PLANARITY_WHERE, PRIOR_TIES, MorphSettings
+from .stage import MorphStage, start_mesh
 from .suite import SUITE, KINDS, UNSEEN, suite_mesh
 from .scene import MODES, mask_integrator, mask_scene, morph_scene, photo_at, photo_masks, projective_integrator, render_views, saturated_silhouette
 

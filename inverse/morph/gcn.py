@@ -45,7 +45,9 @@ from foundation.scene import mitsuba_log_level
 
 from .benchmark import MorphBenchmark
 from .evaluate import evaluate_morph
-from .run import MorphResult, MorphSettings, photos_digest
+from .results import MorphResult
+from .settings import MorphSettings
+from .stage import photos_digest
 from .scene import morph_scene, photo_l1, photo_saturation, photo_tensors, render_views
 
 

@@ -263,7 +263,7 @@ def _item(key: str, bench_dir: Path, out: Path, settings: MorphSettings, **kw) -
 
 def _suite_bench(name: str, work: Path, bs: MorphBenchmarkSettings, tag: str = "") -> Path:
     """The benchmark of one suite mesh; a complete one made earlier from the same file and settings (a resumed
-    bench) is kept as it is, with the start remeshes its runs stored (:func:`inverse.morph.run.stored_remesh`)."""
+    bench) is kept as it is, with the start remeshes its runs stored (:func:`inverse.morph.stage.stored_remesh`)."""
     from foundation.errors import UsageError
     from foundation.files import file_digest
 

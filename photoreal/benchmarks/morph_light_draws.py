@@ -16,7 +16,7 @@ from .morph_seeds import recorded_run_settings, suite_of
 
 def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True) -> dict:
     """Every light choice of ``bench morph --parts suite`` results (their work folders beside them)
-    scored again under ``draws`` draws of the light estimate (:func:`inverse.morph.run.light_choice_draws`; draw 0
+    scored again under ``draws`` draws of the light estimate (:func:`inverse.morph.select.light_choice_draws`; draw 0
     is the choice's own): per mesh-draw the light run's advantage at each draw and its spread, and the choices
     another draw of the estimate would overturn."""
     from tqdm import tqdm

@@ -167,8 +167,8 @@ def report(root: Path = ROOT) -> str:
 def test_the_scan_sees_every_kind_of_import():
     imp = scan()
     edges = {(s, d) for s, d, _, _ in imp.edges}
-    assert ("inverse.morph.run", "foundation.loop") in edges  # absolute, module level
-    assert ("inverse.morph.run", "inverse.morph.scene") in edges  # relative
+    assert ("inverse.morph.stage", "foundation.loop") in edges  # absolute, module level
+    assert ("inverse.morph.stage", "inverse.morph.scene") in edges  # relative
     assert ("photoreal.cli.morph", "inverse.morph") in edges  # inside a function
     assert "run_morph" in imp.exports["inverse.morph"]
 

@@ -208,8 +208,8 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     # start to the end of the warm-up (ceil(0.3 × 8 / 2) × 2 = 4 iterations); the one with the lower validation L1
     # there continues. One Dr.Jit thread: the winner's run equals a standalone run of its settings bit for bit, and
     # a selection interrupted mid-way resumes to the same result.
-    from inverse.morph.run import (Candidate, candidate_settings, choose_with_margin, selection_candidates,
-                                   selection_point)
+    from inverse.morph.results import Candidate
+    from inverse.morph.select import candidate_settings, choose_with_margin, selection_candidates, selection_point
 
     s = MorphSettings(iterations=8, checkpoint_every=2, resolution=32, min_vertices=None, check_every=2,
                       validation_fraction=0.5, early_stop=False, lambda_select=(2.0, 25.0), planarity_select=(0.1,))
@@ -248,7 +248,7 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     assert light.validation_l1_without > 0 and light.validation_l1_with > 0 and light.trial_seconds > 0
     assert light.kept == (light.validation_l1_with < (1 - s.prior_margin) * light.validation_l1_without)
     assert (light.every, light.colour_lambda) == (s.light_select_every, s.light_select_colour_lambda) == (100, 10.0)
-    from inverse.morph.run import validation_l1_with_light
+    from inverse.morph.select import validation_l1_with_light
     plain = final
     final = replace(final, light=True) if light.kept else final
     assert candidate_settings(s, replace(plain, light=True)).indirect_every == 100
@@ -277,7 +277,7 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
                                      candidate_settings(s, lost), 4)
     assert again == (light.validation_l1_with if lost.light else light.validation_l1_without)
     # the choice under other draws of the estimate: the first draw is the choice's own, the others move the scores
-    from inverse.morph.run import light_choice_draws
+    from inverse.morph.select import light_choice_draws
     redo = light_choice_draws(small_armadillo, tmp_path / "a", s, draws=3)
     assert (redo["validation_l1_without"][0], redo["validation_l1_with"][0]) == \
         (light.validation_l1_without, light.validation_l1_with)
@@ -310,7 +310,7 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     # decision files removed after the run: remade from the trials' figures at the selection point, not from the
     # winner's later ones (its folder ran on to the end); the light choice from the runs' meshes there — the
     # winner's as kept before it ran on (checkpoint_at_4.npz), the loser's own last state
-    from inverse.morph.run import selection_checkpoint
+    from inverse.morph.select import selection_checkpoint
     kept = selection_checkpoint(tmp_path / "b" / "lambda_select" / final.folder, 4)
     assert read_checkpoint(kept).run.step == 4 and not (tmp_path / "b" / kept.name).exists()
     for f in ("decision.json", "colour_decision.json", "step_decision.json", "light_decision.json"):
@@ -323,7 +323,7 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     assert replace(remade.step_selection, trial_seconds=step.trial_seconds) == step
     assert remade.chamfer_morphed == r.chamfer_morphed
     # no light choice where the estimate or colour large steps are set, or with it switched off
-    from inverse.morph.run import light_select_on
+    from inverse.morph.select import light_select_on
     assert light_select_on(s) and not light_select_on(replace(s, light_select_every=0))
     assert not light_select_on(replace(s, indirect_every=10)) and not light_select_on(replace(s, colour_lambda=5.0))
     assert not light_select_on(replace(s, mode="unlit"))
@@ -399,7 +399,7 @@ def test_a_kept_quantile_step_runs_on_and_carries_into_the_light_choice(small_ar
     # selection point (iteration 2) is below uniform Adam's (measured: 0.02298 against 0.02338, 1 thread). The
     # light choice then runs with that step, the winner equals a standalone run of its settings bit for bit, and
     # rescoring the light choice under other draws reads the step back from the decision file.
-    from inverse.morph.run import candidate_settings, light_choice_draws
+    from inverse.morph.select import candidate_settings, light_choice_draws
 
     s = MorphSettings(iterations=6, checkpoint_every=2, resolution=32, min_vertices=None, check_every=2,
                       validation_fraction=0.5, early_stop=False, lambda_select=(2.0, 25.0), planarity_select=(),
@@ -434,7 +434,7 @@ def test_a_kept_quantile_step_runs_on_and_carries_into_the_light_choice(small_ar
         run_morph(small_armadillo, tmp_path / "a", replace(s, step_select_lr=0.05), show_progress=False)
     assert run_morph(small_armadillo, tmp_path / "q1", replace(s, step_select_quantile=1.0),
                      show_progress=False).step_selection is None
-    from inverse.morph.run import step_select_on
+    from inverse.morph.select import step_select_on
     assert step_select_on(s) and not step_select_on(replace(s, adam_quantile=0.9))
     for bad in ({"step_select_quantile": 0.0}, {"step_select_quantile": 1.5}, {"step_select_lr": 0.0},
                 {"step_select_lr": float("nan")}):
@@ -447,7 +447,7 @@ def test_a_prior_continues_only_where_the_photos_prefer_it_by_the_margin():
     λ 2 + planarity 0.1): 0.009968, 0.010472, 0.009888 — the prior 0.8 % ahead, inside the 1.5 % margin, so the
     plain λ 2 continues; josie's 0.012643, 0.013031, 0.012211 (3.4 % ahead) keeps it. The colour choice is the same
     rule on (without, with): the airplane's prior 1.85 % ahead stays, the bunny's 1.07 % and the cow's 0.5 % go."""
-    from inverse.morph.run import choose_with_margin
+    from inverse.morph.select import choose_with_margin
 
     prior = [False, False, True]
     assert choose_with_margin([0.009968, 0.010472, 0.009888], prior, 0.015) == 0
@@ -479,7 +479,7 @@ def test_a_prior_continues_only_where_the_photos_prefer_it_by_the_margin():
 
 
 def test_validation_split_spreads_over_the_orbit():
-    from inverse.morph.run import validation_split
+    from inverse.morph.stage import validation_split
 
     train = [0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14]
     assert validation_split(train, 3) == [2, 8, 13]  # positions 2, 6, 10 of 12
@@ -1273,7 +1273,9 @@ def test_the_planarity_candidate_acts_only_where_told(small_armadillo, tmp_path,
 
     from inverse.morph import dihedral_pairs
     from inverse.morph.prior import planarity_prior
-    from inverse.morph.run import Candidate, MorphStage, candidate_settings
+    from inverse.morph.results import Candidate
+    from inverse.morph.select import candidate_settings
+    from inverse.morph.stage import MorphStage
     from inverse.morph.scene import inward_thickness, views_seeing
 
     s = MorphSettings(iterations=2, resolution=32, min_vertices=None)
@@ -1384,7 +1386,7 @@ def test_start_remesh_is_stored_in_the_benchmark_and_every_later_run_reads_it(sm
 
     from foundation.mesh import read_ply_colours, write_ply
     from inverse.morph import start_mesh
-    from inverse.morph.run import stored_remesh_path
+    from inverse.morph.stage import stored_remesh_path
 
     folder = tmp_path / "bench"
     shutil.copytree(small_armadillo.path, folder)
@@ -1456,7 +1458,7 @@ def test_colour_prior_closed_form_and_gradient():
 
 
 def test_colour_prior_is_on_for_smooth_input_colours_and_off_for_textured_ones():
-    from inverse.morph.run import decide_colour_prior
+    from inverse.morph.stage import decide_colour_prior
 
     v, f = _sphere(1.0, 40)
     smooth = (0.5 + 0.05 * np.sin(v)).astype(np.float32)  # a smooth albedo: small steps between neighbours
@@ -1485,7 +1487,7 @@ def test_a_resumed_suite_keeps_its_benchmarks_and_their_stored_starts(tmp_path):
 
 def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
     from photoreal.demo import _colour_why
-    from inverse.morph.run import ColourPriorDecision, ColourSelection
+    from inverse.morph.results import ColourPriorDecision, ColourSelection
     from types import SimpleNamespace
 
     chosen = SimpleNamespace(colour_selection=ColourSelection("start_2", 200, 0.0120, 0.0118, False, 10.0,
@@ -1497,7 +1499,7 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
     given = SimpleNamespace(colour_selection=None, colour_prior=ColourPriorDecision(0.1, False, None))
     assert _colour_why(given) == "given"
     from photoreal.demo import _light_why
-    from inverse.morph.run import LightSelection
+    from inverse.morph.results import LightSelection
     sel = SimpleNamespace(light_selection=LightSelection("start_2", 200, 0.0120, 0.0115, True, 9.0, every=100,
                                                          colour_lambda=10.0, margin=0.015))
     assert _light_why(sel).startswith("on: at iteration 200") and "0.0115 with, 0.0120 without" in _light_why(sel)
@@ -1506,7 +1508,7 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
     assert _light_why(SimpleNamespace(light_selection=None, settings=MorphSettings(indirect_every=50))) == \
         "given: light estimate every 50 iterations, colour λ 0"
     from photoreal.demo import _step_why
-    from inverse.morph.run import StepSelection
+    from inverse.morph.results import StepSelection
     kept = SimpleNamespace(step_selection=StepSelection("start_2", 200, 0.0120, 0.0108, True, 9.0, quantile=0.9,
                                                         lr=0.0125, margin=0.015))
     assert _step_why(kept) == ("quantile 0.9, lr 0.0125: at iteration 200 the validation photos gave L1 0.0108 with the "
@@ -1514,7 +1516,7 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
     assert _step_why(SimpleNamespace(step_selection=replace(kept.step_selection, kept=False))).startswith("uniform Adam:")
     assert _step_why(SimpleNamespace(step_selection=None, settings=MorphSettings())) == "uniform Adam (given)"
     from photoreal.demo import _where
-    from inverse.morph.run import PlanarityDecision
+    from inverse.morph.results import PlanarityDecision
     gated = PlanarityDecision(0.1, False, None, where="seen", edges=980, edges_all=1000)
     assert _where(SimpleNamespace(planarity=gated)) == \
         " on 980 of 1000 interior edges (those beside a triangle a fitted photo sees)"
@@ -1547,7 +1549,7 @@ def _assert_depth2_is_two_renders(stage, images) -> None:
 
 def _indirect_estimate(tmp_path, name, v, f, **kw) -> tuple[float, float]:
     """Mean and largest magnitude of the stage's indirect-light estimate over a tiny benchmark's training views."""
-    from inverse.morph.run import MorphStage
+    from inverse.morph.stage import MorphStage
 
     src = write_ply(tmp_path / f"{name}.ply", v, f)
     bs = MorphBenchmarkSettings(n_views=4, resolution=24, spp=4, coarse_vertices=400)
