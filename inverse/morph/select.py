@@ -242,6 +242,160 @@ def _decision_file(path: Path, cls: type, what: str, made_for, wanted: tuple, de
     return d
 
 
+class TwinChoice:
+    """One choice between the winner so far and its twin with one thing changed, both run from the same start to
+    the selection point: its settings switch (:meth:`on`), the twin, how both are scored, which continues, and the
+    decision record written to ``OUT/lambda_select/<file>`` (a rerun reads it back; one made for other settings is
+    refused by name)."""
+
+    file: str  #: the decision record's file name
+    kind: type  #: its record class
+    what: str  #: what it is, in messages
+    scoring_counts = False  #: the scoring's own time counts in the record's ``trial_seconds``
+
+    def on(self, bench: MorphBenchmark, s: MorphSettings) -> bool:
+        raise NotImplementedError
+
+    def twin(self, winner: Candidate) -> Candidate:
+        raise NotImplementedError
+
+    def scores(self, bench, out: Path, s: MorphSettings, sel: LambdaSelection, winner: Candidate, twin: Candidate,
+               at: int) -> tuple[float | None, float | None]:
+        """The winner's and the twin's validation L1 at the selection point."""
+        return tuple(_trial_status(_trial_dir(out, c) / "checkpoint.npz", at)[2] for c in (winner, twin))
+
+    def takes_twin(self, l1_winner, l1_twin, s: MorphSettings) -> bool:
+        """The twin continues only when it is lower by the margin (it changes one thing: the photos must ask)."""
+        return None not in (l1_winner, l1_twin) and \
+            choose_with_margin([l1_winner, l1_twin], [False, True], s.prior_margin) == 1
+
+    def record(self, winner, at, l1_winner, l1_twin, took, seconds, s):
+        raise NotImplementedError
+
+    def took_twin(self, d) -> bool:
+        return d.kept
+
+    def made_for(self, d, s: MorphSettings) -> tuple:
+        """What a record was made for, in the terms of :meth:`wanted` (``s`` fills what old records lack)."""
+        raise NotImplementedError
+
+    def wanted(self, winner: Candidate, at: int, s: MorphSettings) -> tuple:
+        raise NotImplementedError
+
+    def describe(self, d, winner: Candidate, at: int, s: MorphSettings) -> str:
+        raise NotImplementedError
+
+
+class ColourChoice(TwinChoice):
+    """Where the colour rule switched the prior on: the twin runs without it; the prior stays unless the run
+    without it is lower by the margin (ties: :attr:`MorphSettings.prior_ties`)."""
+
+    file, kind, what = "colour_decision.json", ColourSelection, "colour-prior selection"
+
+    def on(self, bench, s):
+        return colour_rule_on(bench, s)
+
+    def twin(self, winner):
+        return replace(winner, colour=0.0)
+
+    def scores(self, bench, out, s, sel, winner, twin, at):
+        with_l1 = sel.validation_l1[sel.candidate_list().index(winner)]
+        return with_l1, _trial_status(_trial_dir(out, twin) / "checkpoint.npz", at)[2]
+
+    def takes_twin(self, l1_winner, l1_twin, s):
+        # no scores (no validation photos): the rule's choice stands
+        return not (l1_twin is None or l1_winner is None or
+                    choose_with_margin([l1_twin, l1_winner], [False, True], s.prior_margin, s.prior_ties) == 1)
+
+    def record(self, winner, at, l1_winner, l1_twin, took, seconds, s):
+        return ColourSelection(winner.folder, at, l1_winner, l1_twin, not took, seconds, margin=s.prior_margin,
+                               ties=s.prior_ties)
+
+    def took_twin(self, d):
+        return not d.kept  # its record says whether the prior stayed on
+
+    def made_for(self, d, s):
+        return d.candidate, d.at_iteration, d.margin, d.ties
+
+    def wanted(self, winner, at, s):
+        return winner.folder, at, s.prior_margin, s.prior_ties
+
+    def describe(self, d, winner, at, s):
+        return (f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}{_ties(d.ties)}, "
+                f"not {winner.folder} at {at} with {s.prior_margin:g}{_ties(s.prior_ties)}")
+
+
+class StepChoice(TwinChoice):
+    """Where the run's step is uniform Adam: the twin scales it by a quantile of Adam's second moments."""
+
+    file, kind, what = "step_decision.json", StepSelection, "step selection"
+
+    def on(self, bench, s):
+        return step_select_on(s)
+
+    def twin(self, winner):
+        return replace(winner, step=True)
+
+    def record(self, winner, at, l1_winner, l1_twin, took, seconds, s):
+        return StepSelection(winner.folder, at, l1_winner, l1_twin, took, seconds, quantile=s.step_select_quantile,
+                             lr=s.step_select_lr, margin=s.prior_margin)
+
+    def made_for(self, d, s):
+        return d.candidate, d.at_iteration, d.margin, d.quantile, d.lr
+
+    def wanted(self, winner, at, s):
+        return winner.folder, at, s.prior_margin, s.step_select_quantile, s.step_select_lr
+
+    def describe(self, d, winner, at, s):
+        return (f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}, quantile "
+                f"{d.quantile:g}, lr {d.lr:g}; not for these settings")
+
+
+class LightChoice(TwinChoice):
+    """Where the light estimate was off: the twin runs with it and colour large steps; both are scored after a
+    fresh estimate on their own meshes (:func:`validation_l1_with_light`)."""
+
+    file, kind, what = "light_decision.json", LightSelection, "light selection"
+    scoring_counts = True
+
+    def on(self, bench, s):
+        return light_select_on(s)
+
+    def twin(self, winner):
+        return replace(winner, light=True)
+
+    def scores(self, bench, out, s, sel, winner, twin, at):
+        return tuple(validation_l1_with_light(bench, _trial_dir(out, c), candidate_settings(s, c), at)
+                     for c in (winner, twin))
+
+    def record(self, winner, at, l1_winner, l1_twin, took, seconds, s):
+        return LightSelection(winner.folder, at, l1_winner, l1_twin, took, seconds, every=s.light_select_every,
+                              colour_lambda=s.light_select_colour_lambda, margin=s.prior_margin,
+                              spp=s.indirect_spp, reference=s.indirect_reference, downsample=s.indirect_downsample)
+
+    def made_for(self, d, s):
+        # a record without the estimate was made before it was recorded: taken as made with today's
+        estimate = (s.indirect_spp, s.indirect_reference, s.indirect_downsample) if d.spp is None else \
+            (d.spp, d.reference, d.downsample or 1)
+        return d.candidate, d.at_iteration, d.margin, d.every, d.colour_lambda, estimate
+
+    def wanted(self, winner, at, s):
+        return (winner.folder, at, s.prior_margin, s.light_select_every, s.light_select_colour_lambda,
+                (s.indirect_spp, s.indirect_reference, s.indirect_downsample))
+
+    def describe(self, d, winner, at, s):
+        return (f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}, every {d.every}, "
+                f"colour λ {d.colour_lambda:g}"
+                + ("" if d.spp is None else
+                   f", estimate {d.reference} at {d.spp} spp, 1/{d.downsample or 1} resolution")
+                + "; not for these settings")
+
+
+COLOUR, STEP, LIGHT = ColourChoice(), StepChoice(), LightChoice()
+#: the choices after λ and the planarity prior, in the order they are made (each starts from the one before's winner)
+TWIN_CHOICES = (COLOUR, STEP, LIGHT)
+
+
 def run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progress: bool,
                   budget: int | None) -> MorphResult | None:
     """Every candidate (:func:`selection_candidates`) to the selection point, then the one with the lowest
@@ -281,95 +435,32 @@ def run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progre
         decide_lambda)
     if sel is None:
         return None
-    winner, extra, colour, light = sel.winner, 0.0, None, None
-    if colour_rule_on(bench, s):  # then the winner without the colour prior, to the same point: the photos decide
-        twin = replace(winner, colour=0.0)
+    winner, extra, made = sel.winner, 0.0, {}
+    for choice in TWIN_CHOICES:  # each: the winner so far against its twin, to the same point; the photos decide
+        if not choice.on(bench, s):
+            continue
+        twin = choice.twin(winner)
 
-        def decide_colour() -> ColourSelection | None:
-            nonlocal budget
-            reached, budget = _advance(bench, _trial_dir(out, twin), candidate_settings(s, twin), at, show_progress,
-                                       budget)
-            if not reached:
-                return None
-            with_l1 = sel.validation_l1[sel.candidate_list().index(winner)]
-            _, _, without_l1, _ = _trial_status(_trial_dir(out, twin) / "checkpoint.npz", at)
-            # no scores (no validation photos): the rule's choice stands
-            kept = without_l1 is None or with_l1 is None or \
-                choose_with_margin([without_l1, with_l1], [False, True], s.prior_margin, s.prior_ties) == 1
-            lost = _trial_dir(out, twin if kept else winner) / "checkpoint.npz"
-            return ColourSelection(winner.folder, at, with_l1, without_l1, kept, _trial_status(lost, at)[3],
-                                   margin=s.prior_margin, ties=s.prior_ties)
-
-        colour = _decision_file(
-            out / "lambda_select" / "colour_decision.json", ColourSelection, "colour-prior selection",
-            lambda d: (d.candidate, d.at_iteration, d.margin, d.ties), (winner.folder, at, s.prior_margin, s.prior_ties),
-            lambda d: f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}{_ties(d.ties)}, "
-                      f"not {winner.folder} at {at} with {s.prior_margin:g}{_ties(s.prior_ties)}", decide_colour)
-        if colour is None:
-            return None
-        extra += colour.trial_seconds
-        if not colour.kept:
-            winner = twin
-    step = None
-    if step_select_on(s):  # then the winner with the quantile step, to the same point: the photos decide
-        twin = replace(winner, step=True)
-
-        def decide_step() -> StepSelection | None:
-            nonlocal budget
-            reached, budget = _advance_each(bench, out, s, (winner, twin), at, show_progress, budget)
-            if not reached:
-                return None
-            l1 = [_trial_status(_trial_dir(out, c) / "checkpoint.npz", at)[2] for c in (winner, twin)]
-            kept = None not in l1 and choose_with_margin(l1, [False, True], s.prior_margin) == 1
-            lost = _trial_dir(out, winner if kept else twin) / "checkpoint.npz"
-            return StepSelection(winner.folder, at, l1[0], l1[1], kept, _trial_status(lost, at)[3],
-                                 quantile=s.step_select_quantile, lr=s.step_select_lr, margin=s.prior_margin)
-
-        step = _decision_file(
-            out / "lambda_select" / "step_decision.json", StepSelection, "step selection",
-            lambda d: (d.candidate, d.at_iteration, d.margin, d.quantile, d.lr),
-            (winner.folder, at, s.prior_margin, s.step_select_quantile, s.step_select_lr),
-            lambda d: f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}, quantile "
-                      f"{d.quantile:g}, lr {d.lr:g}; not for these settings", decide_step)
-        if step is None:
-            return None
-        extra += step.trial_seconds
-        if step.kept:
-            winner = twin
-    if light_select_on(s):  # then the winner with the light estimate and colour large steps: the photos decide
-        twin = replace(winner, light=True)
-
-        def decide_light() -> LightSelection | None:
+        def decide(choice=choice, winner=winner, twin=twin):
             nonlocal budget
             reached, budget = _advance_each(bench, out, s, (winner, twin), at, show_progress, budget)
             if not reached:
                 return None
             t0 = time.perf_counter()
-            l1 = [validation_l1_with_light(bench, _trial_dir(out, c), candidate_settings(s, c), at)
-                  for c in (winner, twin)]
-            kept = None not in l1 and choose_with_margin(l1, [False, True], s.prior_margin) == 1
-            lost = _trial_dir(out, winner if kept else twin) / "checkpoint.npz"
-            return LightSelection(winner.folder, at, l1[0], l1[1], kept,
-                                  _trial_status(lost, at)[3] + time.perf_counter() - t0,
-                                  every=s.light_select_every, colour_lambda=s.light_select_colour_lambda,
-                                  margin=s.prior_margin, spp=s.indirect_spp, reference=s.indirect_reference,
-                                  downsample=s.indirect_downsample)
+            l1_winner, l1_twin = choice.scores(bench, out, s, sel, winner, twin, at)
+            took = choice.takes_twin(l1_winner, l1_twin, s)
+            lost = _trial_dir(out, winner if took else twin) / "checkpoint.npz"
+            seconds = _trial_status(lost, at)[3] + (time.perf_counter() - t0 if choice.scoring_counts else 0.0)
+            return choice.record(winner, at, l1_winner, l1_twin, took, seconds, s)
 
-        estimate = (s.indirect_spp, s.indirect_reference, s.indirect_downsample)
-        light = _decision_file(
-            out / "lambda_select" / "light_decision.json", LightSelection, "light selection",
-            lambda d: (d.candidate, d.at_iteration, d.margin, d.every, d.colour_lambda,
-                       estimate if d.spp is None else (d.spp, d.reference, d.downsample or 1)),
-            (winner.folder, at, s.prior_margin, s.light_select_every, s.light_select_colour_lambda, estimate),
-            lambda d: f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}, every {d.every}, "
-                      f"colour λ {d.colour_lambda:g}" +
-                      ("" if d.spp is None else
-                       f", estimate {d.reference} at {d.spp} spp, 1/{d.downsample or 1} resolution") +
-                      "; not for these settings", decide_light)
-        if light is None:
+        d = _decision_file(out / "lambda_select" / choice.file, choice.kind, choice.what,
+                           lambda d, c=choice: c.made_for(d, s),
+                           choice.wanted(winner, at, s), lambda d, c=choice, w=winner: c.describe(d, w, at, s), decide)
+        if d is None:
             return None
-        extra += light.trial_seconds
-        if light.kept:
+        extra += d.trial_seconds
+        made[choice.file] = d
+        if choice.took_twin(d):
             winner = twin
     if budget is not None and budget <= 0:
         return None
@@ -385,8 +476,8 @@ def run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progre
         if f.is_file() and not f.name.startswith(("checkpoint", ".")) and f.name != "metrics.json":
             with atomic_path(out / f.name) as tmp:
                 shutil.copyfile(f, tmp)
-    r = replace(r, settings=s, lambda_selection=sel, colour_selection=colour, light_selection=light,
-                step_selection=step,
+    r = replace(r, settings=s, lambda_selection=sel, colour_selection=made.get(COLOUR.file),
+                step_selection=made.get(STEP.file), light_selection=made.get(LIGHT.file),
                 seconds=r.seconds + sel.trial_seconds + extra)
     write_json(out / "metrics.json", to_json(r))
     return r
