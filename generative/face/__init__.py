@@ -1,13 +1,16 @@
 """Learned face stages (seed 003) in UV space: completion, decomposition and super-resolution.
 
-============  ===========================================================================
-module        what
-============  ===========================================================================
-``data``      training instances: one scan multiplied (identity, skin, relief, warps, poses, HDRIs)
-``models``    completion diffusion (the backbone), LoRA decomposition with cross-intrinsic attention, 2× SR
-``evaluate``  the optimisation baseline, the learned pipeline stage by stage, map and relighting scores
-``run``       `photoreal face train-models`: one resumable run folder; the learned stages for from-photo
-============  ===========================================================================
+================  ===========================================================================
+module            what
+================  ===========================================================================
+``data``           training instances: one scan multiplied (identity, skin, relief, warps, poses, HDRIs)
+``encoding``       the models' shared encodings of maps, lit textures and conditions
+``completion``     completion diffusion (§2): the backbone
+``decomposition``  LoRA decomposition with cross-intrinsic attention (§3)
+``superres``       2× super-resolution of the maps (§4)
+``evaluate``       the optimisation baseline, the learned pipeline stage by stage, map and relighting scores
+``run``            `photoreal face train-models`: one resumable run folder; the learned stages for from-photo
+================  ===========================================================================
 
 They serve :mod:`inverse.face` (the fit and `face from-photo`), whose UV-space shader their losses share.
 `photoreal face train-models|from-photo` and `photoreal bench face-learned` use only the names below.
@@ -15,8 +18,10 @@ They serve :mod:`inverse.face` (the fit and `face from-photo`), whose UV-space s
 
 from .data import FaceDataSettings, load_face_dataset, scan_path
 from .evaluate import LearnedModels, baseline_maps, default_maps, learned_maps, map_scores, relit_scores
-from .models import (CompletionSettings, DecompSettings, SuperResSettings, at_resolution, complete, decompose_maps,
-                     load_completion, load_decomposer, load_superres, normalise_albedo, train_decomposer, upscale)
+from .completion import CompletionSettings, complete, load_completion
+from .decomposition import DecompSettings, decompose_maps, load_decomposer, train_decomposer
+from .encoding import at_resolution, normalise_albedo
+from .superres import SuperResSettings, load_superres, upscale
 from .run import FaceModelsSettings, completion_albedo, load_face_models, photo_maps_fn, train_face_models
 
 __all__ = [

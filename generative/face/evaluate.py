@@ -65,7 +65,10 @@ def learned_maps(d: FaceSet, m: LearnedModels, stages: str = "full", seed: int =
 
     ``stages``: ``completion`` (learned albedo + template defaults), ``decomposition`` (+ learned maps,
     bicubic to full size) or ``full`` (+ learned super-resolution)."""
-    from .models import at_resolution, complete, decompose_maps, upscale
+    from .completion import complete
+    from .decomposition import decompose_maps
+    from .encoding import at_resolution
+    from .superres import upscale
 
     cs = m.completion_settings
     albedo = complete(m.completion, cs, d, seed=seed, samples=samples)

@@ -28,9 +28,10 @@ from foundation.files import read_json, write_json
 
 from .data import FaceDataSettings, build_face_dataset, load_face_dataset
 from .evaluate import LearnedModels
-from .models import (VARIANTS, CompletionSettings, DecompSettings, SuperResSettings, backbone_id, complete,
-                          load_completion, load_decomposer, load_superres, train_completion, train_decomposer,
-                          train_superres)
+from .completion import CompletionSettings, complete, load_completion, train_completion
+from .decomposition import DecompSettings, backbone_id, load_decomposer, train_decomposer
+from .encoding import VARIANTS
+from .superres import SuperResSettings, load_superres, train_superres
 
 RUN_FORMAT = "photoreal face models v1"
 

@@ -5,7 +5,6 @@ cross-model benchmark's key light against Mitsuba's own environment sampling, an
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +16,10 @@ import mitsuba as mi
 from foundation.errors import CheckpointError, UsageError
 from generative.face import data as fd
 from generative.face import evaluate as fe
-from generative.face import models as fm
+from generative.face import completion as fc
+from generative.face import decomposition as fdc
+from generative.face import encoding as fm
+from generative.face import superres as fsr
 from generative.face import run as fr
 from photoreal.cli import main
 
@@ -35,9 +37,9 @@ def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("face_models") / "run"
     s = fr.FaceModelsSettings(
         data=fd.FaceDataSettings(**TINY_DATA),
-        completion=fm.CompletionSettings(steps=4, **TINY_COMPLETION),
-        decomposition=fm.DecompSettings(steps=2, max_seconds=None, batch=1, rank=2, threads=1, checkpoint_every=1),
-        superres=fm.SuperResSettings(width=8, blocks=1, steps=2, max_seconds=None, batch=2, threads=1),
+        completion=fc.CompletionSettings(steps=4, **TINY_COMPLETION),
+        decomposition=fdc.DecompSettings(steps=2, max_seconds=None, batch=1, rank=2, threads=1, checkpoint_every=1),
+        superres=fsr.SuperResSettings(width=8, blocks=1, steps=2, max_seconds=None, batch=2, threads=1),
         variants=("cross_attention", "shared", "independent"))
     summary = fr.train_face_models(out, s, progress=False)
     return out, s, summary
@@ -122,21 +124,21 @@ def test_cross_intrinsic_attention_is_attention_over_every_branch():
     attn = Attention(query_dim=16, heads=2, dim_head=8)
     k, b, n = 3, 2, 5
     x = torch.randn(k * b, n, 16)
-    out = fm.CrossIntrinsicAttention(k)(attn, x)
+    out = fdc.CrossIntrinsicAttention(k)(attn, x)
     # oracle: diffusers' own processor on each sample's branches laid side by side as one token sequence
     joint = x.view(k, b, n, 16).permute(1, 0, 2, 3).reshape(b, k * n, 16)
     ref = AttnProcessor2_0()(attn, joint).view(b, k, n, 16).permute(1, 0, 2, 3).reshape(k * b, n, 16)
     torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-6)
     # one branch: ordinary self-attention
-    torch.testing.assert_close(fm.CrossIntrinsicAttention(1)(attn, x), AttnProcessor2_0()(attn, x), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(fdc.CrossIntrinsicAttention(1)(attn, x), AttnProcessor2_0()(attn, x), rtol=1e-5, atol=1e-6)
     with pytest.raises(UsageError, match="branches"):
-        fm.CrossIntrinsicAttention(4)(attn, x)
+        fdc.CrossIntrinsicAttention(4)(attn, x)
 
 
 def test_decomposition_starts_at_the_baseline_and_lora_branches_stay_separate():
-    cs = fm.CompletionSettings(**TINY_COMPLETION)
-    backbone = fm.build_completion(cs).eval()
-    dec = fm.Decomposer(backbone, fm.DecompSettings(variant="shared", rank=2))
+    cs = fc.CompletionSettings(**TINY_COMPLETION)
+    backbone = fc.build_completion(cs).eval()
+    dec = fdc.Decomposer(backbone, fdc.DecompSettings(variant="shared", rank=2))
     torch.manual_seed(1)
     alb, cond = torch.randn(2, 3, 16, 16), torch.randn(2, fm.COND_CHANNELS, 16, 16)
     with torch.no_grad():
@@ -147,7 +149,7 @@ def test_decomposition_starts_at_the_baseline_and_lora_branches_stay_separate():
         ref = trunk(alb, torch.zeros(2, dtype=torch.long), cond, trunk.tokens(None, 2))
     # untrained = the baseline: the input albedo and the template defaults (closed form)
     torch.testing.assert_close(out[:, :3], alb)
-    torch.testing.assert_close(out[:, 3:], torch.tensor(fm.DEFAULT_ENCODED).view(1, -1, 1, 1).expand(2, -1, 16, 16))
+    torch.testing.assert_close(out[:, 3:], torch.tensor(fdc.DEFAULT_ENCODED).view(1, -1, 1, 1).expand(2, -1, 16, 16))
     # LoRA starts at B = 0: every branch sees the backbone's own features (oracle: the backbone's forward)
     for f in feats:
         torch.testing.assert_close(f, ref, rtol=1e-5, atol=1e-5)
@@ -182,20 +184,20 @@ def test_mirror_is_an_involution_that_flips_the_side():
 def test_training_resumes_bit_for_bit(tiny_run, tmp_path):
     out, s, summary = tiny_run
     train = fd.load_face_dataset(out / "data", "train")
-    cs = fm.CompletionSettings(steps=4, **TINY_COMPLETION)
-    assert fm.train_completion(train, tmp_path / "a", cs, budget_steps=2, show_progress=False) is None
-    fm.train_completion(train, tmp_path / "a", cs, show_progress=False)
-    a = fm.load_completion(tmp_path / "a")[0].state_dict()
-    b = fm.load_completion(out / "completion")[0].state_dict()
+    cs = fc.CompletionSettings(steps=4, **TINY_COMPLETION)
+    assert fc.train_completion(train, tmp_path / "a", cs, budget_steps=2, show_progress=False) is None
+    fc.train_completion(train, tmp_path / "a", cs, show_progress=False)
+    a = fc.load_completion(tmp_path / "a")[0].state_dict()
+    b = fc.load_completion(out / "completion")[0].state_dict()
     assert all(torch.equal(a[k], b[k]) for k in b)  # interrupted + resumed = uninterrupted (the fixture's run)
     albedo = fr.completion_albedo(out)
-    ds = fm.DecompSettings(variant="cross_attention", steps=2, max_seconds=None, batch=1, rank=2, threads=1,
+    ds = fdc.DecompSettings(variant="cross_attention", steps=2, max_seconds=None, batch=1, rank=2, threads=1,
                            checkpoint_every=1)
-    assert fm.train_decomposer(train, albedo, out / "completion", tmp_path / "d", ds, budget_steps=1,
+    assert fdc.train_decomposer(train, albedo, out / "completion", tmp_path / "d", ds, budget_steps=1,
                                show_progress=False) is None
-    fm.train_decomposer(train, albedo, out / "completion", tmp_path / "d", ds, show_progress=False)
-    x = fm.load_decomposer(tmp_path / "d", out / "completion").state_dict()
-    y = fm.load_decomposer(out / "decomposition_cross_attention", out / "completion").state_dict()
+    fdc.train_decomposer(train, albedo, out / "completion", tmp_path / "d", ds, show_progress=False)
+    x = fdc.load_decomposer(tmp_path / "d", out / "completion").state_dict()
+    y = fdc.load_decomposer(out / "decomposition_cross_attention", out / "completion").state_dict()
     assert all(torch.equal(x[k], y[k]) for k in y)
     for key in ("completion", "decomposition_cross_attention", "decomposition_shared", "decomposition_independent",
                 "superres"):
@@ -233,11 +235,11 @@ def test_runs_and_checkpoints_are_checked(tiny_run, tmp_path):
                                                         completion=s.completion, decomposition=s.decomposition,
                                                         superres=s.superres, variants=s.variants), progress=False)
     with pytest.raises(CheckpointError, match="not a face decomposition"):
-        fm.load_decomposer(out / "completion", out / "completion")
-    other = fm.CompletionSettings(steps=1, **TINY_COMPLETION)
-    fm.train_completion(fd.load_face_dataset(out / "data", "train"), tmp_path / "other", other, show_progress=False)
+        fdc.load_decomposer(out / "completion", out / "completion")
+    other = fc.CompletionSettings(steps=1, **TINY_COMPLETION)
+    fc.train_completion(fd.load_face_dataset(out / "data", "train"), tmp_path / "other", other, show_progress=False)
     with pytest.raises(CheckpointError, match="another completion backbone"):
-        fm.load_decomposer(out / "decomposition_shared", tmp_path / "other")
+        fdc.load_decomposer(out / "decomposition_shared", tmp_path / "other")
 
 
 def test_from_photo_refuses_models_of_another_uv_layout(tiny_run):
