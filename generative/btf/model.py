@@ -88,7 +88,7 @@ class MatDiffSettings:
     batch: int = 16
     #: texels per side of the random (wrapped) crops trained on; 0 = the whole texture. 16 with one attention level
     #: and lr 1e-3: 4.4× the steps of whole 32² textures with two levels and lr 5e-4 in equal time, and the held-out
-    #: x̂₀ error at t = 79 / 159 of 0.034 / 0.063 instead of 0.053 / 0.122 (480 s, one thread; docs/material-diffusion.md)
+    #: x̂₀ error at t = 79 / 159 of 0.034 / 0.063 instead of 0.053 / 0.122 (480 s, one thread; docs/results/material-diffusion.md)
     train_crop: int = 16
     lr: float = 1e-3
     ema: float = 0.0  #: decay of the weights' exponential moving average that sampling uses; 0 = the raw weights
@@ -630,7 +630,7 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
         raise UsageError(f"size must be a multiple of 4 (the model's feature grid; it tiles seamlessly), got {size}")
     if from_prior and keywords:
         raise UsageError("give --keywords or --from-prior, not both")
-    # a keyword triple drawn from the training materials' (the null token alone collapses to few families: docs/material-diffusion.md)
+    # a keyword triple drawn from the training materials' (the null token alone collapses to few families: docs/results/material-diffusion.md)
     words = parse_keywords(keywords) if keywords else prior_keywords(run, 1, seed)[0] if from_prior else None
     ex = None
     if image is not None:

@@ -55,7 +55,7 @@ def mask_integrator(boundary_spp: int | None = None) -> dict:
     """The mask render's differentiable integrator: the silhouettes' boundary samples only, ``boundary_spp`` per
     pixel (None: the render's spp). The mesh is black under a sky that does not vary, so the continuous derivative
     (every pixel's interior change) is exactly zero and takes no samples (``sppc`` 0): the primal and the gradient are
-    the same bit for bit, and a mask render and its backward pass cost about 30 % less (docs/morph.md:
+    the same bit for bit, and a mask render and its backward pass cost about 30 % less (docs/results/morph.md:
     "Full-resolution masks, the default")."""
     d = {"type": "direct_projective", "sppc": 0, "sppi": 0}
     if boundary_spp is not None:

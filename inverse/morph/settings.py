@@ -51,9 +51,9 @@ class MorphSettings:
     #: samples per pixel of the silhouettes' gradient (the projective integrator's primarily visible
     #: discontinuities); None = ``spp``. They cost more than the image's own samples (village, 2 threads: the
     #: backward pass 0.51 s at 4, 0.43 s at 2, 0.30 s at 1); an unbiased estimate at any count (tested), but the
-    #: suite's fits were worse at 2 (josie −24.9 % Chamfer, village −49.9 %, against −32.4 / −55.8 % at 4: docs/morph.md)
+    #: suite's fits were worse at 2 (josie −24.9 % Chamfer, village −49.9 %, against −32.4 / −55.8 % at 4: docs/results/morph.md)
     #: without the silhouette loss below. With it (the default since 2026-11-29) the masks carry the outlines and 1
-    #: is enough: the default (docs/morph.md: "A cheaper mask, and the default").
+    #: is enough: the default (docs/results/morph.md: "A cheaper mask, and the default").
     boundary_spp: int | None = 1
     resolution: int | None = None  #: None = the benchmark's photo resolution
     remesh_input: bool = True  #: isotropic remesh of the input first (decimators leave slivers that flip)
@@ -68,7 +68,7 @@ class MorphSettings:
     repair_flips: bool = True
     #: with ``repair_flips``: then the open border's triangles (border and 1-ring) turned more than this many degrees
     #: from the start are ironed back into line with their neighbours' move (:func:`iron_border_turns`: a curl that
-    #: is no flip; face000@0's facing area 0.571 → 0.279 %, docs/morph.md). 0 = off (runs before 2026-11-29, morning). Read
+    #: is no flip; face000@0's facing area 0.571 → 0.279 %, docs/results/morph.md). 0 = off (runs before 2026-11-29, morning). Read
     #: only after the last step: a finished run's checkpoint takes a new value.
     border_turn_deg: float = 60.0
     #: weight of the edge-preserving planarity prior (mean over interior edges of ρ(1 − n_a·n_b), ρ(d) = d/(d+σ));
@@ -104,7 +104,7 @@ class MorphSettings:
     #: far off) and fall geometrically to ``lambda_`` over the first ``lambda_warmup`` of the iterations (the
     #: operator is refactored at each check); None = constant λ. The suite's airplane settled into a bumpy state
     #: within its first 25 iterations at constant λ = 2 (−5 % Chamfer); with 25 → 2 it kept improving (−27 %).
-    #: As the one default for the whole suite it helped the table and airplane but broke the village (docs/morph.md), so
+    #: As the one default for the whole suite it helped the table and airplane but broke the village (docs/results/morph.md), so
     #: by default ``lambda_select`` tries both and keeps what the validation photos prefer.
     lambda_start: float | None = None
     lambda_warmup: float = 0.3
@@ -119,7 +119,7 @@ class MorphSettings:
     #: validation photos prefer it by ``prior_margin``. On organic shapes the prior can flatten real curvature (the
     #: armadillo) or remove bumps whose shading the vertex colours absorb (josie, bunny, bone, cow); at iteration
     #: 200 of the suite's candidates the validation L1 ranked them as their Chamfer did on all six meshes with the
-    #: choice (docs/morph.md).
+    #: choice (docs/results/morph.md).
     #: () = the rule alone.
     planarity_select: tuple[float, ...] = (0.1,)
     #: the edges the planarity prior acts on: "all"; "seen" — only edges beside a triangle that a fitted training
@@ -130,8 +130,8 @@ class MorphSettings:
     planarity_where: Literal["all", "seen", "thick"] = "all"
     #: ``planarity_where`` of the weights in ``planarity_select`` (the plane rule's prior keeps ``planarity_where``).
     #: "seen" (the photos that prefer such a weight vouch only for what they see), measured over six suite draws
-    #: (docs/morph.md "The prior only where the photos see"), moved the failing ones within their noise and cost the bunny@0
-    #: and bracket@0 4 and 7 points of Chamfer. "thick", the default since 2026-11-29 (docs/morph.md "The prior off thin
+    #: (docs/results/morph.md "The prior only where the photos see"), moved the failing ones within their noise and cost the bunny@0
+    #: and bracket@0 4 and 7 points of Chamfer. "thick", the default since 2026-11-29 (docs/results/morph.md "The prior off thin
     #: parts"): two thirds of cow@1's facing area lay on parts thinner than 5 % of its extent, where the prior made it
     #: worse; off them cow@1's facing ended below its input's at each of four render seeds
     planarity_select_where: Literal["all", "seen", "thick"] = "thick"
@@ -162,7 +162,7 @@ class MorphSettings:
     #: (the prior must win by the margin; the rule before 2026-11-28). The planarity and colour-prior choices; the
     #: light choice always needs its margin (it models more). Over the suite at seeds 0, 1, 2 "keep" changed 13 of
     #: 36 runs, Chamfer +3.9 points on those (10 better, 3 worse), held-out PSNR −0.3 dB, every target met on the
-    #: same 28 of 36 (docs/morph.md: "Priors kept on ties")
+    #: same 28 of 36 (docs/results/morph.md: "Priors kept on ties")
     prior_ties: Literal["keep", "drop"] = "keep"
     #: the light the morph's direct-only renders miss (interreflections; the photos are path traced) is estimated
     #: per photo at iteration 0 and every ``indirect_every`` iterations — a path-traced render at the photos' depth
@@ -170,14 +170,14 @@ class MorphSettings:
     #: renders until the next estimate ('lit' mode; 0 = off). Off by default and asked of the photos instead
     #: (``light_select_every``): on for every mesh, with ``colour_lambda`` 10, the suite gained on josie (−27 → −32 %
     #: Chamfer), the village (−50 → −56 %), bunny and cow, and lost the airplane (−43 → −37 %) and the table
-    #: (−41 → −37 %) below the −40 % target (docs/morph.md)
+    #: (−41 → −37 %) below the −40 % target (docs/results/morph.md)
     indirect_every: int = 0
     indirect_spp: int = 16
     #: what the estimate subtracts from the path-traced render: "direct" (the ``direct`` integrator, its own random
     #: numbers) or "depth2" (the path tracer at depth 2 with the same seed: the first bounce cancels sample for
     #: sample). "depth2" at 16 spp has less noise than "direct" at 64 (RMSE 0.0031 against 0.0050) at a quarter of
     #: the cost (village: 0.024–0.028 against 0.087–0.094 s per iteration); over the suite at seeds 0, 1, 2 it
-    #: fitted as the other did (docs/morph.md: "A cheaper light estimate"), where one draw had made josie look worse
+    #: fitted as the other did (docs/results/morph.md: "A cheaper light estimate"), where one draw had made josie look worse
     indirect_reference: Literal["direct", "depth2"] = "depth2"
     #: the estimate's renders at 1/``indirect_downsample`` of the fitting resolution, upsampled bilinearly: the
     #: indirect light varies slowly across the image, and the upsampling averages the estimate's noise with its
@@ -205,7 +205,7 @@ class MorphSettings:
     #: point and continues only where its validation L1 there is below (1 − ``prior_margin``) × the winner's
     #: (:class:`StepSelection`; before the light choice, which then runs with the step kept). No single step serves
     #: the suite: at quantile 0.9 and lr 0.0125 the cow at seed 1 went from −21 to −56 % Chamfer and josie at seed 0
-    #: from −31 to −16 % (docs/morph.md: "The silhouettes set the size of every step"); at iteration 200 of those probes
+    #: from −31 to −16 % (docs/results/morph.md: "The silhouettes set the size of every step"); at iteration 200 of those probes
     #: the validation L1 was 10 % lower for the cow and 11 % higher for josie. 1 = no such candidate.
     step_select_quantile: float = 0.9
     step_select_lr: float = 0.0125
@@ -219,18 +219,18 @@ class MorphSettings:
     #: and seeds as the step. Every silhouette then pulls with contrast 1, where the photos' own contrast can be
     #: small (a head's skin against the sky): josie@0's silhouettes moved from 0.37 to only 0.26 px off the truth's
     #: without it (the bunny's 0.58 → 0.15), and its fixed candidate went from −27.4 % to −42.9 % Chamfer with it at 1
-    #: (docs/morph.md: "The silhouettes on their own"). The default 2, with one boundary sample, met every target on
-    #: the draws it was run on where the photos alone failed (josie@0–2, face000@0) (docs/morph.md: "A cheaper mask,
+    #: (docs/results/morph.md: "The silhouettes on their own"). The default 2, with one boundary sample, met every target on
+    #: the draws it was run on where the photos alone failed (josie@0–2, face000@0) (docs/results/morph.md: "A cheaper mask,
     #: and the default"). 0 = photos only (every run before 2026-11-29, evening).
     mask_weight: float = 2.0
     #: the silhouette L1 every ``mask_every``-th step only, at ``mask_every`` × the weight (the same mean gradient),
     #: its renders and the photos' masks at resolution // ``mask_downsample`` (coverage is an area: a coarser mask
     #: still places a silhouette to a fraction of its pixel). Each mask render costs about as much as the photo's
     #: (its silhouettes' boundary samples dominate both); these make it cheaper. The default is full resolution
-    #: since 2026-11-29 (ninth session): at 2, mpface@0 left more area facing against the truth than its input, and
+    #: since 2026-11-29: at 2, mpface@0 left more area facing against the truth than its input, and
     #: full resolution gained Chamfer and PSNR on every draw compared; with the mask render's continuous samples
     #: gone (:func:`~inverse.morph.scene.mask_integrator`) an iteration costs 0.86–0.90 × the issue's recipe
-    #: (docs/morph.md: "Full-resolution masks, the default").
+    #: (docs/results/morph.md: "Full-resolution masks, the default").
     mask_every: int = 1
     mask_downsample: int = 1
     seed: int = 0

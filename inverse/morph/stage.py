@@ -85,7 +85,7 @@ def stored_remesh_path(bench: MorphBenchmark, target: int | None) -> Path:
 def stored_remesh(bench: MorphBenchmark, mesh: tuple, target: int | None) -> tuple:
     """The isotropic remesh of the benchmark's coarse input (``mesh``), made once and kept in the benchmark folder.
 
-    pymeshlab's remesh of byte-identical input has differed between processes (docs/morph.md, "run-to-run
+    pymeshlab's remesh of byte-identical input has differed between processes (docs/results/morph.md, "run-to-run
     differences"), so the first run on a benchmark stores its start and every later one — λ candidates,
     resumes, suite workers, later invocations — reads that file. The first writer wins (a hard link, which fails
     when the name exists), and the writer too reads the file back: float32 on disk, the same values for all. A

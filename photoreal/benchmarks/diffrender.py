@@ -114,7 +114,7 @@ class DiffRenderBenchSettings:
     #: samples per pixel of the benchmarks' photos. The seed's photos are photographs: no Monte-Carlo noise. At the
     #: morph benchmark's 64 spp the photos' noise (RMS 0.014 on the village, 16 % of the mean; 1024 spp: 0.0036,
     #: 4 %) decided the MobileNetV2-KID against them — the ground truth rendered at 256 spp scored worse there than
-    #: PBR recomposition of 32-spp G-buffers (docs/diffusion-renderer.md) — and every paired metric charged each method the photos' noise.
+    #: PBR recomposition of 32-spp G-buffers (docs/results/diffusion-renderer.md) — and every paired metric charged each method the photos' noise.
     photo_spp: int = 1024
     #: samples per pixel of the references (what the paired targets demand, :func:`references`); 0 = none
     reference_spp: int = 1024

@@ -671,7 +671,7 @@ def test_suite_over_draws_sums_up_each_mesh(tmp_path, capsys):
 def test_light_draws_refuses_results_without_their_runs(tmp_path, capsys):
     """``photoreal bench morph-light-draws`` rescores light choices from the runs a suite kept: a result whose work
     folder is gone, or whose runs made no light choice, is refused by name with nothing written; a bad --draws too.
-    (The rescoring itself: ``light_choice_draws`` in the λ-selection test; its figures in docs/morph.md.)"""
+    (The rescoring itself: ``light_choice_draws`` in the λ-selection test; its figures in docs/results/morph.md.)"""
     from photoreal.cli import main
 
     r = _suite_file(tmp_path / "r.json", 0, {"josie": (0.3, 3.0, 0.01, 0.01)})

@@ -216,7 +216,7 @@ def test_basis_learns_a_closed_form_btf_and_resume_is_exact(tmp_path):
     resumed, h_res = bf.train_basis(mats[:1], s=short, slices=tr, checkpoint=ck, progress=False)
     assert h_res[0]["iteration"] == 0 and h_res[-1]["iteration"] == 41  # history continued, not restarted
     if CUDA:  # atomics reorder float sums there: after 42 Adam steps two runs' L1 differed by 1.1e-6 of 0.041 and
-        # their weights (typically ±0.2) by up to 2.6e-4 in one H100 session and 1.0e-3 in another (Adam amplifies
+        # their weights (typically ±0.2) by up to 2.6e-4 in one H100 run and 1.0e-3 in another (Adam amplifies
         # the reordering chaotically): 5e-3, 2.5 % of a typical weight, is the bound there
         assert abs(h_res[-1]["l1"] - h_full[-1]["l1"]) < 1e-3 * h_full[-1]["l1"]
         for k, a in full.arrays().items():
