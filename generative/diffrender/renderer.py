@@ -47,10 +47,10 @@ from foundation.files import cached_arrays, file_digest
 from foundation.loop import RunState, Stage, StepResult, TrainingSummary
 from foundation.progress import progress_bar
 from foundation.scene import recompose, split_intrinsics
-from inverse.morph import MorphBenchmark, morph_scene, sensor_dict, truth_scene
+from inverse.morph import MorphBenchmark, morph_scene, morph_views, sensor_dict, truth_scene
 
-from generative.diffusion import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, check_size, diffusion_loss, load_trained,
-                   make_scheduler, sample, train_stage)
+from generative.diffusion import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, check_size, diffusion_loss,
+                                  load_trained, make_scheduler, sample, train_stage)
 
 LAYERS = ("albedo", "irradiance", "specular", "normal")
 SOURCES = ("coarse", "morphed")
@@ -177,23 +177,14 @@ def load_intrinsic_views(bench: MorphBenchmark, morph_dir: str | Path, s: GBuffe
                          show_progress: bool = True) -> IntrinsicViews:
     """Photos and both meshes' G-buffers at every camera; G-buffers cached in ``morph_dir`` by mesh digests."""
     s = s or GBufferSettings()
-    morph_dir = Path(morph_dir)
-    morphed_ply = morph_dir / "morphed.ply"
-    if not morphed_ply.is_file():
-        raise UsageError(f"{morphed_ply}: no morphed mesh (run `photoreal morph run` first)")
-    meta = bench.meta
-    n = len(meta.cameras)
-    key = json.dumps({"coarse": file_digest(bench.coarse), "morphed": file_digest(morphed_ply), **asdict(s)},
-                     sort_keys=True)
 
-    def render() -> dict:
-        ids = list(range(n))
-        return {f"{src}.{name}": a for src, mesh in (("coarse", bench.coarse), ("morphed", morphed_ply))
+    def render(meshes: dict, ids: list[int]) -> dict:
+        return {f"{src}.{name}": a for src, mesh in meshes.items()
                 for name, a in render_gbuffers(mesh, bench, ids, s, f"G-buffers {src}", show_progress).items()}
 
-    flat = cached_arrays(morph_dir / "diffrender_gbuffers.npz", key, render)
+    photos, flat = morph_views(bench, morph_dir, "diffrender_gbuffers.npz", asdict(s), render)
     layers = {src: {name: flat[f"{src}.{name}"] for name in LAYERS} for src in SOURCES}
-    photos = np.stack([bench.photo(i) for i in range(n)]).astype(np.float32)
+    meta = bench.meta
     return IntrinsicViews(photos, layers, list(meta.train), list(meta.test), meta.kind)
 
 

@@ -14,8 +14,8 @@ from foundation import validate
 from foundation.errors import UsageError
 from foundation.loop import RunState, Stage, TrainingSummary
 
-from generative.diffusion import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, count_parameters, load_trained, make_scheduler,
-                   train_stage)
+from generative.diffusion import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, count_parameters, load_trained,
+                                  make_scheduler, train_stage)
 from .data import FaceSet
 
 #: lit (3), seen (1), covered (1), the baseline's albedo (3), position (3) and normal (3) in the face frame

@@ -15,7 +15,7 @@ from foundation import validate
 from foundation.errors import CheckpointError, UsageError
 from foundation.loop import RunState, Stage
 
-from generative.diffusion import (ConditionalDiffusion, OptimizerStage, train_stage)
+from generative.diffusion import ConditionalDiffusion, OptimizerStage, train_stage
 from .data import FaceSet, TARGETS
 
 #: lit (3), seen (1), covered (1), the baseline's albedo (3), position (3) and normal (3) in the face frame

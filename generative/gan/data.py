@@ -27,10 +27,8 @@ import mi_plugins  # noqa: F401
 import mitsuba as mi
 
 from foundation import validate
-from foundation.errors import UsageError
-from foundation.files import cached_arrays, file_digest
 from foundation.progress import progress_bar
-from inverse.morph import MODES, MorphBenchmark, morph_scene, sensor_dict
+from inverse.morph import MODES, MorphBenchmark, morph_scene, sensor_dict, morph_views
 
 
 @dataclass
@@ -91,23 +89,14 @@ def load_paired_views(bench: MorphBenchmark, morph_dir: str | Path, s: GanDataSe
                       show_progress: bool = True) -> PairedViews:
     """Photos, coarse renders and morphed renders of every view; renders cached in ``morph_dir``."""
     s = s or GanDataSettings()
-    morph_dir = Path(morph_dir)
-    morphed_ply = morph_dir / "morphed.ply"
-    if not morphed_ply.is_file():
-        raise UsageError(f"{morphed_ply}: no morphed mesh (run `photoreal morph run` first)")
-    meta = bench.meta
-    n = len(meta.cameras)
-    key = json.dumps({"coarse": file_digest(bench.coarse), "morphed": file_digest(morphed_ply), **asdict(s)},
-                     sort_keys=True)
 
-    def render() -> dict:
-        ids = list(range(n))
-        return {"rendered": render_mesh_views(bench.coarse, bench, ids, s, "render coarse", show_progress),
-                "morphed": render_mesh_views(morphed_ply, bench, ids, s, "render morphed", show_progress)}
+    def render(meshes: dict, ids: list[int]) -> dict:
+        return {"rendered": render_mesh_views(meshes["coarse"], bench, ids, s, "render coarse", show_progress),
+                "morphed": render_mesh_views(meshes["morphed"], bench, ids, s, "render morphed", show_progress)}
 
-    cached = cached_arrays(morph_dir / "gan_renders.npz", key, render)
+    photos, cached = morph_views(bench, morph_dir, "gan_renders.npz", asdict(s), render)
     rendered, morphed = cached["rendered"], cached["morphed"]
-    photos = np.stack([bench.photo(i) for i in range(n)])
+    meta = bench.meta
     if photos.shape != rendered.shape:
         raise ValueError(f"{bench.path}: photos {photos.shape} and renders {rendered.shape} differ in shape")
     return PairedViews(photos, rendered, morphed, list(meta.train), list(meta.test), meta.kind)

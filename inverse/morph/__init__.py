@@ -16,6 +16,7 @@ module             what
 ``evaluate``       Chamfer, normals, spikes, folds and held-out image metrics
 ``errors``         where a mesh lies against the truth: both Chamfer directions, border, input error left, maps
 ``batch``          a morph run by paths (the unit batches fan out to workers)
+``views``          both meshes of a result rendered at every camera, cached (what the GAN and diffrender read)
 =================  ==========================================================================
 
 Other features use only the names below.
@@ -37,6 +38,7 @@ from .select import candidate_settings, light_choice_draws
 from .settings import MORPH_SEED_MAX, PLANARITY_WHERE, PRIOR_TIES, MorphSettings
 from .stage import MorphStage, start_mesh
 from .suite import SUITE, KINDS, UNSEEN, suite_mesh
+from .views import morph_views
 from .scene import MODES, mask_integrator, mask_scene, morph_scene, photo_at, photo_masks, projective_integrator, render_views, saturated_silhouette
 
 # The GCN variant is the one part that needs torch: it loads on first use, so `import inverse.morph` (and
@@ -60,5 +62,5 @@ __all__ = [
     "render_views", "repair_flips", "run_gcn_morph", "gcn_settings", "run_item", "run_morph", "sensor_dict", "start_mesh",
     "KINDS", "UNSEEN", "PleatReport", "SpikeReport", "iron_spikes", "SUITE", "TracePoint", "silhouette_margins", "saturated_silhouette", "suite_mesh", "truth_scene",
     "truth_start_benchmark", "TurnReport", "border_zone", "iron_border_turns",
-    "unfold_pleats", "mask_scene", "photo_masks",
+    "unfold_pleats", "mask_scene", "photo_masks", "morph_views",
 ]

@@ -28,6 +28,7 @@ def _cmd_all(a: argparse.Namespace) -> int:
     from pathlib import Path
 
     from foundation.files import check_output_file
+
     from photoreal.benchmarks import REGISTRY, json_name, load, run_benchmark, summary
 
     names = [n for n, e in REGISTRY.items() if e.in_all and (not a.only or n in a.only)]

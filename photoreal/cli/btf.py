@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from ..options import arg_opt, opt, settings_from
-from .common import check_out_dir, pool_options, pool_settings, run_batch, usage
+from .common import add_subcommands, check_out_dir, pool_options, pool_settings, run_batch, usage
 
 HELP = "universal neural BTF: data, basis training, per-material fitting (seed 002)"
 
@@ -136,13 +136,7 @@ def _cmd_btf_generate(a) -> int:
 
 
 def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
-    """The group's subcommands on its parser; only ``wanted`` (all when None) gets its options, so a command
-    imports the settings of the one subcommand it runs."""
-    sub = parser.add_subparsers(dest="btf_cmd", required=True)
-    for name, (text, build) in _SUBCOMMANDS.items():
-        p = sub.add_parser(name, help=text)
-        if wanted in (None, name):
-            build(p)
+    add_subcommands(parser, "btf_cmd", _SUBCOMMANDS, wanted)
 
 
 def _add_render_data(tr: argparse.ArgumentParser) -> None:

@@ -9,6 +9,16 @@ import sys
 from pathlib import Path
 
 
+def add_subcommands(parser: argparse.ArgumentParser, dest: str, table: dict, wanted: str | None) -> None:
+    """A group's subcommands ({name: (help, build)}) on its parser; only ``wanted`` gets its options (all when None,
+    none when ""), so a command imports the settings of the one subcommand it runs."""
+    sub = parser.add_subparsers(dest=dest, required=True)
+    for name, (text, build) in table.items():
+        p = sub.add_parser(name, help=text)
+        if wanted in (None, name):
+            build(p)
+
+
 def print_json(d: dict) -> None:
     print(json.dumps(d, indent=2, default=str))
 

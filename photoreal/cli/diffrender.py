@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..options import arg_opt, opt, settings_from
-from .common import print_json, usage
+from .common import add_subcommands, print_json, usage
 
 HELP = "intrinsic-conditioned diffusion renderer: G-buffers (A, I, S, N) → photo (seed 000)"
 
@@ -61,14 +61,8 @@ def _cmd_diffrender(a) -> int:
 
 
 def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
-    """The group's subcommands on its parser; only ``wanted`` (all when None) gets its options, so a command
-    imports the settings of the one subcommand it runs."""
     parser.set_defaults(func=_cmd_diffrender)
-    sub = parser.add_subparsers(dest="dr_cmd", required=True)
-    for name, (text, build) in _SUBCOMMANDS.items():
-        p = sub.add_parser(name, help=text)
-        if wanted in (None, name):
-            build(p)
+    add_subcommands(parser, "dr_cmd", _SUBCOMMANDS, wanted)
 
 
 def _add_train(t: argparse.ArgumentParser) -> None:

@@ -5,7 +5,16 @@ from __future__ import annotations
 import argparse
 
 from ..options import default_of, opt, settings_from
-from .common import benchmark_dirs, check_out_dir, pool_options, pool_settings, print_json, run_batch, usage
+from .common import (
+    add_subcommands,
+    benchmark_dirs,
+    check_out_dir,
+    pool_options,
+    pool_settings,
+    print_json,
+    run_batch,
+    usage,
+)
 
 HELP = "face material fitting in UV space (seed 003)"
 
@@ -101,13 +110,7 @@ def _cmd_face_train_models(a) -> int:
 
 
 def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
-    """The group's subcommands on its parser; only ``wanted`` (all when None) gets its options, so a command
-    imports the settings of the one subcommand it runs."""
-    sub = parser.add_subparsers(dest="face_cmd", required=True)
-    for name, (text, build) in _SUBCOMMANDS.items():
-        p = sub.add_parser(name, help=text)
-        if wanted in (None, name):
-            build(p)
+    add_subcommands(parser, "face_cmd", _SUBCOMMANDS, wanted)
 
 
 def _add_make_benchmark(fm: argparse.ArgumentParser) -> None:

@@ -7,7 +7,7 @@ import dataclasses
 from pathlib import Path
 
 from ..options import opt
-from .common import print_json
+from .common import add_subcommands, print_json
 
 HELP = "GAN refinement of renders: pix2pix, CycleGAN, Morph-GAN, joint (REAL-DIBS §3, §5)"
 
@@ -66,14 +66,8 @@ def _cmd_gan(a) -> int:
 
 
 def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
-    """The group's subcommands on its parser; only ``wanted`` (all when None) gets its options, so a command
-    imports the settings of the one subcommand it runs."""
     parser.set_defaults(func=_cmd_gan)
-    sub = parser.add_subparsers(dest="gan_cmd", required=True)
-    for name, (text, build) in _SUBCOMMANDS.items():
-        p = sub.add_parser(name, help=text)
-        if wanted in (None, name):
-            build(p)
+    add_subcommands(parser, "gan_cmd", _SUBCOMMANDS, wanted)
 
 
 def _add_train(gt: argparse.ArgumentParser) -> None:

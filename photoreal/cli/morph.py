@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..options import opt, settings_from
-from .common import benchmark_dirs, check_out_dir, pool_options, print_json, run_batch, usage
+from .common import add_subcommands, benchmark_dirs, check_out_dir, pool_options, print_json, run_batch, usage
 
 HELP = "geometry morphing of coarse meshes against photos (REAL-DIBS §4)"
 
@@ -120,13 +120,7 @@ def _cmd_morph_errors(a) -> int:
 
 
 def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
-    """The group's subcommands on its parser; only ``wanted`` (all when None) gets its options, so a command
-    imports the settings of the one subcommand it runs."""
-    sub = parser.add_subparsers(dest="morph_cmd", required=True)
-    for name, (text, build) in _SUBCOMMANDS.items():
-        p = sub.add_parser(name, help=text)
-        if wanted in (None, name):
-            build(p)
+    add_subcommands(parser, "morph_cmd", _SUBCOMMANDS, wanted)
 
 
 def _add_make_benchmark(mm: argparse.ArgumentParser) -> None:
