@@ -32,7 +32,8 @@ def arg_default(func, name: str) -> Any:
 
 @functools.lru_cache(maxsize=None)
 def field_docs(cls: type) -> dict[str, str]:
-    """The ``#:`` comment after each field of a dataclass (its one-line documentation), by field name."""
+    """Each field's documentation as Sphinx reads it: the ``#:`` comment on its line, else the ``#:`` lines just
+    above it, by field name."""
     out: dict[str, str] = {}
     for klass in reversed(cls.__mro__):
         if not dataclasses.is_dataclass(klass):
@@ -46,6 +47,13 @@ def field_docs(cls: type) -> dict[str, str]:
                 text = lines[node.end_lineno - 1]
                 if "#:" in text:
                     out[node.target.id] = text.split("#:", 1)[1].strip()
+                    continue
+                above, k = [], node.lineno - 2
+                while k >= 0 and lines[k].strip().startswith("#:"):
+                    above.insert(0, lines[k].strip()[2:].strip())
+                    k -= 1
+                if above:
+                    out[node.target.id] = " ".join(above)
     return out
 
 

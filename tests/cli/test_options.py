@@ -46,12 +46,15 @@ def test_no_option_default_is_written_in_the_cli():
     assert literal_defaults() == []
 
 
-def test_field_docs_reads_the_comment_after_each_field():
+def test_field_docs_reads_the_comments_sphinx_reads():
     @dataclasses.dataclass
     class S:
         a: int = 1  #: the first
         b: str = "x"
-        #: not this one (above, not after)
+        #: the third, on two
+        #: lines above it
         c: float = 2.0
+        # a plain comment is no documentation
+        d: int = 0
 
-    assert field_docs(S) == {"a": "the first"}
+    assert field_docs(S) == {"a": "the first", "c": "the third, on two lines above it"}
