@@ -16,7 +16,7 @@ Notation (code ↔ seed 002):
 ``wo``          ω_o, direction *to the viewer*, tangent space
 ==============  ===========================================================================
 
-Value convention (shared with ``inverse/btf_data.py``): the network predicts the radiance leaving
+Value convention (shared with ``inverse/btf/data.py``): the network predicts the radiance leaving
 towards ω_o under a distant light of unit perpendicular irradiance from ω_i, i.e. f·cosθ_i — which
 is what Mitsuba's ``BSDF.eval(ctx, si, wo)`` returns with ``si.wi`` = viewer and ``wo`` = light.
 

@@ -3,7 +3,8 @@
 ==========  ================================================================================
 module      what
 ==========  ================================================================================
-``data``    seeded tileable SVBRDFs of 8 families, BTFs path traced with Mitsuba, dataset files
+``svbrdf``  seeded tileable SVBRDFs of 8 families
+``data``    BTFs path traced with Mitsuba from them, BTF and dataset files
 ``fit``     universal basis training (§4.2), per-material fitting (§4.3), NeuMIP baseline (§5.2)
 ==========  ================================================================================
 
@@ -11,8 +12,9 @@ The network maths lives in :mod:`mi_plugins.neural_basis` (the plugin runs the s
 Other features use only the names below.
 """
 
-from .data import (FAMILIES, BTFData, BTFDataError, BTFRenderSettings, SVBRDF, constant_svbrdf, load_btf,
-                   load_dataset, make_svbrdf, render_btf, render_dataset, render_material, save_btf)
+from .data import (BTFData, BTFDataError, BTFRenderSettings, load_btf, load_dataset, render_btf, render_dataset,
+                   render_material, save_btf)
+from .svbrdf import FAMILIES, SVBRDF, constant_svbrdf, make_svbrdf
 from .fit import (OptimSettings, Prefilter, fit_file, fit_material, fit_prefilter, fit_settings, gaussian_periodic,
                   heldout_psnr, predict, psnr, psnr_pair, split_slices, train_basis, train_per_material,
                   weights_digest)

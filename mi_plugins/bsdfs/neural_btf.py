@@ -36,7 +36,7 @@
      - no
 
 Cosine convention: the network is trained on f(u, ω_i, ω_o)·cosθ_i — radiance towards ω_o under a
-distant light of unit perpendicular irradiance from ω_i (``inverse/btf_data.py``). Mitsuba's
+distant light of unit perpendicular irradiance from ω_i (``inverse/btf/data.py``). Mitsuba's
 ``eval(ctx, si, wo)`` returns f·cosθ_wo with ``si.wi`` pointing to the viewer and ``wo`` to the
 light, so ``eval`` is exactly the network with ω_o = ``si.wi`` and ω_i = ``wo``, clamped at 0;
 no cosine is added or removed. Like measured BTFs, the value is not reciprocal: paths must be

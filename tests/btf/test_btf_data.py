@@ -10,11 +10,11 @@ import pytest
 import mitsuba as mi
 
 import inverse.btf.data as btf
+import inverse.btf.svbrdf as svbrdf
 from conftest import local_si
-from inverse.btf.data import (
-    FAMILIES, BTFData, BTFDataError, BTFRenderSettings, constant_svbrdf, load_btf, load_dataset, make_periodic,
-    make_svbrdf, render_btf, render_dataset, save_btf,
-)
+from inverse.btf.data import (BTFData, BTFDataError, BTFRenderSettings, load_btf, load_dataset, render_btf,
+                              render_dataset, save_btf)
+from inverse.btf.svbrdf import FAMILIES, constant_svbrdf, make_periodic, make_svbrdf
 
 # Tiny settings: 8² texels, 4 slices, flat plane of 4² quads, directional light (exact oracles).
 TINY = BTFRenderSettings(tex_res=8, slices=4, spp=2, max_depth=1, mesh_res=4, sun_diameter_deg=0.0)
@@ -250,7 +250,7 @@ def test_families_have_their_character():
 
 
 def test_make_periodic_removes_the_seam_of_a_photo_crop():
-    crop = btf._photo_crop("gravel", np.random.default_rng(0), 64)
+    crop = svbrdf._photo_crop("gravel", np.random.default_rng(0), 64)
     assert not (_wrap_is_typical(crop, 0) and _wrap_is_typical(crop, 1))  # the check has power
     tiled = make_periodic(crop)
     assert _wrap_is_typical(tiled, 0) and _wrap_is_typical(tiled, 1)
