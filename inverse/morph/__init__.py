@@ -4,6 +4,8 @@
 module             what
 =================  ==========================================================================
 ``benchmark``      benchmarks with ground truth: photos, degraded reconstruction, artifact masks
+``cameras``        a benchmark's cameras: drone orbit, framing, Mitsuba sensors
+``village``        the procedural village scene, colours for meshes without any
 ``scene``          the scene a morph renders (vertex colours under the benchmark's HDRI)
 ``settings``       the settings of a run (:class:`MorphSettings`)
 ``stage``          the morph (large steps, planarity prior) as a stage of the shared loop

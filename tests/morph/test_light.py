@@ -25,7 +25,7 @@ def _assert_depth2_is_two_renders(stage, images) -> None:
     import drjit as dr
     import mitsuba as mi
 
-    from inverse.morph.benchmark import sensor_dict
+    from inverse.morph import sensor_dict
     from inverse.morph.scene import upsample_bilinear
 
     meta = stage.bench.meta

@@ -190,7 +190,7 @@ def test_views_seeing_a_sphere_is_the_spherical_cap_the_camera_sees():
     either side of a triangle counts; a sphere in front hides part of the one behind; a narrow view sees no centroid
     outside its frustum."""
     from foundation.mesh_metrics import triangle_areas
-    from inverse.morph.benchmark import Camera
+    from inverse.morph import Camera
     from inverse.morph.errors import views_seeing
 
     v, f = sphere(1.0, 60)
@@ -227,7 +227,7 @@ def test_facing_maps_mark_the_facing_triangles_and_the_view_that_sees_them(tmp_p
     is chosen."""
     from foundation.mesh import read_ply_colours
     from foundation.mesh_metrics import facing_against_truth, truth_surface
-    from inverse.morph.benchmark import Camera
+    from inverse.morph import Camera
     from inverse.morph.errors import FACING_COLOUR, facing_maps, most_facing_view
 
     v, f = outward_sphere(40)
