@@ -39,12 +39,12 @@ class Entry:
 REGISTRY: dict[str, Entry] = {
     "plugins": Entry(f"{__name__}.plugins", "ggx_uv vs builtin principled on the same scene"),
     "face": Entry(f"{__name__}.face", "face fitting: accuracy vs time over UV resolution, stability"),
-    "morph": Entry(f"{__name__}.morph", "geometry morphing: accuracy vs time, speed vs the tutorial recipe, "
+    "morph": Entry(f"{__name__}.morph.bench", "geometry morphing: accuracy vs time, speed vs the tutorial recipe, "
                                         "stability, the generalisation suite, the benchmark's framing"),
-    "morph-seeds": Entry(f"{__name__}.morph_seeds", "the morph suite over several draws: `bench morph --parts suite "
+    "morph-seeds": Entry(f"{__name__}.morph.seeds", "the morph suite over several draws: `bench morph --parts suite "
                          "--seed K` results, one per seed, summed up per mesh (mean, worst, at how many seeds every "
                          "target holds) with a chart", in_all=False),
-    "morph-light-draws": Entry(f"{__name__}.morph_light_draws", "every light choice of `bench morph --parts suite` "
+    "morph-light-draws": Entry(f"{__name__}.morph.light_draws", "every light choice of `bench morph --parts suite` "
                                "results scored again under other draws of the light estimate: how much of each "
                                "choice the estimate's own noise decides", in_all=False),
     "btf": Entry(f"{__name__}.btf", "neural BTF: universal vs NeuMIP, width × texture sweep, render time"),

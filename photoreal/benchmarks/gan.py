@@ -35,7 +35,7 @@ from generative.gan import (MODELS, GanTrainSettings, JointSettings, load_heldou
 from inverse.morph import (ARTIFACT_REGIONS, MorphBenchmarkSettings, MorphSettings, artifact_masks,
                            load_morph_benchmark, make_morph_benchmark, run_morph)
 
-from .morph import source
+from .morph.bench import source
 
 METRICS = ("mse", "me", "one_minus_ssim", "nrmse", "sam_deg", "flip", "psnr")
 

@@ -21,7 +21,7 @@ def test_bench_seed_gets_its_own_work_folder(tmp_path):
     """``photoreal bench morph --seed k``: finished pool items are resumed by folder (their metrics.json), so another
     draw must not find seed 0's runs — each seed works in a folder of its own (seed 0 keeps the old name)."""
     from photoreal.benchmarks import work_folder
-    from photoreal.benchmarks.morph import MorphBenchSettings
+    from photoreal.benchmarks.morph.bench import MorphBenchSettings
     from photoreal.cli import build_parser
     from photoreal.options import settings_from
 
@@ -64,7 +64,7 @@ def test_suite_chart_tells_every_mesh_apart(tmp_path):
     import matplotlib.image
 
     from inverse.morph.suite import SUITE, UNSEEN
-    from photoreal.benchmarks.morph import suite_chart, suite_line_style
+    from photoreal.benchmarks.morph.charts import suite_chart, suite_line_style
 
     names = SUITE + UNSEEN + ("village", "armadillo")
     styles = {(suite_line_style(i)["color"], suite_line_style(i)["ls"]) for i in range(len(names))}
@@ -82,7 +82,7 @@ def test_suite_chart_tells_every_mesh_apart(tmp_path):
 def test_suite_over_draws_sums_up_each_mesh(tmp_path, capsys):
     """``photoreal bench morph-seeds``: per mesh the mean, worst and best over the draws and the draws where every
     target holds; files that are not draws of one experiment are refused by name, nothing written."""
-    from photoreal.benchmarks.morph_seeds import seeds_summary
+    from photoreal.benchmarks.morph.seeds import seeds_summary
     from photoreal.cli import main
 
     a = _suite_file(tmp_path / "s0.json", 0, {"josie": (0.323, 3.76, 0.0178, 0.0146),
@@ -154,7 +154,7 @@ def test_two_settings_compared_draw_by_draw(tmp_path, capsys):
     figures against their closed forms; overlapping parts and sets of other experiments are refused, nothing written."""
     from math import comb
 
-    from photoreal.benchmarks.morph_seeds import seeds_compare, seeds_summary
+    from photoreal.benchmarks.morph.seeds import seeds_compare, seeds_summary
     from photoreal.cli import main
 
     base = [_suite_file(tmp_path / "b0.json", 0, {"josie": (0.32, 3.8, 0.02, 0.015), "cow": (0.49, 8.7, 0.02, 0.01)}),
@@ -203,7 +203,7 @@ def test_two_settings_compared_draw_by_draw(tmp_path, capsys):
 
 
 def test_the_iteration_cost_bench_times_the_recipes_at_the_same_vertices(small_armadillo, tmp_path):
-    from photoreal.benchmarks.morph import MorphBenchSettings, cost_recipes, iteration_cost
+    from photoreal.benchmarks.morph.bench import MorphBenchSettings, cost_recipes, iteration_cost
 
     recipes = {k: replace(v, resolution=24, target_vertices=600, min_vertices=None)
                for k, v in cost_recipes(MorphBenchSettings()).items()}
@@ -230,7 +230,7 @@ def test_the_iteration_cost_bench_times_the_recipes_at_the_same_vertices(small_a
     assert not any("light_estimate" in b or "validation" in b for b in out["blocks"]["issue_recipe"])
     assert not list(tmp_path.glob("*/.morph_work.ply"))  # each block's scene freed with its work file
     # the ratio taken round by round: each block over the issue's block of the same round (closed form)
-    from photoreal.benchmarks.morph import ratio_by_round
+    from photoreal.benchmarks.morph.bench import ratio_by_round
     paired = ratio_by_round({"issue_recipe": [{"total": 0.3}, {"total": 0.4}, {"total": 0.5}],
                              "light": [{"total": 0.33}, {"total": 0.4}, {"total": 0.45}]}, "issue_recipe")
     assert list(paired) == ["light"] and paired["light"]["per_round"] == pytest.approx([1.1, 1.0, 0.9])

@@ -68,7 +68,7 @@ def test_truth_start_benchmark_starts_at_the_answer(small_armadillo, tmp_path):
     # The floor part of the bench: the same photos and split, the ground truth (with its own colours) as input.
     from foundation.mesh import read_ply
     from inverse.morph import start_mesh, truth_start_benchmark
-    from photoreal.benchmarks.morph import floor_row
+    from photoreal.benchmarks.morph.bench import floor_row
 
     b = load_morph_benchmark(truth_start_benchmark(small_armadillo.path, tmp_path / "t"))
     gv, gf, _ = read_ply(b.ground_truth)
@@ -176,7 +176,7 @@ def test_generated_suite_meshes_are_closed_outward_and_of_known_volume(tmp_path)
         load_mesh_any(suite_mesh(name, tmp_path))
     with pytest.raises(UsageError, match="unknown case 'nope'.*bracket"):
         suite_mesh("nope", tmp_path)
-    from photoreal.benchmarks.morph import MorphBenchSettings
+    from photoreal.benchmarks.morph.bench import MorphBenchSettings
 
     assert MorphBenchSettings(suite=UNSEEN).suite == UNSEEN  # the bench runs them by name
 

@@ -292,7 +292,7 @@ def test_the_suite_bench_row_says_where_the_error_sits(small_armadillo):
     (slope 1, no new error) and both directions agree with the Chamfer the run reports (within 5 %)."""
     from foundation.mesh import load_mesh_any
     from foundation.mesh_metrics import chamfer
-    from photoreal.benchmarks.morph import where_errors
+    from photoreal.benchmarks.morph.bench import where_errors
 
     b = small_armadillo
     e = where_errors(b, b.coarse)

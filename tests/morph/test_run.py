@@ -277,7 +277,7 @@ def test_start_remesh_is_stored_in_the_benchmark_and_every_later_run_reads_it(sm
 
 
 def test_a_resumed_suite_keeps_its_benchmarks_and_their_stored_starts(tmp_path):
-    from photoreal.benchmarks.morph import _suite_bench
+    from photoreal.benchmarks.morph.bench import _suite_bench
 
     bs = MorphBenchmarkSettings(n_views=4, resolution=16, spp=2, coarse_vertices=300)
     made = _suite_bench("table", tmp_path, bs)

@@ -11,8 +11,8 @@ import numpy as np
 from foundation import validate
 from inverse.morph import MorphSettings, light_choice_draws, load_morph_benchmark
 
-from .morph import SILHOUETTE_FIELDS, MorphBenchSettings, normals_tag, work_name
-from .morph_seeds import recorded_run_settings, suite_of
+from .bench import SILHOUETTE_FIELDS, MorphBenchSettings, normals_tag, work_name
+from .seeds import recorded_run_settings, suite_of
 
 def light_draws(paths: list[str | Path], draws: int, show_progress: bool = True) -> dict:
     """Every light choice of ``bench morph --parts suite`` results (their work folders beside them)

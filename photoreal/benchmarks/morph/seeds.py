@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .morph import MEAN_KEYS, TARGETS, MorphBenchSettings
+from .bench import MEAN_KEYS, TARGETS, MorphBenchSettings
 
 
 
