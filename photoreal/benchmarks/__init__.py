@@ -50,7 +50,7 @@ REGISTRY: dict[str, Entry] = {
     "btf": Entry(f"{__name__}.btf", "neural BTF: universal vs NeuMIP, width × texture sweep, render time"),
     "gan": Entry(f"{__name__}.gan", "GAN refinement stages on held-out views"),
     "scale": Entry(f"{__name__}.scale", "a batch of renders serially, on a process pool and on Ray (identical?)"),
-    "diffrender": Entry(f"{__name__}.diffrender", "diffusion renderer vs PBR recomposition and the GANs on held-out "
+    "diffrender": Entry(f"{__name__}.diffrender.bench", "diffusion renderer vs PBR recomposition and the GANs on held-out "
                         "views; decomposition network, ablations, steps × size sweep, an unseen mesh"),
     "matdiff": Entry(f"{__name__}.matdiff", "material diffusion: keyword/exemplar conditioning, KID vs baselines, "
                      "memorisation, seams, speed, ablations, dataset sweep (builds/continues its dataset first)"),

@@ -138,7 +138,7 @@ def test_bench_diffrender_trains_the_intrinsic_decomposition_network(tmp_path):
     trains the intrinsic network on procedural scenes and makes one (decomposed layers → photo) set per case plus
     the scikit-image photographs."""
     from generative.diffrender import IntrinsicViews
-    from photoreal.benchmarks.diffrender import DiffRenderBenchSettings, _decomposition
+    from photoreal.benchmarks.diffrender.bench import DiffRenderBenchSettings, _decomposition
 
     s = DiffRenderBenchSettings(decomp_scenes=4, decomp_seconds=0.5)
     photos = np.random.default_rng(0).random((3, 32, 32, 3), dtype=np.float32)

@@ -456,7 +456,7 @@ def test_bench_references_are_clean_renders_with_their_own_seeds(tiny_views):
     Monte-Carlo estimate of the same image, not the photo itself (same seeds would reproduce it exactly, see
     test_morph's truth-scene test); more samples bring it closer to the photos (less noise of its own); the
     recomposition's mean is the bench G-buffers' (the same expectation: 3 % as above)."""
-    from photoreal.benchmarks.diffrender import references
+    from photoreal.benchmarks.diffrender.references import references
 
     tmp, bench, v = tiny_views
     ids = list(v.test) + list(v.train[:1])
@@ -481,7 +481,7 @@ def test_bench_run_folders_follow_settings_and_data(tiny_views, tmp_path):
     from dataclasses import replace as dc_replace
 
     from generative.diffrender.renderer import GBufferSettings, load_intrinsic_views
-    from photoreal.benchmarks.diffrender import main_dir, run_dir
+    from photoreal.benchmarks.diffrender.bench import main_dir, run_dir
 
     tmp, bench, v = tiny_views
     other = load_intrinsic_views(bench, tmp / "morph", GBufferSettings(spp=2), show_progress=False)
@@ -497,7 +497,7 @@ def test_bench_choice_is_the_cheapest_within_a_fraction_of_the_best():
     """The sweep's automatic choice. Oracle: hand-made rows — with a 1 % tolerance of the best ꟻLIP 0.0700 (limit
     0.0707) the 0.0705 row at 0.9 s wins over the slower best and the 0.0749 row at 0.1 s is out; a 10 % tolerance
     lets the 0.1 s row in. Ties in time go to fewer parameters."""
-    from photoreal.benchmarks.diffrender import DiffRenderBenchSettings, _choose
+    from photoreal.benchmarks.diffrender.bench import DiffRenderBenchSettings, _choose
 
     rows = [{"model": "R", "parameters": 5, "steps": 1, "draws": 8, "seconds_per_image": 3.0, "flip": 0.0700},
             {"model": "small", "parameters": 1, "steps": 1, "draws": 8, "seconds_per_image": 0.9, "flip": 0.0705},
@@ -525,7 +525,7 @@ def test_bench_distribution_distances_rank_a_blurred_set_behind_the_same_photos(
     from PIL import Image
     from scipy.ndimage import gaussian_filter
 
-    from photoreal.benchmarks.diffrender import distribution, set_features
+    from photoreal.benchmarks.diffrender.references import distribution, set_features
 
     imgs = [skimage.data.astronaut(), skimage.data.coffee(), skimage.data.chelsea(), skimage.data.rocket()]
     ref = np.stack([np.asarray(Image.fromarray(i[..., :3]).resize((128, 128)), np.float32) / 255 for i in imgs]) ** 2.2
@@ -540,7 +540,7 @@ def test_bench_distribution_distances_rank_a_blurred_set_behind_the_same_photos(
 def test_bench_verdict_reads_the_noise_oracle_and_the_clean_reference():
     """The verdict's KID flags from hand-made figures: the diffusion loses to PBR on KID against the photos, the
     clean ground truth loses too (the oracle flag says so), and against the clean photos the diffusion wins."""
-    from photoreal.benchmarks.diffrender import DiffRenderBenchSettings, _verdict
+    from photoreal.benchmarks.diffrender.bench import DiffRenderBenchSettings, _verdict
 
     h = {k: {"flip": f} for k, f in (("diffusion", 0.06), ("pbr_coarse", 0.12), ("pbr_morphed", 0.065))}
     row = lambda k, ks: {"kid": k, "kid_spatial": ks}  # noqa: E731
@@ -556,21 +556,21 @@ def test_bench_verdict_reads_the_noise_oracle_and_the_clean_reference():
 
 
 def test_bench_paired_metrics_count_the_views_per_method():
-    """`_paired` keeps ꟻLIP per view (mean over sampling seeds with a seeds axis): oracle — a prediction equal to
+    """`paired_metrics` keeps ꟻLIP per view (mean over sampling seeds with a seeds axis): oracle — a prediction equal to
     the reference has ꟻLIP 0 on every view, a noisy one above 0 on every view, and the seeds' per-view mean is the
     mean of the per-seed lists."""
     import warnings
 
-    from photoreal.benchmarks.diffrender import _paired
+    from photoreal.benchmarks.diffrender.measure import paired_metrics
 
     rng = np.random.default_rng(0)
     ref = rng.uniform(0.1, 0.6, size=(3, 24, 24, 3)).astype(np.float32)
     noisy = np.clip(ref + rng.normal(0, 0.05, ref.shape), 0, 1).astype(np.float32)
-    one = _paired(noisy, ref)["flip_per_view"]
+    one = paired_metrics(noisy, ref)["flip_per_view"]
     assert len(one) == 3 and min(one) > 0
     with warnings.catch_warnings():  # exact copies: PSNR is inf, its spread over views nan
         warnings.simplefilter("ignore", RuntimeWarning)
-        assert _paired(ref, ref)["flip_per_view"] == [0.0, 0.0, 0.0]
-        two = _paired(np.stack([noisy, ref]), ref)
+        assert paired_metrics(ref, ref)["flip_per_view"] == [0.0, 0.0, 0.0]
+        two = paired_metrics(np.stack([noisy, ref]), ref)
     np.testing.assert_allclose(two["flip_per_view"], np.array(one) / 2, rtol=1e-6)
     assert two["seeds"] == 2

@@ -42,37 +42,33 @@ reference renders. Sampling and metrics follow in this process.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
-import torch
 
 import mi_plugins  # noqa: F401
-import mitsuba as mi
 
 from foundation import validate
 from foundation.errors import UsageError
-from foundation.features import fid, image_features, kid, kid_std, perceptual_distance, spatial_features
-from foundation.files import cached_arrays, file_digest, read_json
-from foundation.metrics import image_metrics
+from foundation.features import perceptual_distance
+from foundation.files import read_json
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import json_digest
-from foundation.scene import recompose
 from foundation.threads import torch_threads
 from generative.diffrender import (DecompDataSettings, decompose, DECOMPOSED, DecompSettings, DiffRenderSettings,
                                    GBufferSettings, heldout_psnr, IntrinsicViews, load_decomp_data, load_decomposer,
-                                   load_diffrender, load_intrinsic_views, photographs, render_gbuffers, render_views,
-                                   SampleSettings, train_decomposer, train_diffrender)
-from generative.diffusion import ConditionalDiffusion, count_parameters, diffusion_loss, make_scheduler, training_flops
+                                   load_diffrender, load_intrinsic_views, photographs, train_decomposer, train_diffrender)
+from generative.diffusion import count_parameters
 from generative.gan import GanDataSettings, GanTrainSettings, load_heldout_predictions, load_paired_views, train_gan
-from inverse.morph import sensor_dict, truth_scene
 
-from .gan import GanBenchSettings, prepare_case
+from ..gan import GanBenchSettings, prepare_case
 
-PAIRED = ("psnr", "one_minus_ssim", "flip", "mse")
+from .measure import PAIRED, heldout_layers, paired_metrics, sample_views, throughput
+from .references import cached_references, distribution, set_features
+from .charts import sweep_chart
+
 
 
 @dataclass
@@ -165,83 +161,6 @@ class DiffRenderBenchSettings:
                                 seed=self.seed)
 
 
-def _gemm_flops_per_s(n: int = 2048, reps: int = 5) -> float:
-    a, b = torch.randn(n, n), torch.randn(n, n)
-    a @ b
-    t = time.perf_counter()
-    for _ in range(reps):
-        a @ b
-    return 2.0 * n ** 3 * reps / (time.perf_counter() - t)
-
-
-def throughput(s: DiffRenderSettings, reps: int = 4) -> dict:
-    """Training FLOPs per second of the renderer's model at its batch and crop, against a GEMM (same threads)."""
-    cfg = s.model_config()
-    model = ConditionalDiffusion(cfg, seed=s.seed)
-    flops = training_flops(model, s.batch, s.crop)
-    if s.channels_last:
-        model = model.to(memory_format=torch.channels_last)
-    sch, gen = make_scheduler(cfg), torch.Generator().manual_seed(0)
-    opt = torch.optim.AdamW(model.parameters(), lr=s.lr)
-    x = torch.rand(s.batch, 3, s.crop, s.crop) * 2 - 1
-    c = torch.rand(s.batch, cfg.cond_channels, s.crop, s.crop)
-    if s.channels_last:
-        x, c = x.contiguous(memory_format=torch.channels_last), c.contiguous(memory_format=torch.channels_last)
-    g = torch.randn(s.batch, cfg.global_tokens, cfg.global_dim) if cfg.global_dim else None
-    gemm = [_gemm_flops_per_s()]
-    times = []
-    for i in range(reps + 1):
-        t = time.perf_counter()
-        opt.zero_grad(set_to_none=True)
-        diffusion_loss(model, sch, x, c, g, gen).backward()
-        opt.step()
-        if i:  # the first step warms up
-            times.append(time.perf_counter() - t)
-    gemm.append(_gemm_flops_per_s())
-    step = float(np.median(times))
-    return {"flops_per_step": flops, "seconds_per_step": step, "train_flops_per_s": flops / step,
-            "gemm_flops_per_s": max(gemm), "train_flops_fraction": flops / step / max(gemm),
-            "batch": s.batch, "crop": s.crop, "threads": torch.get_num_threads()}
-
-
-def _paired(pred: np.ndarray, ref: np.ndarray) -> dict:
-    """Mean and spread over images of the paired metrics; ``pred`` may carry a leading seeds axis."""
-    pred = np.asarray(pred)
-    if pred.ndim == 5:  # (seeds, views, H, W, 3): spread over views and seeds
-        per_seed = [_paired(p, ref) for p in pred]
-        out = {k: float(np.mean([d[k] for d in per_seed])) for k in PAIRED}
-        for k in PAIRED:
-            out[f"{k}_std"] = float(np.mean([d[f"{k}_std"] for d in per_seed]))  # over views, mean over seeds
-            out[f"{k}_seed_std"] = float(np.std([d[k] for d in per_seed]))  # of the per-seed means
-        out["seeds"] = len(pred)
-        out["flip_per_view"] = np.mean([d["flip_per_view"] for d in per_seed], axis=0).tolist()  # mean over seeds
-        return out
-    per = [image_metrics(p, r) for p, r in zip(pred, ref)]
-    out = {}
-    for k in PAIRED:
-        v = np.array([getattr(m, k) for m in per], np.float64)
-        out[k] = float(v.mean())
-        out[f"{k}_std"] = float(v.std())
-    out["flip_per_view"] = [float(m.flip) for m in per]
-    return out
-
-
-def _test_layers(v: IntrinsicViews, source: str, ids: list[int]) -> dict:
-    return {k: a[ids] for k, a in v.layers[source].items()}
-
-
-def _sample(trained: tuple, layers: dict, steps: int, guidance: float, seeds: int, show_progress: bool,
-            draws: int = 1):
-    """(seeds, N, H, W, 3) renders of a loaded run (:func:`load_diffrender`) and seconds per image (mean over seeds)."""
-    model, ds = trained
-    imgs, secs = [], []
-    with torch_threads(0):
-        for k in range(seeds):
-            im, sec = render_views(model, ds, layers, SampleSettings(steps=steps, guidance=guidance, seed=1000 * k,
-                                                                     draws=draws), show_progress)
-            imgs.append(im)
-            secs.append(sec)
-    return np.stack(imgs), float(np.mean(secs))
 
 
 def _decomp_settings(s: DiffRenderBenchSettings) -> tuple[DecompDataSettings, DecompSettings]:
@@ -272,77 +191,6 @@ def _decomposition(s: DiffRenderBenchSettings, work: Path, views: dict[str, Intr
     return info, extra
 
 
-#: render seeds of the references (seed + view index): apart from the photos' (the benchmark's seed + view) and
-#: the bench's G-buffers' (the view index), whose noise they must not share
-REFERENCE_SEEDS = {"pbr_morphed_clean": 900_000, "truth_clean": 800_000, "photos_clean": 700_000}
-
-
-def truth_renders(bench, ids: list[int], spp: int, seed: int) -> np.ndarray:
-    """(views, H, W, 3) linear renders of the benchmark's ground truth at held-out views ``ids``, ``spp`` samples,
-    render seed ``seed`` + view index."""
-    meta = bench.meta
-    scene = truth_scene(bench)
-    out = []
-    for i in ids:
-        sensor = mi.load_dict(sensor_dict(meta.cameras[i], meta.resolution, meta.fov))
-        out.append(np.array(mi.render(scene, sensor=sensor, spp=spp, seed=seed + int(i)))[..., :3])
-    del scene
-    return np.stack(out).astype(np.float32)
-
-
-def references(bench, morph_dir: Path, ids: list[int], spp: int, show_progress: bool = False) -> dict:
-    """What the paired targets demand, from renders alone (nothing trained): held-out views ``ids`` of
-
-    * ``pbr_morphed_clean`` — R = A·I + S from the morphed mesh's G-buffers at ``spp`` samples: PBR recomposition
-      with its Monte-Carlo noise gone, the most a renderer that only denoises its G-buffers can gain over
-      ``pbr_morphed`` (:class:`GBufferSettings` spp, 32);
-    * ``truth_clean`` — the ground truth itself, path traced at ``spp`` (:func:`inverse.morph.truth_scene`): a
-      perfect renderer of the *true* scene, scored against the benchmark's photos (``photo_spp``) — their noise floor.
-
-    Returns name → (views, H, W, 3) linear images."""
-    gs = GBufferSettings(spp=spp)
-    L = render_gbuffers(Path(morph_dir) / "morphed.ply", bench, ids, gs, "reference G-buffers", show_progress,
-                        seed=REFERENCE_SEEDS["pbr_morphed_clean"])
-    return {"pbr_morphed_clean": recompose(L),
-            "truth_clean": truth_renders(bench, ids, spp, REFERENCE_SEEDS["truth_clean"])}
-
-
-def cached_references(bench, morph_dir: Path, ids: list[int], spp: int, photos_clean: bool,
-                      show_progress: bool = False) -> dict:
-    """:func:`references` (and, with ``photos_clean``, the held-out views path traced again with
-    ``REFERENCE_SEEDS["photos_clean"]``), cached in ``morph_dir`` under the benchmark, the morphed mesh, the views,
-    the sample count and the seeds."""
-    key = json.dumps({"benchmark": file_digest(Path(bench.path) / "morph_benchmark.json"),
-                      "morphed": file_digest(Path(morph_dir) / "morphed.ply"), "ids": [int(i) for i in ids],
-                      "spp": int(spp), "seeds": REFERENCE_SEEDS, "photos_clean": bool(photos_clean)}, sort_keys=True)
-
-    def render() -> dict:
-        out = references(bench, morph_dir, ids, spp, show_progress)
-        if photos_clean:
-            out["photos_clean"] = truth_renders(bench, ids, spp, REFERENCE_SEEDS["photos_clean"])
-        return out
-
-    return cached_arrays(Path(morph_dir) / "diffrender_references.npz", key, render)
-
-
-def set_features(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """An image set's MobileNetV2 features for :func:`distribution`: per image and per last-map position."""
-    return image_features(images), spatial_features(images)
-
-
-def distribution(sets: dict[str, tuple], reference: tuple) -> dict:
-    """MobileNetV2 distribution distances of each set in ``sets`` (name → :func:`set_features`) to ``reference``
-    (its :func:`set_features`): image-level KID (with its jackknife standard error over images) and FID, and the
-    spatial KID over the last map's positions (jackknife over images, each image's positions leaving together)."""
-    f_ref, f_ref_sp = reference
-    per = len(f_ref_sp) // len(f_ref)
-    g_ref = np.repeat(np.arange(len(f_ref)), per)
-    out = {}
-    for k, (f, f_sp) in sets.items():
-        g = np.repeat(np.arange(len(f)), per)
-        out[k] = {"kid": kid(f, f_ref), "kid_std": kid_std(f, f_ref), "fid": fid(f, f_ref),
-                  "kid_spatial": kid(f_sp, f_ref_sp), "kid_spatial_std": kid_std(f_sp, f_ref_sp, g, g_ref)}
-    return out
 
 
 def run_dir(parent: Path, name: str, ds: DiffRenderSettings, data: list[IntrinsicViews]) -> Path:
@@ -498,10 +346,10 @@ def bench_diffrender(s: DiffRenderBenchSettings, work: Path, show_progress: bool
     loaded = {name: load_diffrender(dirs[name]) for name in runs}
     unseen_ids = {c: list(views[c].test) for c in s.unseen}
     for name, (ds, use_extra) in runs.items():
-        pred, sec = _sample(loaded[name], morphed, mid, s.guidance, 1, show_progress)
+        pred, sec = sample_views(loaded[name], morphed, mid, s.guidance, 1, show_progress)
         trained = read_json(dirs[name] / "metrics.json", "ablation metrics")
         # the unseen meshes too: what a training choice does to generalisation is not visible on the trained cases
-        unseen_row = {c: _paired(_sample(loaded[name], _test_layers(views[c], "morphed", unseen_ids[c]), mid,
+        unseen_row = {c: paired_metrics(sample_views(loaded[name], heldout_layers(views[c], "morphed", unseen_ids[c]), mid,
                                          s.guidance, 1, show_progress)[0][0], views[c].photos[unseen_ids[c]])
                       for c in s.unseen}
         ablation.append({"run": name, "global_source": ds.global_source, "residual": ds.residual,
@@ -509,7 +357,7 @@ def bench_diffrender(s: DiffRenderBenchSettings, work: Path, show_progress: bool
                          "decomposed_pairs": use_extra, "sources": list(ds.sources), "widths": list(ds.widths),
                          "steps": mid, "unseen": unseen_row,
                          "train_steps": trained["training"]["steps"], "train_pairs": trained["train_pairs"],
-                         **_paired(pred[0], photos), "seconds_per_image": sec})
+                         **paired_metrics(pred[0], photos), "seconds_per_image": sec})
 
     # 3. steps × size sweep on the first sweep_views held-out views per case
     sub = {c: ids[c][:s.sweep_views] for c in s.cases}
@@ -522,8 +370,8 @@ def bench_diffrender(s: DiffRenderBenchSettings, work: Path, show_progress: bool
         tries = [(k, 1, s.guidance) for k in s.sweep_steps] + \
             [(1, d, g) for d in s.mean_draws if d > 1 for g in s.sweep_guidance]
         for steps, draws, guidance in tries:
-            pred, sec = _sample(loaded[name], sw_layers, steps, guidance, 1, show_progress, draws)
-            m = _paired(pred[0], sw_photos)
+            pred, sec = sample_views(loaded[name], sw_layers, steps, guidance, 1, show_progress, draws)
+            m = paired_metrics(pred[0], sw_photos)
             sweep.append({"model": name, "widths": list(ds.widths), "parameters": int(params), "steps": steps,
                           "draws": draws, "guidance": guidance, "seconds_per_image": sec,
                           **{k: m[k] for k in PAIRED}})
@@ -550,9 +398,9 @@ def bench_diffrender(s: DiffRenderBenchSettings, work: Path, show_progress: bool
             val = {}
             for c in s.validation:
                 v, every = views[c], list(range(len(views[c].photos)))
-                pred = _sample(tm, _test_layers(v, "morphed", every), steps, guidance, 1, show_progress, draws)[0][0]
-                val[c] = {"diffusion": _paired(pred, v.photos)["flip"],
-                          "pbr_morphed": _paired(v.recomposed("morphed"), v.photos)["flip"]}
+                pred = sample_views(tm, heldout_layers(v, "morphed", every), steps, guidance, 1, show_progress, draws)[0][0]
+                val[c] = {"diffusion": paired_metrics(pred, v.photos)["flip"],
+                          "pbr_morphed": paired_metrics(v.recomposed("morphed"), v.photos)["flip"]}
             row["validation_flip"] = val
             row["validation_flip_mean"] = float(np.mean([x["diffusion"] for x in val.values()]))
         size_choice.append(row)
@@ -574,10 +422,10 @@ def bench_diffrender(s: DiffRenderBenchSettings, work: Path, show_progress: bool
         tid = list(v.test)
         ph = v.photos[tid]
         preds = {"pbr_coarse": v.recomposed("coarse")[tid], "pbr_morphed": v.recomposed("morphed")[tid]}
-        preds["diffusion"], sec = _sample(trained_main, _test_layers(v, "morphed", tid), steps, guidance, s.seeds,
+        preds["diffusion"], sec = sample_views(trained_main, heldout_layers(v, "morphed", tid), steps, guidance, s.seeds,
                                           show_progress, draws)
         sample_s.append(sec)
-        preds["diffusion_coarse"], _ = _sample(trained_main, _test_layers(v, "coarse", tid), steps, guidance, 1,
+        preds["diffusion_coarse"], _ = sample_views(trained_main, heldout_layers(v, "coarse", tid), steps, guidance, 1,
                                                show_progress, draws)
         if s.gans and c in s.cases:
             for name in ("cyclegan", "pix2pix", "morph_gan"):  # trained in the batch above
@@ -586,13 +434,13 @@ def bench_diffrender(s: DiffRenderBenchSettings, work: Path, show_progress: bool
         refs = (cached_references(*prepared[c], tid, s.reference_spp, c in s.cases, show_progress)
                 if s.reference_spp else {})
         clean = refs.pop("photos_clean", None)
-        paired = {k: _paired(p, ph) for k, p in preds.items()}
+        paired = {k: paired_metrics(p, ph) for k, p in preds.items()}
         base = np.array(paired["pbr_morphed"]["flip_per_view"])
         cases[c] = {"heldout": paired,
                     # on how many views each method's ꟻLIP is below PBR morphed's (a mean can hide a split)
                     "views_better_than_pbr_morphed": {k: int((np.array(m["flip_per_view"]) < base).sum())
                                                       for k, m in paired.items() if k != "pbr_morphed"},
-                    "references": {k: _paired(p, ph) for k, p in refs.items()},
+                    "references": {k: paired_metrics(p, ph) for k, p in refs.items()},
                     "perceptual_mnv2": {k: float(perceptual_distance(p, ph).mean()) for k, p in first.items()},
                     "views": {"train": len(v.train), "test": len(tid), "resolution": v.resolution},
                     "seen_in_training": c in s.cases}
@@ -674,43 +522,6 @@ def _verdict(r: dict, s: DiffRenderBenchSettings) -> dict:
     return v
 
 
-def sweep_chart(result: dict, path: Path) -> Path:
-    """ꟻLIP against sampling seconds per 128² image, one line per model size, points labelled by DDIM steps."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from foundation.imageio import save_figure
-
-    fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    for model in sorted({r["model"] for r in result["sweep"]}):
-        rows = [r for r in result["sweep"] if r["model"] == model and r.get("draws", 1) == 1]
-        line, = ax.plot([r["seconds_per_image"] for r in rows], [r["flip"] for r in rows], "-o",
-                        label=f"{model} ({rows[0]['parameters'] / 1e6:.2f} M params)")
-        means = [r for r in result["sweep"] if r["model"] == model and r.get("draws", 1) > 1]
-        for r in rows:
-            ax.annotate(f"{r['steps']}", (r["seconds_per_image"], r["flip"]), fontsize=7, xytext=(3, 3),
-                        textcoords="offset points")
-        for k, r in enumerate(means):  # "×draws g guidance", above and below in turn so neighbours stay legible
-            ax.annotate(f"×{r['draws']} g{r.get('guidance', '')}", (r["seconds_per_image"], r["flip"]), fontsize=6,
-                        xytext=(-8, 6 if k % 2 == 0 else -11), textcoords="offset points", color=line.get_color())
-        if means:
-            ax.plot([r["seconds_per_image"] for r in means], [r["flip"] for r in means], "s", color=line.get_color())
-    c = result["chosen"]
-    how = f"{c['steps']} steps" + (f", mean of {c['draws']}, guidance {c.get('guidance')}"
-                                   if c.get("draws", 1) > 1 else "")
-    ax.plot([c["seconds_per_image"]], [c["flip"]], "k*", ms=13, label=f"chosen sampler ({c['model']} row, {how})")
-    sub = result["heldout"]
-    for name, ls in (("pbr_coarse", "--"), ("pbr_morphed", ":")):
-        ax.axhline(sub[name]["flip"], color="gray", ls=ls, lw=1, label=f"{name} (all held-out views)")
-    ax.set_xscale("log")
-    ax.set_xlabel("s per 128² image, 2 cores (labels: DDIM steps; squares: 1 step, mean of ×N draws, guidance g)", fontsize=8)
-    ax.set_ylabel("held-out ꟻLIP (lower is better)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    ax.set_title("Diffusion renderer: quality vs sampling cost")
-    return save_figure(fig, path)
 
 
 def views_figure(result: dict, work: str | Path, path: Path, per_case: int = 1, show_progress: bool = False) -> Path:
@@ -724,7 +535,7 @@ def views_figure(result: dict, work: str | Path, path: Path, per_case: int = 1, 
 
     from foundation.imageio import save_figure
 
-    from .gan import prepare_case as prepare
+    from ..gan import prepare_case as prepare
 
     if "main_run" not in result:
         raise UsageError("the diffrender result predates `main_run` (the main model's folder): rerun "
@@ -745,7 +556,7 @@ def views_figure(result: dict, work: str | Path, path: Path, per_case: int = 1, 
             for name in ("cyclegan", "morph_gan"):
                 if (work / c / name / "checkpoint.npz").is_file():
                     cols.append((name, load_heldout_predictions(work / c / name, list(v.test))[list(v.test).index(i)]))
-            img, _ = _sample(trained, _test_layers(v, "morphed", [i]), int(result["ddim_steps"]),
+            img, _ = sample_views(trained, heldout_layers(v, "morphed", [i]), int(result["ddim_steps"]),
                              float(result["guidance"]), 1, show_progress, int(result.get("draws", 1)))
             cols += [("diffusion", img[0, 0]), ("photo", v.photos[i])]
             rows.append((f"{c} view {i}", cols))
