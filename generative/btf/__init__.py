@@ -5,6 +5,8 @@ module        what
 ============  ================================================================================
 ``data``      the generative dataset: many fitted neural materials, path-traced swatches, keywords
 ``model``     diffusion over [T_off ‖ T_rgb] (circular, shifted cosine, Min-SNR, cube root, multiscale, CFG)
+``train``     its training on the shared loop; the run's keyword prior and chosen sampler
+``sample``    materials from prompts (keywords, an exemplar photo); `photoreal btf generate`
 ``evaluate``  family classifier, feature spaces, baselines, aligned ꟻLIP, seam ratio
 ============  ================================================================================
 
@@ -17,8 +19,9 @@ from .data import MaterialDataSettings, build_material_dataset, load_material_da
 from .evaluate import (ClassifierSettings, aligned_flip, classify, copy_baseline, crop_baseline, decode_all,
                        denoising_check, family_gaussian_baseline, gaussian_baseline, mean_pairwise, mnv2_features,
                        nearest_distances, phase_randomised_baseline, random_roll, seam_ratio, train_classifier)
-from .model import (MaterialPrompt, MatDiffSettings, data_digest, from_model_space, generate_material, load_matdiff,
-                    sample_materials, save_keyword_prior, save_sampler, to_model_space, train_matdiff)
+from .model import MatDiffSettings, from_model_space, to_model_space
+from .sample import MaterialPrompt, generate_material, sample_materials
+from .train import data_digest, load_matdiff, save_keyword_prior, save_sampler, train_matdiff
 
 __all__ = [
     "ClassifierSettings", "MatDiffSettings", "MaterialDataSettings", "MaterialPrompt", "aligned_flip",

@@ -307,9 +307,3 @@ def phase_randomised_baseline(x: np.ndarray, families: np.ndarray, per_family: i
             out[-1] += m.mean((1, 2), keepdims=True) - out[-1].mean((1, 2), keepdims=True)  # the DC term's phase
             fam.append(int(f))
     return np.stack(out).astype(np.float32), np.array(fam)
-
-
-__all__ = ["ClassifierSettings", "FamilyClassifier", "aligned_flip", "best_shift", "classifier_input", "classify",
-           "copy_baseline", "crop_baseline", "decode_all", "family_gaussian_baseline", "gaussian_baseline",
-           "mean_pairwise", "mnv2_features", "mosaic", "nearest_distances", "phase_randomised_baseline",
-           "random_roll", "seam_ratio", "train_classifier"]

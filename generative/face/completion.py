@@ -16,10 +16,12 @@ from foundation.loop import RunState, Stage, TrainingSummary
 
 from generative.diffusion import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, count_parameters, load_trained,
                                   make_scheduler, train_stage)
+
 from .data import FaceSet
 
 #: lit (3), seen (1), covered (1), the baseline's albedo (3), position (3) and normal (3) in the face frame
-from .encoding import COND_CHANNELS, RESIDUAL, at_resolution, condition, decode_albedo, encode_albedo, mirror, normalise_albedo
+from .encoding import (COND_CHANNELS, RESIDUAL, at_resolution, condition, decode_albedo, encode_albedo, mirror,
+                       normalise_albedo)
 
 
 # -- 1. completion + light homogenisation: a conditional diffusion model ---------------------------------------------

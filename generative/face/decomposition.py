@@ -16,10 +16,12 @@ from foundation.errors import CheckpointError, UsageError
 from foundation.loop import RunState, Stage
 
 from generative.diffusion import ConditionalDiffusion, OptimizerStage, train_stage
+
 from .data import FaceSet, TARGETS
 
 #: lit (3), seen (1), covered (1), the baseline's albedo (3), position (3) and normal (3) in the face frame
-from .encoding import BRANCHES, COND_CHANNELS, MAP_CHANNELS, VARIANTS, at_resolution, condition, decode_maps, encode_albedo, encode_maps, mirror, normalise_albedo
+from .encoding import (BRANCHES, COND_CHANNELS, MAP_CHANNELS, VARIANTS, at_resolution, condition, decode_maps,
+                       encode_albedo, encode_maps, mirror, normalise_albedo)
 from .completion import FaceModelResult, data_digest, load_completion
 
 

@@ -16,6 +16,7 @@ from foundation.errors import UsageError
 from foundation.loop import RunState, Stage
 
 from generative.diffusion import OptimizerStage, count_parameters, load_trained, train_stage
+
 from .data import FaceSet
 
 #: lit (3), seen (1), covered (1), the baseline's albedo (3), position (3) and normal (3) in the face frame

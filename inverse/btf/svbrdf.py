@@ -2,9 +2,11 @@
 periodic Voronoi cells, woven/tiled/board patterns and scikit-image's photographs made periodic. Every map tiles."""
 
 from __future__ import annotations
+
 import math
 from dataclasses import dataclass
 from typing import Callable, Sequence
+
 import numpy as np
 import mi_plugins  # noqa: F401  (sets the variant and registers ggx_uv)
 

@@ -6,7 +6,9 @@ module         what
 =============  ===========================================================================
 ``benchmark``  ground-truth maps + Mitsuba observations from a textured scan
 ``uv_bake``    UV-space geometry maps (position, normal, tangent) through Mitsuba's own parameterisation
-``fit``        the pyramid fit and the refinement through renders (stages of the shared loop), metrics
+``fit``        the pyramid fit through the UV-space shader (a stage of the shared loop), metrics
+``refine``     the refinement through full Mitsuba renders
+``batch``      `photoreal face fit` by paths (the unit a batch of benchmarks fans out)
 ``photo``      landmarks → template fit → unwrap → fill → delight → relight
 =============  ===========================================================================
 
@@ -16,9 +18,10 @@ Other features use only the names below.
 from .benchmark import (FaceBenchmark, FaceBenchmarkMeta, FaceBenchmarkSettings, HeldoutCamera, Light, normals_from_height,
                         orbit_direction, scan_frame, scan_scene, scan_texture, skin_relief, smooth_noise,
                         key_light, load_benchmark, make_benchmark, render_heldout, texel_observation)
-from .fit import (FaceFitMetrics, FaceFitReport, FaceFitResult, FaceFitSettings, RelitMetrics, RenderRefineSettings,
-                  evaluate_fit, fill_unobserved, fit_benchmark_dir, fit_benchmark_item, fit_face, integrate_normals, refine_through_renders,
-                  save_maps)
+from .batch import FaceFitReport, fit_benchmark_dir, fit_benchmark_item
+from .fit import (FaceFitMetrics, FaceFitResult, FaceFitSettings, RelitMetrics, evaluate_fit, fill_unobserved, fit_face,
+                  integrate_normals, save_maps)
+from .refine import RenderRefineSettings, refine_through_renders
 from .photo import (TEMPLATE, DelitTexture, PhotoFaceResult, PhotoFitSettings, fill_and_delight, check_landmarks, detect_landmarks, fit_template, load_landmarks,
                     photo_to_face)
 from .register import ScanRegistration, frontal_render, register_scan

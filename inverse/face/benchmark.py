@@ -568,3 +568,14 @@ def load_benchmark(path: str | Path) -> FaceBenchmark:
         if missing:
             raise UsageError(f"{path / name}: not this benchmark's layers (missing {', '.join(missing[:4])})")
     return bench
+
+
+def benchmark_digest(bench: FaceBenchmark) -> str:
+    """Digest of the benchmark's files (its content, not its path: a benchmark re-made in place is another one)."""
+    import hashlib
+
+    from foundation.files import file_digest
+
+    names = sorted(p.name for p in bench.path.iterdir() if p.suffix in (".exr", ".obj", ".json") and
+                   not p.name.startswith("."))
+    return hashlib.sha256("".join(f"{n}:{file_digest(bench.path / n)}" for n in names).encode()).hexdigest()[:16]

@@ -38,8 +38,10 @@ from foundation.mesh import load_obj
 from foundation.optim_state import load_optimizer_state, optimizer_state
 from mi_plugins.uv_shader import UVLight, UVMaps, UVView, shade_uv, unravel_channels
 
-from .benchmark import FaceBenchmark, Light
+from .benchmark import FaceBenchmark, Light, benchmark_digest
 from .uv_bake import bake_geometry
+
+
 
 
 @dataclass
@@ -168,15 +170,6 @@ class FaceFitResult:
 _MAPS = ("albedo", "slope", "roughness", "specular")
 
 
-def benchmark_digest(bench: FaceBenchmark) -> str:
-    """Digest of the benchmark's files (its content, not its path: a benchmark re-made in place is another one)."""
-    import hashlib
-
-    from foundation.files import file_digest
-
-    names = sorted(p.name for p in bench.path.iterdir() if p.suffix in (".exr", ".obj", ".json") and
-                   not p.name.startswith("."))
-    return hashlib.sha256("".join(f"{n}:{file_digest(bench.path / n)}" for n in names).encode()).hexdigest()[:16]
 
 
 class FaceFitStage(DrJitStage):
@@ -529,180 +522,8 @@ def evaluate_fit(bench: FaceBenchmark, result: FaceFitResult, relight: bool = Tr
 # -- fitting through full Mitsuba renders ------------------------------------------------------
 
 
-@dataclass
-class RenderRefineSettings:
-    iterations: int = 10
-    spp: int = 4
-    lr: float = 0.005
-    seed: int = 0
-
-    def __post_init__(self):
-        validate.integer("iterations", self.iterations, 0)
-        validate.integer("spp", self.spp, 1)
-        validate.positive("lr", self.lr)
-        validate.seed("seed", self.seed, 1_000_000)
-
-
-class RenderRefineStage(DrJitStage):
-    """L2 between ``prb`` renders of the ``ggx_uv`` scan and the benchmark's camera images, into the bitmaps."""
-
-    name = "refine through renders"
-    PREFIX = "scan.bsdf.brdf_0."
-
-    def __init__(self, bench: FaceBenchmark, maps: dict[str, np.ndarray], s: RenderRefineSettings):
-        from .benchmark import camera_sensor, directional_emitters, scan_scene
-
-        if not bench.camera:
-            raise UsageError(f"{bench.path}: benchmark has no camera images (made by an older version?)")
-        self.bench, self.maps, self.s = bench, maps, s
-        bs, meta = bench.settings, bench.meta
-        self.lights = meta.lights
-        centre = np.asarray(meta.centre)
-        self.scene = scan_scene(bench.mesh_path, maps, bs, directional_emitters(self.lights),
-                                integrator={"type": "prb", "max_depth": 2})
-        self.sensors = [mi.load_dict(camera_sensor(np.asarray(eye), centre, bs.render_res, meta.camera_fov))
-                        for eye in meta.views]
-        self.params = mi.traverse(self.scene)
-        self.keys = {n: self.PREFIX + f"{n}.data" for n in ("albedo", "roughness", "normal")}
-        self.irr = {k: mi.Color3f(self.params[f"light{k}.irradiance.value"]) for k in range(len(self.lights))}
-        self.targets = {key: mi.TensorXf(aligned(img)) for key, img in bench.camera.items()}
-        self.opt = mi.ad.Adam(lr=s.lr)
-        for key in self.keys.values():
-            self.opt[key] = self.params[key]
-        self.params.update(self.opt)
-
-    def fingerprint(self) -> dict:
-        import hashlib
-
-        h = hashlib.sha256()
-        for k in sorted(self.maps):
-            h.update(k.encode())
-            h.update(np.ascontiguousarray(self.maps[k], np.float32).tobytes())
-        return {"settings": self.s, "benchmark": benchmark_digest(self.bench), "start_maps": h.hexdigest()[:16]}
-
-    def state(self) -> dict:
-        return {"optimizer": optimizer_state(self.opt)}
-
-    def load_state(self, tree: dict) -> None:
-        load_optimizer_state(self.opt, tree["optimizer"], "refine optimizer")
-        self.params.update(self.opt)
-
-    def step(self, it: int) -> StepResult:
-        s, params = self.s, self.params
-        n_img = len(self.lights) * len(self.sensors)
-        total = 0.0
-        for k in range(len(self.lights)):
-            for j in range(len(self.lights)):  # one light at a time, as in the benchmark images
-                params[f"light{j}.irradiance.value"] = self.irr[j] if j == k else mi.Color3f(0.0)
-            params.update(self.opt)
-            for v, sensor in enumerate(self.sensors):
-                img = mi.render(self.scene, params, sensor=sensor, spp=s.spp, seed=s.seed + it * 1000 + k * 10 + v)
-                loss = dr.mean(dr.square(img[..., :3] - self.targets[f"v{v}_l{k}"]), axis=None) / n_img
-                dr.backward(loss)
-                total += float(loss.array[0])
-        return StepResult(total, self.grads_finite())
-
-    def apply(self, it: int) -> None:
-        opt, keys = self.opt, self.keys
-        opt.step()
-        opt[keys["albedo"]] = dr.clip(opt[keys["albedo"]], 0.0, 1.0)
-        opt[keys["roughness"]] = dr.clip(opt[keys["roughness"]], 0.05, 1.0)
-        opt[keys["normal"]] = dr.clip(opt[keys["normal"]], 0.0, 1.0)
-        self.params.update(opt)
-
-    def finish(self, run: RunState) -> tuple[dict[str, np.ndarray], list[float]]:
-        out = dict(self.maps)
-        out["albedo"] = np.array(self.opt[self.keys["albedo"]])
-        out["roughness"] = np.array(self.opt[self.keys["roughness"]])
-        n = np.array(self.opt[self.keys["normal"]]) * 2.0 - 1.0
-        out["normal"] = (n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)).astype(np.float32)
-        return out, list(run.losses)
-
-    def close(self) -> None:
-        self.scene = self.params = self.opt = None
-
-
-def refine_through_renders(bench: FaceBenchmark, maps: dict[str, np.ndarray], s: RenderRefineSettings | None = None,
-                           show_progress: bool = True,
-                           checkpoint: str | Path | None = None) -> tuple[dict[str, np.ndarray], list[float]]:
-    """Refine albedo, roughness and normal maps by differentiating *camera renders* (``prb``).
-
-    The scan is rendered with the ``ggx_uv`` plugin from the benchmark's views
-    under each training light and compared (L2) with the benchmark's camera
-    images; gradients flow through Mitsuba into the plugin's bitmap textures.
-    This exercises the plugin's derivatives the way an image-space pipeline
-    would use them; the UV-space fit is the fast path. Returns the refined
-    maps and the per-iteration camera-space loss.
-    """
-    s = s or RenderRefineSettings()
-    stage = RenderRefineStage(bench, maps, s)
-    try:
-        return run_loop(stage, LoopSettings(steps=s.iterations, checkpoint_every=5), checkpoint=checkpoint,
-                        show_progress=show_progress)
-    finally:
-        stage.close()
 
 
 # -- the `photoreal face fit` workflow ------------------------------------------------------------
 
 
-@dataclass
-class FaceFitReport:
-    """``photoreal face fit``'s JSON: the final maps' metrics, and the UV-space fit's when refined after it."""
-
-    metrics: FaceFitMetrics
-    fit_settings: FaceFitSettings
-    benchmark: str
-    training: TrainingSummary
-    uv_fit: FaceFitMetrics | None = None  #: before the refinement through renders
-    render_refine: RenderRefineSettings | None = None
-    camera_loss: list[float] = field(default_factory=list)  #: per refinement step
-
-
-def fit_benchmark_dir(bench_dir: str | Path, json_path: str | Path | None, maps_out: str | Path | None,
-                      settings: FaceFitSettings, relight: bool = True, show_progress: bool = True,
-                      refine: RenderRefineSettings | None = None) -> FaceFitReport:
-    """`photoreal face fit`: fit, evaluate against the ground truth, write maps and metrics.
-
-    With ``refine``, the UV-space fit is followed by refinement through full camera renders
-    (``prb`` through the ggx_uv plugin); both stages are scored. Output locations are checked
-    before the fit; both stages checkpoint beside the JSON (or the maps) and resume.
-    """
-    from foundation.files import check_output_dir, check_output_file, write_json
-    from foundation.records import to_json
-
-    from .benchmark import load_benchmark
-
-    if json_path is not None:
-        check_output_file(json_path, "--json")
-    if maps_out is not None:
-        check_output_dir(maps_out, "maps.exr", "--maps")
-    bench = load_benchmark(bench_dir)
-    base = Path(json_path) if json_path is not None else (Path(maps_out) / "fit" if maps_out is not None else None)
-    ckpt = base.with_name(base.stem + ".ckpt.npz") if base is not None else None
-    result = fit_face(bench, settings, show_progress=show_progress, checkpoint=ckpt)
-    metrics = evaluate_fit(bench, result, relight=relight)
-    report = FaceFitReport(metrics, settings, str(Path(bench_dir)), result.training)
-    if refine is not None and refine.iterations > 0:
-        t0 = time.perf_counter()
-        rckpt = base.with_name(base.stem + ".refine.ckpt.npz") if base is not None else None
-        maps, history = refine_through_renders(bench, result.maps, refine, show_progress=show_progress,
-                                               checkpoint=rckpt)
-        result.maps = maps
-        result.seconds += time.perf_counter() - t0
-        report = FaceFitReport(evaluate_fit(bench, result, relight=relight), settings, str(Path(bench_dir)),
-                               result.training, uv_fit=metrics, render_refine=refine, camera_loss=history)
-    if maps_out is not None:
-        save_maps(result.maps, Path(maps_out))
-    if json_path is not None:
-        write_json(json_path, to_json(report))
-    return report
-
-
-def fit_benchmark_item(bench_dir: str, json_path: str, maps_out: str | None, settings: FaceFitSettings,
-                       refine: RenderRefineSettings | None = None) -> dict:
-    """:func:`fit_benchmark_dir` by paths, quietly (the unit that fitting a folder of benchmarks fans out)."""
-    r = fit_benchmark_dir(bench_dir, json_path, maps_out, settings, show_progress=False, refine=refine)
-    m = r.metrics
-    return {"benchmark": str(bench_dir), "albedo_psnr": m.albedo_psnr, "normal_err_deg": m.normal_err_deg,
-            "relit_psnr": m.relit_psnr, "seconds": m.seconds}

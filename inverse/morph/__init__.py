@@ -41,7 +41,8 @@ from .settings import MORPH_SEED_MAX, PLANARITY_WHERE, PRIOR_TIES, MorphSettings
 from .stage import MorphStage, start_mesh
 from .suite import SUITE, KINDS, UNSEEN, suite_mesh
 from .views import morph_views
-from .scene import MODES, mask_integrator, mask_scene, morph_scene, photo_at, photo_masks, projective_integrator, render_views, saturated_silhouette
+from .scene import (MODES, mask_integrator, mask_scene, morph_scene, photo_at, photo_masks, projective_integrator,
+                    render_views, saturated_silhouette)
 
 # The GCN variant is the one part that needs torch: it loads on first use, so `import inverse.morph` (and
 # `photoreal morph … --help`) stays free of it.

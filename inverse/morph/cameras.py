@@ -1,7 +1,9 @@
 """Cameras of a morph benchmark: a drone-like orbit, the distance that frames an object, Mitsuba sensors."""
 
 from __future__ import annotations
+
 from dataclasses import dataclass
+
 import numpy as np
 import mi_plugins  # noqa: F401
 import mitsuba as mi

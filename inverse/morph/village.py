@@ -2,7 +2,9 @@
 meshes that have none."""
 
 from __future__ import annotations
+
 from dataclasses import dataclass
+
 import numpy as np
 import mi_plugins  # noqa: F401
 import mitsuba as mi

@@ -41,7 +41,8 @@ from foundation.progress import progress_bar
 from inverse.btf import (FAMILIES, BTFRenderSettings, OptimSettings, load_dataset, predict,
                          psnr_pair, render_dataset, split_slices, train_basis, train_per_material)
 from foundation.pool import Item, PoolSettings, default_workers, run_items
-from mi_plugins.neural_basis import Basis, BasisConfig, CoopNet, NeuralMaterial, load_material, save_basis, save_material
+from mi_plugins.neural_basis import (Basis, BasisConfig, CoopNet, NeuralMaterial, load_material, save_basis,
+                                     save_material)
 
 
 @dataclass

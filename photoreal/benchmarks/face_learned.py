@@ -94,7 +94,8 @@ def superres_scores(pred: dict[str, np.ndarray], gt: dict[str, np.ndarray], mask
 def cross_model_fit(scan: str, work: Path, res: int, seed: int, show_progress: bool) -> dict:
     """The existing fit on four benchmarks of ``scan``: its own model, unknown lights, another BSDF, real HDRIs."""
     from foundation.records import to_json
-    from inverse.face import FaceBenchmarkSettings, FaceFitSettings, evaluate_fit, fit_face, load_benchmark, make_benchmark
+    from inverse.face import (FaceBenchmarkSettings, FaceFitSettings, evaluate_fit, fit_face, load_benchmark,
+                              make_benchmark)
 
     from generative.face import scan_path
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +18,8 @@ from foundation.errors import UsageError
 from generative.btf import data as md
 from generative.btf import evaluate as me
 from generative.btf import model as mm
+from generative.btf import sample as ms
+from generative.btf import train as mt
 from mi_plugins.neural_basis import check_pair, load_basis, load_material
 from photoreal.cli import main
 
@@ -98,7 +99,7 @@ def test_ddim_with_an_oracle_denoiser_returns_the_data_point():
 
     model.forward = oracle
     for clip in (None, 1.0):
-        out = mm.sample_materials(model, s, [mm.MaterialPrompt()], 16, steps=10, guidance=1.0, clip=clip)
+        out = ms.sample_materials(model, s, [ms.MaterialPrompt()], 16, steps=10, guidance=1.0, clip=clip)
         np.testing.assert_allclose(out[0], x_star[0].numpy(), atol=1e-5)
     # the bench's denoising check: the oracle's x̂₀ is exact; no denoising errs by σ²/α² on average (4096 values:
     # relative sd √(2/4096) = 2.2 %, so 10 % is 4.5 sd)
@@ -108,7 +109,7 @@ def test_ddim_with_an_oracle_denoiser_returns_the_data_point():
         assert r["blur"] > r["model"]
     # a 2× texture is sampled on the training size's schedule (a wrong schedule misses x* by O(1))
     x_star = torch.rand(1, 16, 32, 32) * 1.6 - 0.8
-    out = mm.sample_materials(model, s, [mm.MaterialPrompt()], 32, steps=10, guidance=1.0)
+    out = ms.sample_materials(model, s, [ms.MaterialPrompt()], 32, steps=10, guidance=1.0)
     np.testing.assert_allclose(out[0], x_star[0].numpy(), atol=1e-5)
 
 
@@ -148,11 +149,11 @@ def _toy_set(n: int = 8, res: int = 8, seed: int = 0) -> md.MaterialSet:
 def test_training_resumes_exactly_and_generates_into_a_neural_btf_scene(tmp_path, capsys):
     data = _toy_set()
     s = mm.MatDiffSettings(**TINY, steps=6)
-    whole = mm.train_matdiff(data, tmp_path / "a", s, show_progress=False)
+    whole = mt.train_matdiff(data, tmp_path / "a", s, show_progress=False)
     assert whole.training.steps == 6 and np.isfinite(whole.training.loss_last)
-    assert mm.train_matdiff(data, tmp_path / "b", s, budget_steps=3, show_progress=False) is None
-    mm.train_matdiff(data, tmp_path / "b", s, show_progress=False)
-    (ma, _), (mb, _) = mm.load_matdiff(tmp_path / "a"), mm.load_matdiff(tmp_path / "b")
+    assert mt.train_matdiff(data, tmp_path / "b", s, budget_steps=3, show_progress=False) is None
+    mt.train_matdiff(data, tmp_path / "b", s, show_progress=False)
+    (ma, _), (mb, _) = mt.load_matdiff(tmp_path / "a"), mt.load_matdiff(tmp_path / "b")
     for (k, a), b in zip(ma.state_dict().items(), mb.state_dict().values()):
         assert torch.equal(a, b), k  # one thread: a resumed run is the uninterrupted run, bit for bit
 
@@ -172,46 +173,46 @@ def test_training_resumes_exactly_and_generates_into_a_neural_btf_scene(tmp_path
                  "--out", str(tmp_path / "ex.npz")]) == 0
     capsys.readouterr()
     # a run's recorded sampler (what `bench matdiff` chose) is the default: the same material as those arguments
-    assert mm.run_sampler(tmp_path / "a")["source"] == "default"
-    mm.save_sampler(tmp_path / "a", 3, 2.0, "test")
+    assert mt.run_sampler(tmp_path / "a")["source"] == "default"
+    mt.save_sampler(tmp_path / "a", 3, 2.0, "test")
     main(["btf", "generate", "--run", str(tmp_path / "a"), "--keywords", "rough leather", "--size", "16",
           "--out", str(tmp_path / "rec.npz")])
     rec = json.loads(capsys.readouterr().out)
-    assert rec["steps"] == 3 and rec["guidance"] == 2.0 and rec["sampler_from"].endswith(mm.SAMPLER_FILE)
+    assert rec["steps"] == 3 and rec["guidance"] == 2.0 and rec["sampler_from"].endswith(mt.SAMPLER_FILE)
     np.testing.assert_array_equal(load_material(tmp_path / "rec.npz").t_rgb, mat.t_rgb)
     main(["btf", "generate", "--run", str(tmp_path / "a"), "--keywords", "wood", "--steps", "2", "--size", "8",
           "--out", str(tmp_path / "half.npz")])
     assert json.loads(capsys.readouterr().out)["sampler_from"].startswith("arguments and ")
     for bad in ('{"steps": "many", "guidance": 2}', '{"steps": 2.7, "guidance": 2}'):
-        (tmp_path / "a" / mm.SAMPLER_FILE).write_text(bad)
+        (tmp_path / "a" / mt.SAMPLER_FILE).write_text(bad)
         assert main(["btf", "generate", "--run", str(tmp_path / "a"), "--keywords", "wood", "--out",
                      str(tmp_path / "bad.npz")]) == 2
-        assert mm.SAMPLER_FILE in capsys.readouterr().err and not (tmp_path / "bad.npz").exists()
+        assert mt.SAMPLER_FILE in capsys.readouterr().err and not (tmp_path / "bad.npz").exists()
     # both given on the command line: the record is not read
     assert main(["btf", "generate", "--run", str(tmp_path / "a"), "--keywords", "wood", "--steps", "2", "--guidance",
                  "1", "--size", "8", "--out", str(tmp_path / "args.npz")]) == 0
     assert json.loads(capsys.readouterr().out)["sampler_from"] == "arguments"
-    (tmp_path / "a" / mm.SAMPLER_FILE).unlink()
+    (tmp_path / "a" / mt.SAMPLER_FILE).unlink()
     # a random material: keywords drawn from the training materials' triples (recorded by train_matdiff)
     main(["btf", "generate", "--run", str(tmp_path / "a"), "--from-prior", "--seed", "3", "--size", "16",
           "--steps", "2", "--out", str(tmp_path / "prior.npz")])
     drawn = json.loads(capsys.readouterr().out)
     assert drawn["keywords_from_prior"] and drawn["keywords"] in data.keywords
-    assert mm.prior_keywords(tmp_path / "a", 1, 3)[0] == drawn["keywords"]
+    assert mt.prior_keywords(tmp_path / "a", 1, 3)[0] == drawn["keywords"]
     # 400 draws over 8 equally likely triples miss one with probability < 8·(7/8)⁴⁰⁰ ≈ 5·10⁻²³
-    assert {tuple(k) for k in mm.prior_keywords(tmp_path / "a", 400, 0)} == {tuple(k) for k in data.keywords}
+    assert {tuple(k) for k in mt.prior_keywords(tmp_path / "a", 400, 0)} == {tuple(k) for k in data.keywords}
     with pytest.raises(UsageError, match="data digest"):  # a prior is recorded only for the run's own materials
-        mm.save_keyword_prior(tmp_path / "a", _toy_set(5))
+        mt.save_keyword_prior(tmp_path / "a", _toy_set(5))
     # the counts are the weights: a triple held by 3 of 4 materials is drawn ~3/4 of the time (2000 draws: ±0.01)
     w = tmp_path / "w"
     w.mkdir()
-    (w / mm.PRIOR_FILE).write_text(json.dumps({"triples": [["wood", "red", "rough"], ["metal", "", "polished"]],
+    (w / mt.PRIOR_FILE).write_text(json.dumps({"triples": [["wood", "red", "rough"], ["metal", "", "polished"]],
                                                "counts": [3, 1]}))
-    draws = mm.prior_keywords(w, 2000, 0)
+    draws = mt.prior_keywords(w, 2000, 0)
     assert abs(np.mean([k[0] == "wood" for k in draws]) - 0.75) < 0.05 and ["metal", None, "polished"] in draws
-    (w / mm.PRIOR_FILE).write_text(json.dumps({"triples": [["wood", "red"]], "counts": [1]}))
+    (w / mt.PRIOR_FILE).write_text(json.dumps({"triples": [["wood", "red"]], "counts": [1]}))
     with pytest.raises(UsageError, match="malformed keyword prior"):
-        mm.prior_keywords(w, 1, 0)
+        mt.prior_keywords(w, 1, 0)
 
     scene = mi.load_dict({
         "type": "scene", "integrator": {"type": "direct"},
@@ -232,9 +233,9 @@ def test_bad_input_names_the_thing(tmp_path, capsys):
     assert main(["btf", "generate", "--run", str(tmp_path), "--keywords", "wood", "--out", str(tmp_path / "x.png")]) == 2
     assert ".npz" in capsys.readouterr().err
     with pytest.raises(UsageError, match="at least 2"):
-        mm.train_matdiff(_toy_set(1), tmp_path / "r", mm.MatDiffSettings(**TINY))
+        mt.train_matdiff(_toy_set(1), tmp_path / "r", mm.MatDiffSettings(**TINY))
     with pytest.raises(UsageError, match="divide by"):
-        mm.train_matdiff(_toy_set(4, res=7), tmp_path / "r", mm.MatDiffSettings(**TINY))
+        mt.train_matdiff(_toy_set(4, res=7), tmp_path / "r", mm.MatDiffSettings(**TINY))
     with pytest.raises(UsageError, match="index.json"):
         md.load_material_dataset(tmp_path)
 
@@ -352,7 +353,7 @@ def test_ema_weights_are_the_running_average_that_sampling_loads(tmp_path):
     s = mm.MatDiffSettings(**TINY, steps=3, ema=0.5)
     raws = [mm.build_model(s).state_dict()]
     for n in (1, 2, 3):
-        mm.train_matdiff(data, tmp_path / f"r{n}", mm.MatDiffSettings(**TINY, steps=n, ema=0.5), show_progress=False)
+        mt.train_matdiff(data, tmp_path / f"r{n}", mm.MatDiffSettings(**TINY, steps=n, ema=0.5), show_progress=False)
         from foundation.loop import read_checkpoint
 
         raws.append({k: torch.as_tensor(v) for k, v in read_checkpoint(tmp_path / f"r{n}" / "checkpoint.npz").stage["model"].items()})
@@ -361,7 +362,7 @@ def test_ema_weights_are_the_running_average_that_sampling_loads(tmp_path):
     for it in range(3):
         d = min(0.5, (1.0 + it) / (10.0 + it))
         e = d * e + (1 - d) * raws[it + 1][key]
-    loaded, _ = mm.load_matdiff(tmp_path / "r3")
+    loaded, _ = mt.load_matdiff(tmp_path / "r3")
     torch.testing.assert_close(loaded.state_dict()[key], e, rtol=1e-5, atol=1e-7)
     assert not torch.equal(loaded.state_dict()[key], raws[3][key])  # not the raw weights
 
@@ -370,14 +371,14 @@ def test_crop_training_sees_wrapped_crops_with_zero_padding_and_samples_stay_cir
     data = _toy_set(res=16)
     s = mm.MatDiffSettings(**TINY, steps=2, train_crop=8)
     seen = []
-    stage = mm.MatDiffStage(data, dataclasses.replace(s, feature_scale=1.0, train_res=16),
+    stage = mt.MatDiffStage(data, dataclasses.replace(s, feature_scale=1.0, train_res=16),
                             np.zeros((8, 4, mm.EXEMPLAR_TOKENS, mm.FEATURE_DIM), np.float32))
     conv = stage.model.unet.conv_in
     conv.register_forward_hook(lambda m, i, o: seen.append((tuple(i[0].shape[-2:]), m.padding_mode)))
     r = stage.step(0)
     assert np.isfinite(r.loss) and seen == [((8, 8), "zeros")]  # a crop is not periodic: no wrap-around in training
     assert conv.padding_mode == "circular"  # restored: sampling at any size still tiles
-    whole = mm.train_matdiff(data, tmp_path / "c", s, show_progress=False)
+    whole = mt.train_matdiff(data, tmp_path / "c", s, show_progress=False)
     assert whole.training.steps == 2 and np.isfinite(whole.training.loss_last)
     with pytest.raises(UsageError, match="train_crop"):
         mm.MatDiffSettings(**TINY, train_crop=3)  # the UNet halves the size once
@@ -394,35 +395,35 @@ def test_device_names_weights_only_runs_and_the_bench_main_run_check(tmp_path):
         assert torch_device("cuda").startswith("cuda")
     else:  # the CPU machines this suite runs on: asking for a GPU is refused by name, before any training
         with pytest.raises(UsageError, match="--device cuda: torch sees no CUDA device"):
-            mm.train_matdiff(_toy_set(), tmp_path / "g", mm.MatDiffSettings(**TINY, steps=2), device="cuda")
+            mt.train_matdiff(_toy_set(), tmp_path / "g", mm.MatDiffSettings(**TINY, steps=2), device="cuda")
         assert not (tmp_path / "g").exists()
     with pytest.raises(UsageError, match="not a torch device"):
         torch_device("gpu0")
 
     data = _toy_set()
     s = mm.MatDiffSettings(**TINY, steps=3, ema=0.5)
-    mm.train_matdiff(data, tmp_path / "full", s, show_progress=False)
+    mt.train_matdiff(data, tmp_path / "full", s, show_progress=False)
     slim = tmp_path / "slim"
     slim.mkdir()
     weights_only(tmp_path / "full" / "checkpoint.npz", slim / "checkpoint.npz", keep=("ema",))
     (slim / "metrics.json").write_text((tmp_path / "full" / "metrics.json").read_text())
     assert "opt" not in read_checkpoint(slim / "checkpoint.npz").stage
     assert (slim / "checkpoint.npz").stat().st_size < 0.4 * (tmp_path / "full" / "checkpoint.npz").stat().st_size
-    (a, _), (b, _) = mm.load_matdiff(tmp_path / "full"), mm.load_matdiff(slim)  # sampling loads the same EMA weights
+    (a, _), (b, _) = mt.load_matdiff(tmp_path / "full"), mt.load_matdiff(slim)  # sampling loads the same EMA weights
     assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
     with pytest.raises(CheckpointError, match="weights-only"):
-        mm.train_matdiff(data, slim, s, show_progress=False)
+        mt.train_matdiff(data, slim, s, show_progress=False)
     # float16 weights: half the size again, each weight within float16's rounding (relative 2⁻¹¹) of its float32
     f16 = tmp_path / "f16"
     f16.mkdir()
     weights_only(tmp_path / "full" / "checkpoint.npz", f16 / "checkpoint.npz", keep=("ema",), half=True)
     assert (f16 / "checkpoint.npz").stat().st_size < 0.6 * (slim / "checkpoint.npz").stat().st_size
-    c, _ = mm.load_matdiff(f16)
+    c, _ = mt.load_matdiff(f16)
     for (k, x), y in zip(a.state_dict().items(), c.state_dict().values()):
         assert y.dtype == x.dtype, k  # the model stays float32
         if x.is_floating_point():
             assert torch.allclose(x, y, rtol=2.0 ** -11, atol=6e-8), k
-    mm.train_matdiff(data, tmp_path / "half", s, budget_steps=1, show_progress=False)
+    mt.train_matdiff(data, tmp_path / "half", s, budget_steps=1, show_progress=False)
     with pytest.raises(CheckpointError, match="not finished"):
         weights_only(tmp_path / "half" / "checkpoint.npz", tmp_path / "x.npz")
 

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import skimage.data
 
-from inverse.face_photo import detect_landmarks
+from inverse.face import detect_landmarks
 
 if __name__ == "__main__":
     np.save(Path(__file__).with_name("astronaut_landmarks.npy"), detect_landmarks(skimage.data.astronaut()))

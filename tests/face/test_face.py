@@ -123,7 +123,7 @@ def test_unknown_lighting_with_wrong_init_stays_finite_and_bounded(small_benchma
 
 def test_refinement_through_camera_renders_reduces_albedo_error(small_benchmark):
     """Gradients through Mitsuba renders of the ggx_uv plugin move a wrong albedo towards the truth."""
-    from inverse.face.fit import RenderRefineSettings, refine_through_renders
+    from inverse.face.refine import RenderRefineSettings, refine_through_renders
 
     gt = small_benchmark.ground_truth
     start = dict(gt, albedo=np.clip(gt["albedo"] * 0.7 + 0.05, 0, 1))

@@ -307,7 +307,8 @@ def test_key_light_matches_mitsubas_environment_sampling(tmp_path):
 
 
 def test_principled_hdri_benchmark_is_fit_and_scored(tmp_path):
-    from inverse.face import FaceBenchmarkSettings, FaceFitSettings, evaluate_fit, fit_face, load_benchmark, make_benchmark
+    from inverse.face import (FaceBenchmarkSettings, FaceFitSettings, evaluate_fit, fit_face, load_benchmark,
+                              make_benchmark)
 
     bs = FaceBenchmarkSettings(uv_res=16, n_lights=1, views=((0.0, 0.0),), heldout_hdris=("studio",), render_res=16,
                                render_spp=4, observation_bsdf="principled", lighting="hdri", observation_spp=4,

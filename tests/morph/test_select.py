@@ -302,7 +302,7 @@ def test_validation_split_spreads_over_the_orbit():
 
 
 def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
-    from photoreal.demo import _colour_why
+    from photoreal.demo.morph import _colour_why
     from inverse.morph.results import ColourPriorDecision, ColourSelection
     from types import SimpleNamespace
 
@@ -314,7 +314,7 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
     assert "0.0296" in _colour_why(rule)
     given = SimpleNamespace(colour_selection=None, colour_prior=ColourPriorDecision(0.1, False, None))
     assert _colour_why(given) == "given"
-    from photoreal.demo import _light_why
+    from photoreal.demo.morph import _light_why
     from inverse.morph.results import LightSelection
     sel = SimpleNamespace(light_selection=LightSelection("start_2", 200, 0.0120, 0.0115, True, 9.0, every=100,
                                                          colour_lambda=10.0, margin=0.015))
@@ -323,7 +323,7 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
     assert _light_why(off) == "off"
     assert _light_why(SimpleNamespace(light_selection=None, settings=MorphSettings(indirect_every=50))) == \
         "given: light estimate every 50 iterations, colour λ 0"
-    from photoreal.demo import _step_why
+    from photoreal.demo.morph import _step_why
     from inverse.morph.results import StepSelection
     kept = SimpleNamespace(step_selection=StepSelection("start_2", 200, 0.0120, 0.0108, True, 9.0, quantile=0.9,
                                                         lr=0.0125, margin=0.015))
@@ -331,7 +331,7 @@ def test_the_demo_says_why_the_colour_prior_ran_as_it_did():
                                "quantile step, 0.0120 with uniform Adam (kept only 1.5% or more below)")
     assert _step_why(SimpleNamespace(step_selection=replace(kept.step_selection, kept=False))).startswith("uniform Adam:")
     assert _step_why(SimpleNamespace(step_selection=None, settings=MorphSettings())) == "uniform Adam (given)"
-    from photoreal.demo import _where
+    from photoreal.demo.morph import _where
     from inverse.morph.results import PlanarityDecision
     gated = PlanarityDecision(0.1, False, None, where="seen", edges=980, edges_all=1000)
     assert _where(SimpleNamespace(planarity=gated)) == \

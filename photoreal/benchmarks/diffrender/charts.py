@@ -1,7 +1,9 @@
 """The diffusion-renderer bench's sweep chart: ꟻLIP against sampling seconds per model size."""
 
 from __future__ import annotations
+
 from pathlib import Path
+
 import mi_plugins  # noqa: F401
 
 

@@ -1,10 +1,13 @@
 """What the diffusion-renderer bench measures with: paired image metrics, sampling of held-out views, training throughput."""
 
 from __future__ import annotations
+
 import time
+
 import numpy as np
 import torch
 import mi_plugins  # noqa: F401
+
 from foundation.metrics import image_metrics
 from foundation.threads import torch_threads
 from generative.diffrender import (DiffRenderSettings,

@@ -1,11 +1,14 @@
 """Noise-free references of held-out views and distribution metrics (MobileNetV2-KID / FID) against photo sets."""
 
 from __future__ import annotations
+
 import json
 from pathlib import Path
+
 import numpy as np
 import mi_plugins  # noqa: F401
 import mitsuba as mi
+
 from foundation.features import fid, image_features, kid, kid_std, spatial_features
 from foundation.files import cached_arrays, file_digest
 from foundation.scene import recompose

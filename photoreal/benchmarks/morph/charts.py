@@ -1,6 +1,7 @@
 """Charts of `photoreal bench morph`: the suite's convergence traces, accuracy against time of the cases."""
 
 from __future__ import annotations
+
 from pathlib import Path
 
 

@@ -1,0 +1,108 @@
+"""The report's page: its settings, sections stitched into ``index.html``, figures, tables, benchmark results read from the bench folder."""
+
+from __future__ import annotations
+
+import html
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from foundation import validate
+from foundation.files import read_json, write_text
+
+from ..benchmarks import json_name
+
+
+@dataclass
+class DemoSettings:
+    resolution: int = 256  #: image side of the renders (the face's camera renders: at most 192; the photo's relit: 256)
+    spp: int = 64  #: samples per pixel (the face's camera renders and the photo's relit: at most 64)
+    seed: int = 0
+    face: bool = True
+    face_uv_res: int = 256
+    morph_iterations: int = 100  #: 0 skips the morphing section
+    btf: bool = True  #: neural materials scene (+ `photoreal bench btf` tables when present)
+    plugin_bench: bool = True  #: time ggx_uv against principled (a short run of `photoreal bench plugins`)
+
+    def __post_init__(self):
+        validate.integer("resolution", self.resolution, 8, 4096)
+        validate.integer("spp", self.spp, 1)
+        validate.seed("seed", self.seed)
+        validate.integer("face_uv_res", self.face_uv_res, 16, 4096)
+        validate.integer("morph_iterations", self.morph_iterations, 0)
+
+
+def add_section(out_dir: Path, key: str, title: str, body_html: str) -> Path:
+    """Store one report section (HTML fragment); index.html is rebuilt from all of them."""
+    path = Path(out_dir) / "sections" / f"{key}.html"
+    return write_text(path, f"<section id='{html.escape(key)}'><h2>{html.escape(title)}</h2>\n{body_html}\n</section>\n")
+
+
+def write_index(out_dir: Path) -> Path:
+    out_dir = Path(out_dir)
+    sections = sorted((out_dir / "sections").glob("*.html"))
+    body = "\n".join(p.read_text() for p in sections)
+    page = f"""<!doctype html>
+<html><head><meta charset="utf-8"><title>photoreal demo report</title>
+<style>
+body {{ font-family: sans-serif; max-width: 1200px; margin: 2em auto; color: #222; }}
+figure {{ display: inline-block; margin: 0.4em; text-align: center; }}
+figure img {{ width: 240px; image-rendering: pixelated; border: 1px solid #ccc; }}
+figcaption {{ font-size: 0.8em; }}
+table {{ border-collapse: collapse; margin: 0.5em 0; }}
+td, th {{ border: 1px solid #bbb; padding: 0.2em 0.6em; text-align: right; }}
+</style></head><body>
+<h1>photoreal — demo report</h1>
+<p>Generated {time.strftime('%Y-%m-%d %H:%M:%S')} by <code>make demo</code>.</p>
+{body}
+</body></html>
+"""
+    return write_text(out_dir / "index.html", page)
+
+
+def figure(src: str, caption: str) -> str:
+    return f"<figure><img src='{html.escape(src)}'><figcaption>{html.escape(caption)}</figcaption></figure>"
+
+
+def table(rows: list[dict], cols: list[str]) -> str:
+    def fmt(v):
+        if isinstance(v, float):  # small errors (MSE ~1e-3) keep 4 significant digits
+            return f"{v:.4g}" if 0 < abs(v) < 0.1 else f"{v:.3f}"
+        return html.escape(str(v))
+
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
+    body = "".join("<tr>" + "".join(f"<td>{fmt(r.get(c, ''))}</td>" for c in cols) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def bench_json(bench_dir: Path | None, name: str) -> dict | None:
+    """Benchmark ``name``'s JSON (as `photoreal bench all` names it) from ``bench_dir`` if it is there; else None."""
+    path = None if bench_dir is None else Path(bench_dir) / json_name(name)
+    if path is None or not path.is_file():
+        return None
+    return read_json(path, "benchmark result")
+
+
+def copy_chart(result: dict, bench_dir: Path | None, dest: Path) -> bool:
+    """Copy a benchmark's chart (found beside its JSON, by the file name it recorded) into the report."""
+    import shutil
+
+    if not result.get("chart") or bench_dir is None:
+        return False
+    src = Path(bench_dir) / Path(result["chart"]).name
+    if not src.is_file():
+        return False
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, dest)
+    return True
+
+
+def bench_section(out_dir: Path, bench: dict) -> None:
+    rows = "".join(
+        f"<tr><th>{k}</th><td>{bench[k]:.3f}</td></tr>"
+        for k in ("ggx_uv_ms", "principled_ms", "ggx_uv_vs_principled", "compile_s")
+    )
+    add_section(out_dir, "20_bench_plugins", "Plugin speed: ggx_uv vs builtin principled",
+                f"<table>{rows}</table><p>{html.escape(bench.get('scene', ''))}; "
+                f"{bench['settings']['resolution']}², {bench['settings']['spp']} spp, median of "
+                f"{bench['settings']['repetitions'] * bench['settings']['rounds']} renders after warm-up.</p>")
