@@ -205,13 +205,14 @@ def jsonable(x: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")
 
 
-def to_json(data: Any) -> str:
+def json_text(data: Any) -> str:
+    """``data`` as indented JSON text (numpy values, paths and dataclasses allowed)."""
     return json.dumps(data, indent=2, default=jsonable) + "\n"
 
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:
     """Write ``data`` as indented JSON, atomically (numpy values, paths and dataclasses allowed)."""
-    return write_text(path, to_json(data))
+    return write_text(path, json_text(data))
 
 
 def read_json(path: str | os.PathLike, what: str = "JSON file", expect: type = dict) -> Any:
