@@ -68,6 +68,56 @@ class PoolSettings:
         validate.integer("retries", self.retries, 0, 100)
         if self.ray is not None and self.workers < 1:
             raise UsageError("workers must be ≥ 1 with ray (how many tasks run at a time)")
+        if self.ray is not None:
+            check_ray_address(self.ray)  # before any work: an unreachable cluster fails in seconds, in one line
+
+
+RAY_CONNECT_S = 3.0  #: how long reaching a cluster's address may take before it is refused
+
+
+def _ray_host_port(address: str) -> tuple[str, int]:
+    """(host, port) of a Ray address ``HOST:PORT`` or ``ray://HOST:PORT``; a malformed one is refused by name."""
+    rest = address.split("://", 1)[1] if "://" in address else address
+    host, sep, port = rest.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise UsageError(f"--ray {address}: not 'local', 'auto' or HOST:PORT")
+    return host.strip("[]"), int(port)
+
+
+def check_ray_address(address: str, timeout: float = RAY_CONNECT_S) -> None:
+    """Refuse, naming ``--ray``, a cluster address that nothing answers at within ``timeout`` seconds ("local"
+    starts Ray here; "auto" must find a cluster this machine started, as Ray's own lookup does)."""
+    import socket
+
+    if address == "local":
+        return
+    if address == "auto":
+        found = os.environ.get("RAY_ADDRESS") or _current_cluster()
+        if not found:
+            raise UsageError("--ray auto: no Ray cluster runs on this machine (start one with `ray start --head`, or "
+                             "give HOST:PORT)")
+        address = found
+    host, port = _ray_host_port(address)
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            pass
+    except OSError as exc:
+        why = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or type(exc).__name__)
+        raise UsageError(f"--ray {address}: cannot reach {host}:{port} ({why}; waited at most {timeout:g} s)") from None
+
+
+def _current_cluster() -> str | None:
+    """The address Ray's ``ray start`` on this machine recorded, if any."""
+    import tempfile
+
+    for folder in {Path(tempfile.gettempdir()) / "ray", Path("/tmp/ray")}:
+        try:
+            text = (folder / "ray_current_cluster").read_text().strip()
+        except OSError:
+            continue
+        if text:
+            return text
+    return None
 
 
 def default_workers() -> int:

@@ -4,12 +4,14 @@ a failing item or a dying worker is reported while the rest finish; a rerun skip
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from foundation import imageio
+from foundation.errors import UsageError
 from foundation.pool import Item, PoolSettings, ray_shutdown, run_items
 from foundation.scene import RenderSettings
 from photoreal.cli import main
@@ -167,3 +169,31 @@ def test_a_worker_ends_when_its_driver_is_killed(tmp_path):
         os.kill(worker, signal.SIGKILL)
     assert gone, "the worker outlived its driver by 10 s"
     assert not done_file.exists()
+
+
+def test_an_unreachable_or_malformed_ray_address_fails_before_any_work(tmp_path, monkeypatch, capsys):
+    """`--ray` is reached first, within a bound: one line naming the flag and the address, exit 2, nothing made.
+    Oracle: a loopback port nothing listens on (refused at once), malformed addresses, and `auto` with no cluster."""
+    import time
+
+    import foundation.pool as pool
+    from foundation.pool import PoolSettings
+
+    for address, why in (("127.0.0.1:1", "cannot reach 127.0.0.1:1"), ("ray://127.0.0.1:1", "cannot reach"),
+                         ("nonsense", "not 'local', 'auto' or HOST:PORT"), ("host:0", "HOST:PORT"),
+                         ("host:99999", "HOST:PORT")):
+        with pytest.raises(UsageError, match=f"--ray {re.escape(address)}: .*{re.escape(why)}"):
+            PoolSettings(workers=1, ray=address)
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    monkeypatch.setattr(pool, "_current_cluster", lambda: None)
+    with pytest.raises(UsageError, match="--ray auto: no Ray cluster runs on this machine"):
+        PoolSettings(workers=1, ray="auto")
+    assert PoolSettings(workers=1, ray="local").ray == "local"  # starts Ray here: nothing to reach
+
+    t = time.perf_counter()
+    code = main(["render", str(SCENES / "material_test.xml"), "--out-dir", str(tmp_path / "d"), "--ray", "127.0.0.1:1"])
+    err = capsys.readouterr().err
+    assert code == 2 and time.perf_counter() - t < 10, (code, err)
+    assert err.strip().splitlines() == ["photoreal: error: --ray 127.0.0.1:1: cannot reach 127.0.0.1:1 (Connection "
+                                        "refused; waited at most 3 s)"]
+    assert not (tmp_path / "d").exists()
