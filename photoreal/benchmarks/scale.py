@@ -13,7 +13,7 @@ the whole batch as a user sees them, start-up included:
 
 The chart plots throughput (items/s) against workers beside the ideal line (serial throughput × workers).
 A material item (render one BTF at the default settings, fit it at the default settings) is timed once, alone, for
-the README's projection of a seed-002-sized dataset.
+the projection of a seed-002-sized dataset in docs/results/scale.md.
 """
 
 from __future__ import annotations

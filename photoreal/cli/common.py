@@ -34,7 +34,7 @@ def pool_options(p: argparse.ArgumentParser) -> None:
                         "another in this process)")
     p.add_argument("--ray", default=None, metavar="ADDRESS",
                    help="run the items as Ray tasks: 'local' starts Ray on this machine, 'auto' or HOST:PORT joins "
-                        "a running cluster (README: beyond one machine)")
+                        "a running cluster (docs/scale.md: beyond one machine)")
 
 
 def pool_settings(a):
