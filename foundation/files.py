@@ -81,6 +81,21 @@ def check_output_file(path: str | os.PathLike, what: str = "output") -> Path:
 
 
 MANIFEST = ".photoreal-manifest.json"  #: what an :func:`atomic_dir` output holds (written by it, last)
+RECORD = ".photoreal-output.json"  #: which command an output folder belongs to ({"command": …}, see OutputPath)
+_OWN = (MANIFEST, RECORD)
+
+
+def recorded_command(path: str | os.PathLike) -> str | None:
+    """The command whose output the folder is (its :data:`RECORD`), or None."""
+    try:
+        return str(json.loads((Path(path) / RECORD).read_text())["command"])
+    except (OSError, ValueError, TypeError, KeyError):
+        return None
+
+
+def _entries(p: Path) -> list[str]:
+    """What a folder holds besides its record."""
+    return sorted(e.name for e in p.iterdir() if e.name != RECORD)
 
 
 def _foreign_entries(p: Path, derived: tuple[str, ...] = ()) -> list[str]:
@@ -92,8 +107,8 @@ def _foreign_entries(p: Path, derived: tuple[str, ...] = ()) -> list[str]:
         own = set(json.loads((p / MANIFEST).read_text()))
     except (OSError, ValueError, TypeError):
         return ["(no readable manifest: made by an older photoreal or by hand)"]
-    return sorted(e.name for e in p.iterdir()
-                  if e.name not in own and not any(fnmatch.fnmatchcase(e.name, d) for d in derived))
+    return sorted(e.name for e in p.iterdir() if e.name not in own and e.name not in _OWN
+                  and not any(fnmatch.fnmatchcase(e.name, d) for d in derived))
 
 
 def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: str = "output folder",
@@ -111,10 +126,10 @@ def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: s
     if p.exists():
         if not p.is_dir():
             raise UsageError(f"{what} {p}: is a file, expected a folder")
-        if any(p.iterdir()) and (marker is None or not (p / marker).is_file()):
+        if _entries(p) and (marker is None or not (p / marker).is_file()):
             hint = f" (no {marker}: not a previous output of this command)" if marker else ""
             raise UsageError(f"{what} {p}: folder exists and is not empty{hint}; choose another path or empty it")
-        foreign = _foreign_entries(p, derived) if replace and any(p.iterdir()) else []
+        foreign = _foreign_entries(p, derived) if replace and _entries(p) else []
         if foreign:
             shown = ", ".join(foreign[:4]) + (", …" if len(foreign) > 4 else "")
             raise UsageError(f"{what} {p}: a previous output, but it also holds what this command did not write "
@@ -125,6 +140,108 @@ def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: s
         raise UsageError(f"{what} {p}: is the working folder or one of its parents")
     _check_parent(p, what)
     return p
+
+
+# -- the one rule for a command's outputs ---------------------------------------------------------------------------
+
+FILE, FOLDER = "file", "folder"
+
+
+def check_command_folder(path: str | os.PathLike, command: str, marker: str | None = None, what: str = "") -> Path:
+    """``path`` can be the output folder of ``command``: absent, empty, or a previous output of it.
+
+    A previous output is recognised by its :data:`RECORD` (written by :func:`claim_output_folder`) or, for a folder
+    the library wrote with :func:`atomic_dir`, by its manifest and ``marker``; the command then resumes or
+    replaces it. A folder of another command, or one holding anything else, is refused: its files are the user's.
+    """
+    p = Path(path)
+    if str(path) == "":
+        raise UsageError(f"{what} empty path".strip())
+    if p.exists():
+        if not p.is_dir():
+            raise UsageError(f"{what} {p}: is a file, expected a folder".strip())
+        owner = recorded_command(p)
+        if owner not in (None, command):
+            raise UsageError(f"{what} {p}: holds the output of `photoreal {owner}`, not of `photoreal {command}`; "
+                             "choose another path".strip())
+        held = _entries(p)
+        previous = owner == command or bool(marker and (p / MANIFEST).is_file() and (p / marker).is_file())
+        if held and not previous:
+            shown = ", ".join(held[:4]) + (", …" if len(held) > 4 else "")
+            raise UsageError(f"{what} {p}: holds files `photoreal {command}` did not write ({shown}); choose another "
+                             "path or empty it".strip())
+        if not os.access(p, os.W_OK | os.X_OK):
+            raise UsageError(f"{what} {p}: not writable".strip())
+    if p.resolve() == Path.cwd().resolve() or p.resolve() in Path.cwd().resolve().parents:
+        raise UsageError(f"{what} {p}: is the working folder or one of its parents".strip())
+    _check_parent(p, what)
+    return p
+
+
+class OutputPath:
+    """How the command line checks an output path (an argparse ``type``: it runs while the command line is parsed,
+    before any work, and the parser's error names the flag).
+
+    ``FILE``: not a folder, and its folder can be made (the file is replaced, atomically, once the work is done).
+    ``FOLDER``: see :func:`check_command_folder`; the command line then claims it (:func:`claim_output_folder`).
+    ``tests/cli/test_outputs.py`` checks that every output flag of every subcommand has one.
+    """
+
+    def __init__(self, kind: str, command: str, marker: str | None = None):
+        if kind not in (FILE, FOLDER):
+            raise ValueError(f"kind {kind!r}: expected {FILE!r} or {FOLDER!r}")
+        self.kind, self.command, self.marker = kind, command, marker
+        self.__name__ = f"{kind} path"  # what argparse calls the value in its messages
+
+    def __call__(self, value: str) -> str:
+        import argparse
+
+        try:
+            if self.kind == FILE:
+                check_output_file(value, "")
+            else:
+                check_command_folder(value, self.command, self.marker)
+        except UsageError as exc:
+            raise argparse.ArgumentTypeError(str(exc).strip()) from None
+        return value
+
+    def __repr__(self) -> str:
+        return f"OutputPath({self.kind!r}, {self.command!r})"
+
+
+def claim_output_folder(path: str | os.PathLike, command: str) -> Path | None:
+    """Make the folder (checked by :func:`check_command_folder`) and record ``command`` in it; the outermost folder
+    this made (None when it existed), for :func:`release_output_folder`."""
+    p = Path(path)
+    made = None
+    for q in (p, *p.parents):
+        if q.exists():
+            break
+        made = q
+    p.mkdir(parents=True, exist_ok=True)
+    if recorded_command(p) is None:
+        write_json(p / RECORD, {"command": command})
+    return made
+
+
+def release_output_folder(path: str | os.PathLike, made: Path | None) -> None:
+    """After a failed run: a claimed folder that holds nothing but its record is left as it was found (the record
+    removed; the folders the claim made removed). One holding more (a checkpoint to resume) is kept."""
+    p = Path(path)
+    if not p.is_dir() or _entries(p):
+        return
+    (p / RECORD).unlink(missing_ok=True)
+    if made is None:
+        return
+    q = p
+    while True:
+        try:
+            q.rmdir()
+        except OSError:
+            return
+        if q == made:
+            return
+        q = q.parent
 
 
 # -- atomic writes --------------------------------------------------------------------------------------------------
@@ -168,6 +285,8 @@ def atomic_dir(target: str | os.PathLike, marker: str | None = None,
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)  # no half-written folder
         raise
+    if (target / RECORD).is_file():  # the new folder belongs to the same command
+        shutil.copy2(target / RECORD, tmp / RECORD)
     (tmp / MANIFEST).write_text(json.dumps(sorted([e.name for e in tmp.iterdir()] + [MANIFEST])))
     os.chmod(tmp / MANIFEST, file_mode())
     old = None

@@ -83,15 +83,23 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:  # e.g. PHOTOREAL_VARIANT names a variant the plugins cannot run on
         print(f"photoreal: error: {exc}", file=sys.stderr)
         return 2
-    args = parser.parse_args(argv)
+    try:  # usage errors (argparse's, and the output rule's: foundation.files.OutputPath) exit 2, --help 0
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else 2
     from foundation.errors import PhotorealError
 
     debug = os.environ.get("PHOTOREAL_DEBUG", "") not in ("", "0")
+    claimed = []
+    rc = 1
     try:
-        return args.func(args)
+        claimed = _claim_outputs(parser, argv, args)
+        rc = args.func(args)
+        return rc
     except KeyboardInterrupt:
         print("photoreal: interrupted", file=sys.stderr)
-        return 130
+        rc = 130
+        return rc
     except Exception as exc:
         if debug:
             raise
@@ -103,5 +111,33 @@ def main(argv: list[str] | None = None) -> int:
         if not isinstance(exc, (PhotorealError, ValueError, OSError, ImportError, RuntimeError, FloatingPointError)):
             msg = f"internal error, {type(exc).__name__}: {msg} (PHOTOREAL_DEBUG=1 shows the traceback)"
         print(f"photoreal: error: {msg}", file=sys.stderr)
+        rc = code
         return code
+    finally:
+        if rc != 0:
+            from foundation.files import release_output_folder
+
+            for path, made in claimed:
+                release_output_folder(path, made)
+
+
+def _claim_outputs(parser: argparse.ArgumentParser, argv: list[str], args) -> list:
+    """Claim the output folders the command line names (see :func:`common.out_opt`): (path, folder made) each."""
+    from foundation.files import FOLDER, OutputPath, claim_output_folder
+
+    out = []
+
+    def walk(p: argparse.ArgumentParser) -> None:
+        for act in p._actions:
+            if isinstance(act, argparse._SubParsersAction):
+                for name, sp in act.choices.items():
+                    if name in argv:
+                        walk(sp)
+            elif isinstance(act.type, OutputPath) and act.type.kind == FOLDER:
+                value = getattr(args, act.dest, None)
+                if value is not None:
+                    out.append((value, claim_output_folder(value, act.type.command)))
+
+    walk(parser)
+    return out
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import functools
 
-from .common import pool_options, pool_settings, print_json
+from .common import out_opt, pool_options, pool_settings, print_json
 
 HELP = "benchmarks writing JSON (speed as ratios measured in the same run)"
 
@@ -60,7 +60,7 @@ def _build(name: str, p: argparse.ArgumentParser) -> None:
         options_from(p, mod.SETTINGS)
     if getattr(mod, "POOL", False):
         pool_options(p)
-    p.add_argument("--json", required=True, help="output JSON path (charts and the work folder go beside it)")
+    out_opt(p, "--json", kind="file", required=True, help="output JSON path (charts and the work folder go beside it)")
     if getattr(mod, "WORK", True):
         p.add_argument("--clean", action="store_true",
                        help="remove the work folder once the result is written (default: kept, and a rerun re-reads "
@@ -69,7 +69,7 @@ def _build(name: str, p: argparse.ArgumentParser) -> None:
 
 
 def _build_all(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out-dir", required=True, help="folder for NAME.json of every benchmark (charts and work beside)")
+    out_opt(p, "--out-dir", required=True, help="folder for NAME.json of every benchmark (charts and work beside)")
     p.add_argument("--only", nargs="+", metavar="NAME", default=None, help="these benchmarks only")
     p.add_argument("--clean", action="store_true", help="remove each work folder once its result is written")
     pool_options(p)

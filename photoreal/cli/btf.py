@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from ..options import arg_opt, opt, settings_from
-from .common import add_subcommands, check_out_dir, pool_options, pool_settings, run_batch, usage
+from .common import add_subcommands, check_out_dir, out_opt, pool_options, pool_settings, run_batch, usage
 
 HELP = "universal neural BTF: data, basis training, per-material fitting (seed 002)"
 
@@ -142,7 +142,7 @@ def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
 def _add_render_data(tr: argparse.ArgumentParser) -> None:
     from inverse.btf import BTFRenderSettings, render_dataset
 
-    tr.add_argument("--out", required=True, help="dataset folder")
+    out_opt(tr, "--out", required=True, help="dataset folder")
     tr.add_argument("--families", nargs="+", default=None, help="subset of the material families (default: all 8)")
     arg_opt(tr, render_dataset, "per_family", type=int, help="materials per family")
     for name in ("tex_res", "slices", "spp", "max_depth", "seed"):
@@ -156,13 +156,13 @@ def _add_train_basis(tb: argparse.ArgumentParser) -> None:
     from mi_plugins.neural_basis import BasisConfig
 
     tb.add_argument("data", help="folder made by render-data")
-    tb.add_argument("--out", required=True, help="basis .npz")
+    out_opt(tb, "--out", kind="file", required=True, help="basis .npz")
     opt(tb, OptimSettings, "iterations")
     opt(tb, OptimSettings, "batch")
     opt(tb, BasisConfig, "width")
     opt(tb, BasisConfig, "depth")
     opt(tb, BasisConfig, "channels")
-    tb.add_argument("--checkpoint", default=None, help="default: OUT with .ckpt.npz")
+    out_opt(tb, "--checkpoint", kind="file", default=None, help="default: OUT with .ckpt.npz")
     opt(tb, OptimSettings, "seed")
     tb.set_defaults(func=_cmd_btf_train_basis)
 
@@ -172,14 +172,14 @@ def _add_fit(tf: argparse.ArgumentParser) -> None:
 
     tf.add_argument("btf", nargs="+", help="BTF .npz file(s) from render-data")
     tf.add_argument("--basis", required=True)
-    tf.add_argument("--out", default=None, help="material .npz for the neural_btf plugin (one BTF)")
-    tf.add_argument("--out-dir", default=None, help="folder for several materials: DIR/NAME.npz")
+    out_opt(tf, "--out", kind="file", default=None, help="material .npz for the neural_btf plugin (one BTF)")
+    out_opt(tf, "--out-dir", default=None, help="folder for several materials: DIR/NAME.npz")
     arg_opt(tf, fit_settings, "iterations", type=int, help="Adam steps")
     opt(tf, OptimSettings, "batch", type=int, help="samples per step")
     opt(tf, OptimSettings, "tex_res", help="feature texture resolution (0 = the BTF's)")
     arg_opt(tf, split_slices, "heldout_fraction", type=float, help="slices held out for the PSNR")
-    tf.add_argument("--checkpoint", default=None, help="default: OUT with .ckpt.npz")
-    tf.add_argument("--json", default=None)
+    out_opt(tf, "--checkpoint", kind="file", default=None, help="default: OUT with .ckpt.npz")
+    out_opt(tf, "--json", kind="file", default=None, help="metrics JSON")
     opt(tf, OptimSettings, "seed")
     pool_options(tf)
     tf.set_defaults(func=_cmd_btf_fit)
@@ -188,7 +188,7 @@ def _add_fit(tf: argparse.ArgumentParser) -> None:
 def _add_dataset(td: argparse.ArgumentParser) -> None:
     from generative.btf import MaterialDataSettings
 
-    td.add_argument("--out", required=True, help="dataset folder")
+    out_opt(td, "--out", required=True, help="dataset folder")
     for name in ("count", "tex_res", "slices", "spp", "fit_iterations", "seed"):
         opt(td, MaterialDataSettings, name)
     td.add_argument("--basis", default=None, help="universal basis .npz (default: the bundled one)")
@@ -200,7 +200,7 @@ def _add_train_diffusion(tt: argparse.ArgumentParser) -> None:
     from generative.btf import MatDiffSettings, train_matdiff
 
     tt.add_argument("data", help="folder made by `btf dataset`")
-    tt.add_argument("--out", required=True, help="run folder (checkpoint.npz, metrics.json)")
+    out_opt(tt, "--out", required=True, help="run folder (checkpoint.npz, metrics.json)")
     opt(tt, MatDiffSettings, "max_seconds", "--seconds", type=float, help="training budget (summed over resumes)")
     for name in ("steps", "batch", "train_crop", "lr", "widths", "attention_levels", "ema", "seed"):
         opt(tt, MatDiffSettings, name, **({"type": int} if name == "widths" else {}))
@@ -227,7 +227,7 @@ def _add_generate(tg: argparse.ArgumentParser) -> None:
                     "`bench matdiff` writes; else 25)")
     tg.add_argument("--guidance", type=float, default=None, help="classifier-free guidance (default: the run's "
                     "sampler.json; else 2)")
-    tg.add_argument("--out", required=True, help="material .npz")
+    out_opt(tg, "--out", kind="file", required=True, help="material .npz")
     tg.set_defaults(func=_cmd_btf_generate)
 
 

@@ -63,6 +63,22 @@ def run_batch(items, a, desc: str) -> int:
     return 1 if report.failed else 0
 
 
+def out_opt(p: argparse.ArgumentParser, *flags: str, kind: str = "folder", marker: str | None = None,
+            **kw) -> argparse.Action:
+    """An output flag under the one output rule (:class:`foundation.files.OutputPath`): checked as the command line is
+    parsed; a folder is claimed for this subcommand before it runs, and given back if the run fails at once."""
+    kw.setdefault("metavar", "FILE" if kind == "file" else "DIR")
+    return p.add_argument(*flags, type=output_type(p, kind, marker), **kw)
+
+
+def output_type(p: argparse.ArgumentParser, kind: str = "folder", marker: str | None = None):
+    """The argparse ``type`` of an output flag of the (sub)command ``p``."""
+    from foundation.files import OutputPath
+
+    command = p.prog.split(" ", 1)[1] if " " in p.prog else p.prog  # "photoreal btf fit" → "btf fit"
+    return OutputPath(kind, command, marker)
+
+
 def check_out_dir(path: str, flag: str = "--out-dir") -> Path:
     """A folder for many outputs: absent or a folder (items already in it are skipped, so a batch resumes)."""
     from foundation.files import check_output_file

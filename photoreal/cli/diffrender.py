@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..options import arg_opt, opt, settings_from
-from .common import add_subcommands, print_json, usage
+from .common import add_subcommands, out_opt, print_json, usage
 
 HELP = "intrinsic-conditioned diffusion renderer: G-buffers (A, I, S, N) → photo (seed 000)"
 
@@ -71,7 +71,7 @@ def _add_train(t: argparse.ArgumentParser) -> None:
     t.add_argument("benchmarks", nargs="+", help="folders made by `photoreal morph make-benchmark` (with --spp 1024, "
                    "as the bench: the photos are the targets, and their Monte-Carlo noise would be learned as well)")
     t.add_argument("--morph", nargs="+", default=None, help="their morph run folders, in order (default BENCHMARK/morph)")
-    t.add_argument("--out", required=True, help="training folder (checkpoint.npz, metrics.json)")
+    out_opt(t, "--out", required=True, help="training folder (checkpoint.npz, metrics.json)")
     opt(t, DiffRenderSettings, "steps")
     opt(t, DiffRenderSettings, "max_seconds", "--seconds", type=float, help="training wall-time budget (summed over resumes)")
     opt(t, DiffRenderSettings, "batch")
@@ -91,7 +91,7 @@ def _add_train(t: argparse.ArgumentParser) -> None:
               "unseen meshes, measured), the benchmark's ground truth's (exact intrinsics, the seed's pairs)")
     opt(t, DiffRenderSettings, "threads", help="torch threads (0: all cores)")
     opt(t, DiffRenderSettings, "seed")
-    t.add_argument("--json", default=None)
+    out_opt(t, "--json", kind="file", default=None, help="also write the training report here")
 
 
 def _add_render(r: argparse.ArgumentParser) -> None:
@@ -99,7 +99,7 @@ def _add_render(r: argparse.ArgumentParser) -> None:
 
     r.add_argument("target", help="a morph benchmark folder, or a Mitsuba scene .xml (every sensor is rendered)")
     r.add_argument("--run", required=True, help="training folder of `diffrender train`")
-    r.add_argument("--out", required=True, help="output folder")
+    out_opt(r, "--out", required=True, help="output folder")
     r.add_argument("--morph", default=None, help="benchmark: morph run folder (default BENCHMARK/morph)")
     arg_opt(r, render_benchmark, "source", choices=["morphed", "coarse"], help="benchmark: whose G-buffers")
     arg_opt(r, render_benchmark, "views", choices=["test", "all"], help="benchmark: held-out views or all")
@@ -110,7 +110,7 @@ def _add_render(r: argparse.ArgumentParser) -> None:
     opt(r, SampleSettings, "draws", type=int, help="samples averaged per view (at 1 step: the posterior mean; "
          "default: 8 at 1 step, the bench's choice, 1 for more steps)")
     opt(r, SampleSettings, "seed")
-    r.add_argument("--json", default=None)
+    out_opt(r, "--json", kind="file", default=None, help="also write the report here")
 
 
 _SUBCOMMANDS = {

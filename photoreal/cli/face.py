@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import argparse
 
-from ..options import default_of, opt, settings_from
+from ..options import default_of, opt, settings_from, settings_named
 from .common import (
     add_subcommands,
     benchmark_dirs,
     check_out_dir,
+    out_opt,
     pool_options,
     pool_settings,
     print_json,
@@ -93,9 +94,12 @@ def _cmd_face_train_models(a) -> int:
 
     s = FaceModelsSettings(
         data=settings_from(FaceDataSettings, a),
-        completion=CompletionSettings(max_seconds=a.completion_seconds, seed=a.seed),
-        decomposition=FaceDecompSettings(max_seconds=a.decomp_seconds, seed=a.seed),
-        superres=SuperResSettings(max_seconds=a.superres_seconds, seed=a.seed),
+        completion=settings_named(CompletionSettings, {"max_seconds": "--completion-seconds"},
+                                  max_seconds=a.completion_seconds, seed=a.seed),
+        decomposition=settings_named(FaceDecompSettings, {"max_seconds": "--decomp-seconds"},
+                                     max_seconds=a.decomp_seconds, seed=a.seed),
+        superres=settings_named(SuperResSettings, {"max_seconds": "--superres-seconds"},
+                                max_seconds=a.superres_seconds, seed=a.seed),
         variants=tuple(a.variants))
     try:
         summary = train_face_models(a.out, s, pool_settings(a))
@@ -117,7 +121,8 @@ def _add_make_benchmark(fm: argparse.ArgumentParser) -> None:
     from inverse.face import FaceBenchmarkSettings
 
     fm.add_argument("--scan", required=True, help="OBJ with texture coordinates and a map_Kd texture")
-    fm.add_argument("--out", required=True, help="benchmark folder to create (absent, empty, or an earlier benchmark)")
+    out_opt(fm, "--out", marker="benchmark.json", required=True,
+            help="benchmark folder to create (absent, empty, or an earlier benchmark)")
     opt(fm, FaceBenchmarkSettings, "uv_res")
     opt(fm, FaceBenchmarkSettings, "n_lights", "--lights", help="directional training lights")
     opt(fm, FaceBenchmarkSettings, "seed")
@@ -139,9 +144,10 @@ def _add_fit(ff: argparse.ArgumentParser) -> None:
     from inverse.face import FaceFitSettings, RenderRefineSettings
 
     ff.add_argument("benchmark", nargs="+", help="folder(s) made by make-benchmark, or a folder of them")
-    ff.add_argument("--json", default=None, help="metrics JSON of one benchmark (the checkpoint goes beside it)")
-    ff.add_argument("--out-dir", default=None, help="several benchmarks: DIR/NAME/fit.json and DIR/NAME/maps")
-    ff.add_argument("--maps", default=None, help="folder for the fitted maps (EXR + PNG)")
+    out_opt(ff, "--json", kind="file", default=None,
+            help="metrics JSON of one benchmark (the checkpoint goes beside it)")
+    out_opt(ff, "--out-dir", default=None, help="several benchmarks: DIR/NAME/fit.json and DIR/NAME/maps")
+    out_opt(ff, "--maps", default=None, help="folder for the fitted maps (EXR + PNG)")
     opt(ff, FaceFitSettings, "fit_lights", help="treat lighting as unknown and fit it jointly")
     opt(ff, FaceFitSettings, "iterations", type=int, help="Adam steps per pyramid level")
     ff.add_argument("--refine-renders", type=int, default=0, metavar="N",
@@ -156,7 +162,8 @@ def _add_from_photo(fp: argparse.ArgumentParser) -> None:
     from inverse.face import PhotoFitSettings
 
     fp.add_argument("image", help="image file, or 'astronaut' for scikit-image's photograph")
-    fp.add_argument("--out", required=True, help="output folder (absent, empty, or an earlier from-photo output)")
+    out_opt(fp, "--out", marker="photo_face.json", required=True,
+            help="output folder (absent, empty, or an earlier from-photo output)")
     fp.add_argument("--landmarks", default=None, help="468x3 landmarks (.npy/.json) instead of running mediapipe")
     opt(fp, PhotoFitSettings, "uv_res")
     opt(fp, PhotoFitSettings, "seed")
@@ -171,9 +178,12 @@ def _add_train_models(ft: argparse.ArgumentParser) -> None:
     from generative.face import CompletionSettings, FaceDataSettings, FaceModelsSettings, SuperResSettings
     from generative.face import DecompSettings as FaceDecompSettings
 
-    ft.add_argument("--out", required=True, help="run folder (absent, empty, or this command's earlier run)")
-    for name in ("train_instances", "eval_instances", "uv_res", "spp", "seed"):
+    out_opt(ft, "--out", required=True, help="run folder (absent, empty, or this command's earlier run)")
+    for name in ("train_instances", "eval_instances", "spp", "seed"):
         opt(ft, FaceDataSettings, name)
+    res = default_of(CompletionSettings, "res")  # the models' side: the data is that or twice it (super-resolution)
+    opt(ft, FaceDataSettings, "uv_res", type=int, choices=[res, 2 * res],
+        help=f"texels per side of the data's maps: {res} (the models' side) or {2 * res} (also trains the 2× upscaler)")
     opt(ft, FaceDataSettings, "layout", choices=["template", "scan"],
          help="UV layout of the maps: the face template's (what from-photo unwraps into) or the scans' own")
     opt(ft, CompletionSettings, "max_seconds", "--completion-seconds", dest="completion_seconds", type=float,

@@ -7,7 +7,7 @@ import dataclasses
 from pathlib import Path
 
 from ..options import opt
-from .common import add_subcommands, print_json
+from .common import add_subcommands, out_opt, print_json
 
 HELP = "GAN refinement of renders: pix2pix, CycleGAN, Morph-GAN, joint (REAL-DIBS §3, §5)"
 
@@ -77,7 +77,7 @@ def _add_train(gt: argparse.ArgumentParser) -> None:
     gt.add_argument("--morph", default=None, help="morph run folder with morphed.ply (default BENCHMARK/morph)")
     opt(gt, GanTrainSettings, "model", choices=["pix2pix", "cyclegan", "morph_gan_partial", "morph_gan", "joint"],
         help="joint: mesh and Morph-GAN together")
-    gt.add_argument("--out", required=True, help="training folder (checkpoint.npz, metrics.json)")
+    out_opt(gt, "--out", required=True, help="training folder (checkpoint.npz, metrics.json)")
     opt(gt, GanTrainSettings, "steps")
     opt(gt, GanTrainSettings, "max_seconds", "--seconds", type=float, help="wall-time budget (summed over resumes)")
     opt(gt, GanTrainSettings, "batch")
@@ -87,7 +87,7 @@ def _add_train(gt: argparse.ArgumentParser) -> None:
                     help="fine-tune a finished run folder of the same model (joint: of morph_gan, + the morphed mesh)")
     gt.add_argument("--paper-head", action="store_true",
                     help="generator outputs tanh directly (papers' head) instead of input + tanh correction")
-    gt.add_argument("--json", default=None)
+    out_opt(gt, "--json", kind="file", default=None, help="also write the training report here")
     opt(gt, GanTrainSettings, "seed")
 
 
@@ -96,7 +96,7 @@ def _add_eval(ge: argparse.ArgumentParser) -> None:
     ge.add_argument("benchmark")
     ge.add_argument("--morph", default=None, help="morph run folder (default BENCHMARK/morph)")
     ge.add_argument("--run", required=True, help="training folder of `gan train`")
-    ge.add_argument("--json", default=None)
+    out_opt(ge, "--json", kind="file", default=None, help="also write the report here")
 
 
 _SUBCOMMANDS = {

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..options import opt, settings_from
-from .common import add_subcommands, benchmark_dirs, check_out_dir, pool_options, print_json, run_batch, usage
+from .common import add_subcommands, benchmark_dirs, check_out_dir, out_opt, pool_options, print_json, run_batch, usage
 
 HELP = "geometry morphing of coarse meshes against photos (REAL-DIBS §4)"
 
@@ -127,7 +127,8 @@ def _add_make_benchmark(mm: argparse.ArgumentParser) -> None:
     from inverse.morph import TRUTH_NORMALS, MorphBenchmarkSettings
 
     mm.add_argument("--mesh", required=True, help="OBJ/PLY/OFF mesh, or 'village'")
-    mm.add_argument("--out", required=True, help="benchmark folder (absent, empty, or an earlier benchmark)")
+    out_opt(mm, "--out", marker="morph_benchmark.json", required=True,
+            help="benchmark folder (absent, empty, or an earlier benchmark)")
     opt(mm, MorphBenchmarkSettings, "n_views", "--views", help="photos on the drone orbit (every 4th is held out)")
     opt(mm, MorphBenchmarkSettings, "resolution")
     opt(mm, MorphBenchmarkSettings, "spp")
@@ -151,9 +152,9 @@ def _add_run(mr: argparse.ArgumentParser) -> None:
     from inverse.morph import PLANARITY_WHERE, PRIOR_TIES, MorphSettings
 
     mr.add_argument("benchmark", nargs="+", help="benchmark folder(s), or a folder of them")
-    mr.add_argument("--out", default=None, help="output folder of one benchmark (default BENCHMARK/morph)")
-    mr.add_argument("--out-dir", default=None, help="several benchmarks: DIR/NAME (default: each BENCHMARK/morph)")
-    mr.add_argument("--json", default=None, help="metrics JSON")
+    out_opt(mr, "--out", default=None, help="output folder of one benchmark (default BENCHMARK/morph)")
+    out_opt(mr, "--out-dir", default=None, help="several benchmarks: DIR/NAME (default: each BENCHMARK/morph)")
+    out_opt(mr, "--json", kind="file", default=None, help="metrics JSON")
     opt(mr, MorphSettings, "iterations")
     opt(mr, MorphSettings, "views_per_step")
     opt(mr, MorphSettings, "mode", choices=["lit", "unlit"])
@@ -258,9 +259,9 @@ def _add_errors(me: argparse.ArgumentParser) -> None:
 
     me.add_argument("benchmark", help="folder made by `photoreal morph make-benchmark`")
     me.add_argument("results", nargs="+", help="result meshes (OBJ/PLY/OFF) or morph output folders (their morphed.ply)")
-    me.add_argument("--out", required=True, help="folder for errors.json, errors_<name>.ply, facing_<name>.ply, "
+    out_opt(me, "--out", required=True, help="folder for errors.json, errors_<name>.ply, facing_<name>.ply, "
                     "errors.png and facing.png")
-    me.add_argument("--json", default=None, help="also write the report here")
+    out_opt(me, "--json", kind="file", default=None, help="also write the report here")
     me.add_argument("--band", type=float, default=None,
                     help="width of the truth's border band (default 2.5%% of its bounding-box diagonal)")
     me.set_defaults(func=_cmd_morph_errors)
@@ -272,7 +273,7 @@ def _add_saturation(ms_: argparse.ArgumentParser) -> None:
     ms_.add_argument("benchmarks", nargs="+", help="folders made by `photoreal morph make-benchmark`")
     opt(ms_, MorphSettings, "saturation", "--factor", dest="factor", type=float,
         help="the saturation level: this × the training photos' 99th percentile (the morph's own)")
-    ms_.add_argument("--json", default=None, help="also write the report here")
+    out_opt(ms_, "--json", kind="file", default=None, help="also write the report here")
     ms_.set_defaults(func=_cmd_morph_saturation)
 
 

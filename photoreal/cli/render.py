@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from ..options import opt
-from .common import check_out_dir, pool_options, run_batch, usage
+from .common import check_out_dir, out_opt, pool_options, run_batch, usage
 
 HELP = "render Mitsuba XML scenes (our plugins register themselves)"
 
@@ -52,8 +52,9 @@ def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
 
     r = parser
     r.add_argument("scene", nargs="+", help="scene .xml file(s)")
-    r.add_argument("-o", "--output", default=None, help="output .exr of one scene (a .png preview is written beside it)")
-    r.add_argument("--out-dir", default=None,
+    out_opt(r, "-o", "--output", kind="file", default=None,
+            help="output .exr of one scene (a .png preview is written beside it)")
+    out_opt(r, "--out-dir", default=None,
                    help="folder for several renders: DIR/SCENE.exr (DIR/SCENE_s<k>.exr with --all-sensors); "
                         "renders already there are kept, so a killed batch resumes")
     r.add_argument("--all-sensors", action="store_true", help="render every sensor (camera, frame) of each scene")
