@@ -84,6 +84,9 @@ def hdri_label(name_or_path: str | os.PathLike) -> str:
     return Path(name_or_path).stem if _names_a_file(name_or_path) else str(name_or_path)
 
 
+HDRI_RINGING = 0.05  #: negative values down to this fraction of the mean radiance are resampling ringing, kept
+
+
 @functools.lru_cache(maxsize=16)
 def _hdri_bitmap(path: str, mtime: float):
     """Mitsuba's own reader (what ``envmap`` with a file name would use: bit-identical radiance; Python's
@@ -108,7 +111,15 @@ def _hdri_bitmap(path: str, mtime: float):
     if bad.any():
         raise ImageIOError(f"{path}: HDRI has {int(bad.any(-1).sum())} pixels with NaN/Inf values")
     # Small negative values (resampling ringing, down to −0.004 in the bundled maps) are left as they are:
-    # Mitsuba's own loader passes them through too, and clamping would change every render.
+    # Mitsuba's own loader passes them through too, and clamping would change every render. Radiance that is
+    # negative beyond that, or nowhere positive, would light a scene with nothing (or less than nothing).
+    peak = float(rgb.max())
+    if peak <= 0.0:
+        raise ImageIOError(f"{path}: HDRI is black everywhere (largest value {peak:g}): it would light nothing")
+    low = float(rgb.min())
+    if low < -HDRI_RINGING * max(float(rgb.mean()), 1e-12):
+        raise ImageIOError(f"{path}: HDRI has negative radiance (down to {low:g}, mean {float(rgb.mean()):g}): "
+                           "not an environment map")
     return bmp
 
 

@@ -32,3 +32,10 @@ class NonFiniteError(FailureError, FloatingPointError):
 
 class CheckpointError(FailureError):
     """A checkpoint cannot be resumed (damaged, another format, other settings or data)."""
+
+
+class ForeignCheckpointError(CheckpointError):
+    """A checkpoint of another kind of run, or of other settings, where the user named this one's (exit 2: the input
+    named is the wrong one, nothing failed)."""
+
+    exit_code = 2

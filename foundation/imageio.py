@@ -133,21 +133,138 @@ def write_png(path: str | os.PathLike, image: np.ndarray, linear: bool = True, e
     return Path(path)
 
 
-def read_photo(path_or_name: str) -> np.ndarray:
-    """8-bit RGB photo from a file, or one of scikit-image's bundled photographs by name."""
-    from PIL import Image
+# -- the one reader of images a user gives ---------------------------------------------------------------------------
 
-    p = Path(path_or_name)
+_ORIENT = {  # EXIF orientation → the array operation that shows the image upright (PIL's exif_transpose)
+    2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+    5: lambda a: a.swapaxes(0, 1), 6: lambda a: np.rot90(a, -1), 7: lambda a: a.swapaxes(0, 1)[::-1, ::-1],
+    8: lambda a: np.rot90(a, 1),
+}
+HDR_SUFFIXES = (".exr", ".hdr", ".pfm")  #: read as stored (linear radiance); every other format is display-encoded
+
+
+def _png_bit_depth(path: Path) -> int:
+    with open(path, "rb") as fh:
+        head = fh.read(25)
+    return head[24] if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) == 25 else 8
+
+
+def read_image(path: str | os.PathLike, channels: int | None = 3, linear: bool = True,
+               what: str = "image") -> np.ndarray:
+    """Any image a user gives (photo, exemplar, mask, texture, HDRI) as float32 (H, W, C), upright.
+
+    JPEG, PNG, TIFF, BMP, WebP… in any mode — 1/8/16-bit grey, RGB, RGBA, LA, palette, CMYK — are scaled to
+    [0, 1] by their bit depth (16-bit colour PNG/TIFF keeps its 16 bits), turned by their EXIF orientation and, with
+    ``linear``, sRGB-decoded; EXR/HDR/PFM are linear radiance, read as stored. ``channels``: 3 gives RGB (grey
+    repeated, alpha dropped), 1 grey (the alpha channel when there is one: a cut-out's mask), 4 RGBA (alpha 1 when
+    absent), None as stored. A missing, unreadable or non-finite image is refused, naming the file.
+    """
+    p = Path(path)
     if not p.is_file():
+        raise ImageIOError(f"{p}: no such {what} file" if not p.exists() else f"{p}: is not a file ({what} expected)")
+    if p.suffix.lower() in HDR_SUFFIXES:
+        a, alpha = _read_hdr(p, what), None
+    else:
+        a, alpha = _read_display(p, what)
+        if linear:
+            a = srgb_to_linear(a)
+    if a.ndim == 2:
+        a = a[..., None]
+    if not np.isfinite(a).all():
+        raise ImageIOError(f"{p}: {what} has NaN/Inf values")
+    if channels is None:
+        return np.concatenate([a, alpha], -1) if alpha is not None else a
+    if channels == 1:
+        return alpha if alpha is not None else (a.mean(-1, keepdims=True) if a.shape[-1] > 1 else a)
+    rgb = np.repeat(a, 3, -1) if a.shape[-1] == 1 else a[..., :3]
+    if channels == 3:
+        return np.ascontiguousarray(rgb, np.float32)
+    if channels == 4:
+        return np.concatenate([rgb, alpha if alpha is not None else np.ones_like(rgb[..., :1])], -1)
+    raise ValueError(f"channels {channels}: expected 1, 3, 4 or None")
+
+
+def _read_display(p: Path, what: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """A display-encoded image in [0, 1] (H, W[, C]) and its alpha (H, W, 1) or None, upright."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        im = Image.open(p)
+        im.load()
+        orientation = im.getexif().get(0x0112, 1)
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError) as exc:  # PIL's ways of saying "not an image"
+        raise ImageIOError(f"{p}: not a readable {what} ({' '.join(str(exc).split())})") from None
+    mode = im.mode
+    if mode == "P":
+        im = im.convert("RGBA" if "transparency" in im.info else "RGB")
+    elif mode in ("CMYK", "YCbCr", "LAB", "HSV"):
+        im = im.convert("RGB")
+    elif mode == "PA":
+        im = im.convert("RGBA")
+    elif mode == "1":
+        im = im.convert("L")
+    mode = im.mode
+    if mode.startswith("I;16") or mode == "I":
+        a = np.asarray(im, np.float64) / 65535.0
+    elif mode == "F":
+        a = np.asarray(im, np.float64)
+    elif mode in ("RGB", "RGBA") and p.suffix.lower() in (".png", ".tif", ".tiff") and _deep(p):
+        a = _read_deep(p, what)  # PIL keeps 8 of the 16 bits of colour PNG/TIFF
+    else:
+        a = np.asarray(im, np.float64) / 255.0
+    a = _ORIENT.get(orientation, lambda x: x)(a).astype(np.float32)
+    if a.ndim == 3 and a.shape[-1] in (2, 4):  # LA, RGBA
+        return a[..., :-1], a[..., -1:]
+    return a, None
+
+
+def _deep(p: Path) -> bool:
+    if p.suffix.lower() == ".png":
+        return _png_bit_depth(p) == 16
+    import tifffile
+
+    try:
+        return tifffile.TiffFile(p).pages[0].bitspersample == 16
+    except Exception:  # tifffile's many errors: let PIL's reading stand
+        return False
+
+
+def _read_deep(p: Path, what: str) -> np.ndarray:
+    import cv2
+
+    a = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if a is None or a.dtype != np.uint16:
+        raise ImageIOError(f"{p}: not a readable 16-bit {what}")
+    a = a[..., [2, 1, 0, 3][: a.shape[-1]]] if a.ndim == 3 else a  # BGR(A) → RGB(A)
+    return a.astype(np.float64) / 65535.0
+
+
+def _read_hdr(p: Path, what: str) -> np.ndarray:
+    import mitsuba as mi
+
+    from .threads import exr_safe
+
+    try:
+        with exr_safe():
+            bmp = mi.Bitmap(str(p))
+    except Exception as exc:  # Mitsuba raises RuntimeError with its own wording
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ImageIOError(f"{p}: not a readable {what} ({first})") from None
+    return np.array(bmp.convert(component_format=mi.Struct.Type.Float32, srgb_gamma=False), np.float32)
+
+
+def read_photo(path_or_name: str) -> np.ndarray:
+    """8-bit RGB photo (sRGB, as displayed) from a file (:func:`read_image`), or one of scikit-image's bundled
+    photographs by name."""
+    p = Path(path_or_name)
+    if not p.exists():
         import skimage.data
 
         if path_or_name in ("astronaut", "chelsea", "coffee", "rocket") and hasattr(skimage.data, path_or_name):
             return np.asarray(getattr(skimage.data, path_or_name)())[..., :3]
         raise ImageIOError(f"{path_or_name}: no such image file")
-    try:
-        return np.asarray(Image.open(p).convert("RGB"))
-    except Exception as exc:  # PIL raises several unrelated types for bad files
-        raise ImageIOError(f"{p}: not a readable image ({exc})") from exc
+    a = read_image(p, channels=3, linear=False)
+    return np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
 def save_figure(fig, path: str | os.PathLike) -> Path:

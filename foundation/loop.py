@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from .checkpoint import load_tree, save_tree
-from .errors import CheckpointError, NonFiniteError, UsageError
+from .errors import CheckpointError, ForeignCheckpointError, NonFiniteError, UsageError
 from .files import finite_or_none, write_json
 from .progress import progress_bar
 from .records import to_json
@@ -342,13 +342,13 @@ def run_loop(stage: Stage, settings: LoopSettings, checkpoint: str | Path | None
     if checkpoint is not None and checkpoint.exists():
         saved = read_checkpoint(checkpoint)
         if saved.kind != stage.kind:
-            raise CheckpointError(f"{checkpoint}: checkpoint of a {saved.kind} run, not of a "
+            raise ForeignCheckpointError(f"{checkpoint}: checkpoint of a {saved.kind} run, not of a "
                                   f"{stage.kind} run; delete it or use another output folder")
         fingerprint = _normalise(stage.fingerprint_against(saved.fingerprint))
         diff = _differences(saved.fingerprint, fingerprint)
         if diff:
             shown = "; ".join(diff[:4]) + ("; …" if len(diff) > 4 else "")
-            raise CheckpointError(f"{checkpoint}: checkpoint was made with other settings or data ({shown}); "
+            raise ForeignCheckpointError(f"{checkpoint}: checkpoint was made with other settings or data ({shown}); "
                                   "delete it or use the same ones")
         if saved.stage.get("weights_only"):
             raise CheckpointError(f"{checkpoint}: a weights-only checkpoint (optimiser and random state stripped): it "

@@ -356,19 +356,23 @@ def _run_pool(items: list[Item], s: PoolSettings):
                 started = {it.key: str(Path(marks) / f"{round_no}-{k}") for k, it in enumerate(queue)}
                 futures = {ex.submit(execute, it, s.threads, "", started[it.key]): it for it in queue}
                 queue, before = [], len(futures)
-                for fut in cf.as_completed(futures):
-                    it = futures[fut]
-                    try:
-                        r = fut.result()
-                    except cf.process.BrokenProcessPool:
-                        (suspects if Path(started[it.key]).exists() else queue).append(it)
-                        continue
-                    attempts[it.key] += 1
-                    r.attempts = attempts[it.key]
-                    if not r.ok and attempts[it.key] <= s.retries:
-                        queue.append(it)
-                        continue
-                    yield r
+                try:
+                    for fut in cf.as_completed(futures):
+                        it = futures[fut]
+                        try:
+                            r = fut.result()
+                        except cf.process.BrokenProcessPool:
+                            (suspects if Path(started[it.key]).exists() else queue).append(it)
+                            continue
+                        attempts[it.key] += 1
+                        r.attempts = attempts[it.key]
+                        if not r.ok and attempts[it.key] <= s.retries:
+                            queue.append(it)
+                            continue
+                        yield r
+                except BaseException:  # Ctrl-C, or the caller stopped reading: the workers stop now, not after
+                    _stop_workers(ex)  # their items (each item's output is written atomically: a cut one is absent)
+                    raise
             if len(queue) == before and not any(Path(p).exists() for p in started.values()):
                 # No item even began: the workers die while starting (e.g. a script that starts a pool at import
                 # time without ``if __name__ == "__main__":``, which spawn re-runs in every worker).
@@ -387,6 +391,17 @@ def _run_pool(items: list[Item], s: PoolSettings):
             if r.ok or attempts[it.key] > s.retries:
                 yield r
                 break
+
+
+def _stop_workers(ex: cf.ProcessPoolExecutor) -> None:
+    """Terminate a pool's worker processes and drop its pending items."""
+    procs = list((getattr(ex, "_processes", None) or {}).values())
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    ex.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        p.join(timeout=5)
 
 
 _RAY_STARTED = False

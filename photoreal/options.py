@@ -103,3 +103,18 @@ def settings_from(cls: type, a: argparse.Namespace, **extra):
             kw[k] = tuple(v)
     kw.update(extra)
     return cls(**kw)
+
+
+def settings_named(cls: type, flags: dict[str, str], **values):
+    """``cls(**values)`` for fields filled from options of other names (``dest=``): an error naming one of those
+    fields names its flag (``flags``: field → flag) instead, as errors of :func:`settings_from` do."""
+    from foundation.errors import UsageError
+
+    try:
+        return cls(**values)
+    except UsageError as exc:
+        msg = str(exc)
+        for name, flag in flags.items():
+            if msg.startswith((name + " ", name + ":")):
+                raise UsageError(flag + msg[len(name):]) from None
+        raise

@@ -94,9 +94,9 @@ def split_features(f: np.ndarray, channels: int) -> tuple[np.ndarray, np.ndarray
 
 
 def read_exemplar(path: str | Path) -> np.ndarray:
-    """An exemplar image as linear RGB (H, W, 3): an EXR as stored, an 8-bit photo (or a scikit-image photograph by
-    name, e.g. ``brick``) sRGB-decoded."""
-    from foundation.imageio import exr_layer, read_exr, read_photo, srgb_to_linear
+    """An exemplar image as linear RGB (H, W, 3): an EXR as stored, any other image (8 or 16 bit, any mode: see
+    :func:`foundation.imageio.read_image`; or a scikit-image photograph by name, e.g. ``brick``) sRGB-decoded."""
+    from foundation.imageio import exr_layer, read_exr, read_image, srgb_to_linear
 
     if str(path).lower().endswith(".exr"):
         return np.asarray(exr_layer(read_exr(path), ""), np.float32)[..., :3]
@@ -107,7 +107,7 @@ def read_exemplar(path: str | Path) -> np.ndarray:
             img = np.asarray(getattr(skimage.data, str(path))(), np.float32) / 255.0
             img = img if img.ndim == 3 else np.repeat(img[..., None], 3, -1)
             return srgb_to_linear(img[..., :3]).astype(np.float32)
-    return srgb_to_linear(read_photo(str(path)).astype(np.float32) / 255.0).astype(np.float32)
+    return read_image(path, channels=3, linear=True, what="exemplar")
 
 
 def _shown(path) -> str:

@@ -309,6 +309,9 @@ class DiffRenderSettings:
         validate.optional(validate.positive, "max_seconds", self.max_seconds)
         validate.integer("batch", self.batch, 1, 1024)
         validate.integer("crop", self.crop, 8)
+        multiple = 1 << (len(self.widths) - 1)  # the U-Net halves a crop once per level below the first
+        if self.crop % multiple:
+            raise UsageError(f"crop {self.crop} must divide by {multiple} (2^(levels−1) of widths {self.widths})")
         validate.positive("lr", self.lr)
         validate.one_of("global_source", self.global_source, GLOBAL_SOURCES)
         validate.in_range("p_uncond", self.p_uncond, 0.0, 1.0)

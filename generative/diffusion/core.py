@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from foundation import validate
-from foundation.errors import UsageError
+from foundation.errors import ForeignCheckpointError, UsageError
 
 PREDICTIONS = ("v_prediction", "epsilon")
 SCHEDULES = ("squaredcos_cap_v2", "linear", "scaled_linear")
@@ -339,7 +339,7 @@ def load_trained(run, stage_kind: str, what: str, hint: str, settings_cls, build
         raise UsageError(f"{ckpt}: no {what} checkpoint{hint}")
     saved = read_checkpoint(ckpt)
     if saved.kind != stage_kind:
-        raise CheckpointError(f"{ckpt}: a {saved.kind} checkpoint, not a {what}'s")
+        raise ForeignCheckpointError(f"{ckpt}: a {saved.kind} checkpoint, not a {what}'s")
     s = from_json(settings_cls, {**(defaults or {}), **saved.fingerprint["settings"]}, str(ckpt))
     model = build(s)
     state = saved.stage.get(weights) or saved.stage.get("model")

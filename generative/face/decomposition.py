@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from foundation import validate
-from foundation.errors import CheckpointError, UsageError
+from foundation.errors import CheckpointError, ForeignCheckpointError, UsageError
 from foundation.loop import RunState, Stage
 
 from generative.diffusion import ConditionalDiffusion, OptimizerStage, train_stage
@@ -359,7 +359,7 @@ def load_decomposer(run: str | Path, completion_run: str | Path) -> Decomposer:
         raise UsageError(f"{ckpt}: no face decomposition checkpoint (train one with `photoreal face train-models`)")
     saved = read_checkpoint(ckpt)
     if saved.kind != "DecompStage":
-        raise CheckpointError(f"{ckpt}: a {saved.kind} checkpoint, not a face decomposition's")
+        raise ForeignCheckpointError(f"{ckpt}: a {saved.kind} checkpoint, not a face decomposition's")
     if saved.fingerprint.get("backbone") != backbone_id(completion_run):
         raise CheckpointError(f"{ckpt}: trained on another completion backbone than {completion_run}")
     s = from_json(DecompSettings, saved.fingerprint["settings"], str(ckpt))

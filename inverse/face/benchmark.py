@@ -430,13 +430,14 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
     scan, out = Path(scan), Path(out)
     mesh = load_obj(scan)
     scan_texture(mesh)  # a missing or damaged texture is named before any rendering
-    for h in s.heldout_hdris:
+    hdris = tuple(s.heldout_hdris) + (tuple(s.lighting_hdris) if s.lighting == "hdri" else ())
+    for h in hdris:
         envmap(h)  # a missing or unreadable HDRI is named before any rendering
     t0 = time.perf_counter()
     with atomic_dir(out, MARKER) as tmp:
         # The benchmark carries its own copy of the geometry (self-contained folder) and of the user's HDRIs.
         shutil.copyfile(scan, tmp / "mesh.obj")
-        own = {h: f"hdri/{hdri_label(h)}.exr" for h in s.heldout_hdris
+        own = {h: f"hdri/{hdri_label(h)}.exr" for h in hdris
                if hdri_path(h).resolve().parent != HDRI_DIR.resolve()}
         if own:
             (tmp / "hdri").mkdir()
@@ -454,7 +455,8 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
             for k in range(s.n_lights):
                 h, rot = s.lighting_hdris[k % len(s.lighting_hdris)], float(rng.uniform(0.0, 360.0))
                 key, irr = key_light(h, rot)
-                lights.append(Light("hdri", tuple(map(float, key)), (irr,) * 3, hdri_label(h), rot))
+                # a bundled HDRI by name, a user's by its copy in the benchmark
+                lights.append(Light("hdri", tuple(map(float, key)), (irr,) * 3, own.get(h, hdri_label(h)), rot))
         else:
             lights = training_lights(front, s.n_lights, s.light_irradiance, s.seed, s.light_spread_deg)
         views = [centre + orbit_direction(front, yaw, pitch) * s.camera_distance * radius for yaw, pitch in s.views]
@@ -466,7 +468,8 @@ def make_benchmark(scan: str | Path, out: str | Path, s: FaceBenchmarkSettings |
                           disable=not show_progress) as bar:
             for k, light in enumerate(lights):
                 if light.kind == "hdri":
-                    emit = {"env": envmap(light.hdri, to_world=mi.ScalarTransform4f().rotate([0, 1, 0], light.rotation_deg))}
+                    env = tmp / light.hdri if light.hdri in own.values() else light.hdri
+                    emit = {"env": envmap(env, to_world=mi.ScalarTransform4f().rotate([0, 1, 0], light.rotation_deg))}
                 else:
                     emit = directional_emitters([light])
                 scene = scan_scene(scan, rendered, s, emit, integrator={"type": "path", "max_depth": s.max_depth},

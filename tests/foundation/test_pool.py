@@ -171,6 +171,45 @@ def test_a_worker_ends_when_its_driver_is_killed(tmp_path):
     assert not done_file.exists()
 
 
+@pytest.mark.slow
+def test_ctrl_c_to_the_driver_stops_its_workers_at_once(tmp_path):
+    """SIGINT to the driver alone (`kill -INT PID`, not the terminal's whole group) used to wait for the workers to
+    finish their items (46 s for two renders): the workers are terminated, the driver exits 130 within seconds and
+    the cut items leave no output."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    pids, dones = [tmp_path / f"pid{k}" for k in range(2)], [tmp_path / f"done{k}" for k in range(2)]
+    items = ", ".join(f"Item('slow{k}', 'tests.foundation.test_pool:_sleeper', ({str(pids[k])!r}, {str(dones[k])!r}, "
+                      "60.0))" for k in range(2))
+    code = ("import sys\nfrom foundation.pool import Item, PoolSettings, run_items\n"
+            f"try:\n    run_items([{items}], PoolSettings(workers=2, threads=1), show_progress=False)\n"
+            "except KeyboardInterrupt:\n    sys.exit(130)\n")
+    driver = subprocess.Popen([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[2],
+                              env={**os.environ, "TMPDIR": str(tmp_path)})
+    try:
+        t0 = time.time()
+        while not all(p.exists() for p in pids) and time.time() - t0 < 120 and driver.poll() is None:
+            time.sleep(0.1)
+        assert all(p.exists() for p in pids), "the workers never started their items"
+        workers = [int(p.read_text()) for p in pids]
+        t0 = time.time()
+        driver.send_signal(signal.SIGINT)
+        rc = driver.wait(timeout=30)
+        seconds = time.time() - t0
+    finally:
+        driver.kill()
+    time.sleep(0.5)
+    alive = [w for w in workers if _alive(w)]
+    for w in alive:
+        os.kill(w, signal.SIGKILL)
+    assert rc == 130 and seconds < 10, (rc, seconds)
+    assert not alive and not any(d.exists() for d in dones)
+
+
 def test_an_unreachable_or_malformed_ray_address_fails_before_any_work(tmp_path, monkeypatch, capsys):
     """`--ray` is reached first, within a bound: one line naming the flag and the address, exit 2, nothing made.
     Oracle: a loopback port nothing listens on (refused at once), malformed addresses, and `auto` with no cluster."""
