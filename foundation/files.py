@@ -98,6 +98,13 @@ def _entries(p: Path) -> list[str]:
     return sorted(e.name for e in p.iterdir() if e.name != RECORD)
 
 
+def holds_files(path: str | os.PathLike) -> bool:
+    """The folder exists and holds something besides its :data:`RECORD` (a folder claimed for a command and
+    nothing more is as good as empty)."""
+    p = Path(path)
+    return p.is_dir() and bool(_entries(p))
+
+
 def _foreign_entries(p: Path, derived: tuple[str, ...] = ()) -> list[str]:
     """Entries of a previous :func:`atomic_dir` output that it did not write (added later by a user or a run);
     names matching a ``derived`` pattern (caches computed from the folder's own files) do not count."""

@@ -31,7 +31,7 @@ import numpy as np
 from foundation import validate
 from foundation.assets import bundled_basis
 from foundation.errors import UsageError
-from foundation.files import atomic_path, read_json, write_json
+from foundation.files import atomic_path, holds_files, read_json, write_json
 
 FAMILIES = ("fabric", "metal", "stone", "wood", "plaster", "leather", "ceramic", "ground")  # = inverse.btf.FAMILIES
 COLOURS = ("red", "orange", "brown", "yellow", "green", "blue", "purple", "black", "grey", "white")
@@ -58,7 +58,7 @@ SWATCH_DIRECTIONS = np.array([
 class MaterialDataSettings:
     """How the materials of a dataset are made (CPU-sized: seed 002 uses 512² texels, 400 slices, 128 spp)."""
 
-    count: int = 256  #: materials, spread evenly over the families (rounded up to a multiple of 8)
+    count: int = 256  #: materials, spread evenly over the families (rounded up to a multiple of 8; > 8)
     tex_res: int = 32  #: texels per side of the BTF and of the fitted feature textures
     slices: int = 32  #: (light, view) pairs rendered per texel
     spp: int = 8  #: paths per texel and slice
@@ -70,7 +70,10 @@ class MaterialDataSettings:
     seed: int = 0
 
     def __post_init__(self):
-        validate.integer("count", self.count, 8, 1 << 20)
+        validate.integer("count", self.count, 1, 1 << 20)
+        if self.count <= len(FAMILIES):  # heldout_mask keeps ≥ 1 material per family for evaluation
+            raise UsageError(f"count must be > {len(FAMILIES)}, got {self.count}: each of the {len(FAMILIES)} "
+                             "families holds one material out for evaluation, so training needs two per family")
         validate.integer("tex_res", self.tex_res, 8, 1024)
         for k in ("slices", "spp", "swatch_spp", "fit_iterations", "fit_batch"):
             validate.integer(k, getattr(self, k), 1)
@@ -224,7 +227,7 @@ def build_material_dataset(out: str | Path, s: MaterialDataSettings | None = Non
         have = read_json(index, "material dataset index")
         if {k: have.get(k) for k in want} != want:
             raise UsageError(f"{index}: a dataset made with other settings or basis; use a fresh --out folder")
-    elif out.exists() and any(out.iterdir()) and not (out / "btf").is_dir():
+    elif holds_files(out) and not (out / "btf").is_dir():
         raise UsageError(f"{out}: exists and is not a material dataset; give an empty or new folder")
     out.mkdir(parents=True, exist_ok=True)
     write_json(index, {**want, "materials": []})  # claims the folder before any work

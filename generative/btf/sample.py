@@ -135,6 +135,9 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
     if out.suffix != ".npz":
         raise UsageError(f"--out {out}: a material is an .npz file")
     validate.seed("seed", seed)
+    validate.integer("size", size, 4, 4096)
+    if size % 4:
+        raise UsageError(f"size must be a multiple of 4 (the model's feature grid; it tiles seamlessly), got {size}")
     model, s = load_matdiff(run)
     source = "arguments"
     if steps is None or guidance is None:  # a malformed record matters only when it is used
@@ -145,9 +148,6 @@ def generate_material(run: str | Path, out: str | Path, keywords: str | None = N
         guidance = rec["guidance"] if guidance is None else guidance
     validate.integer("steps", steps, 1, 1000)
     validate.non_negative("guidance", guidance)
-    validate.integer("size", size, 4, 4096)
-    if size % 4:
-        raise UsageError(f"size must be a multiple of 4 (the model's feature grid; it tiles seamlessly), got {size}")
     if from_prior and keywords:
         raise UsageError("give --keywords or --from-prior, not both")
     # a keyword triple drawn from the training materials' (the null token alone collapses to few families: docs/results/material-diffusion.md)

@@ -46,7 +46,7 @@ import numpy as np
 from foundation import validate
 from foundation.assets import FACE, hdri_path
 from foundation.errors import UsageError
-from foundation.files import atomic_path, read_json, write_json
+from foundation.files import atomic_path, holds_files, read_json, write_json
 
 FORMAT = "photoreal face instances v4"
 SCANS = FACE / "cyberheads"
@@ -455,7 +455,7 @@ def build_face_dataset(out: str | Path, s: FaceDataSettings | None = None, pool=
         have = read_json(index, "face dataset index")
         if {k: have.get(k) for k in want} != want:
             raise UsageError(f"{index}: a face dataset made with other settings; use a fresh folder")
-    elif out.exists() and any(out.iterdir()):
+    elif holds_files(out):
         raise UsageError(f"{out}: exists and is not a face dataset; give an empty or new folder")
     out.mkdir(parents=True, exist_ok=True)
     write_json(index, {**want, "instances": []})  # claims the folder before any work

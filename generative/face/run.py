@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from foundation.errors import UsageError
-from foundation.files import read_json, write_json
+from foundation.files import holds_files, read_json, write_json
 
 from .data import FaceDataSettings, build_face_dataset, load_face_dataset
 from .evaluate import LearnedModels
@@ -67,7 +67,7 @@ def _claim(out: Path, s: FaceModelsSettings) -> None:
             diff = [k for k in want["settings"] if want["settings"][k] != have.get("settings", {}).get(k)]
             raise UsageError(f"{marker}: a run made with other settings ({', '.join(diff) or 'format'}); "
                              "use a fresh --out folder or the same settings")
-    elif out.exists() and any(out.iterdir()):
+    elif holds_files(out):
         raise UsageError(f"{out}: exists and is not a face models run; give an empty or new folder")
     out.mkdir(parents=True, exist_ok=True)
     write_json(marker, want)
