@@ -24,9 +24,11 @@ Items run in any order on a pool; results come back in the items' order.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import importlib
 import multiprocessing as mp
 import os
+import sys
 import threading
 import time
 import traceback
@@ -98,12 +100,66 @@ def check_ray_address(address: str, timeout: float = RAY_CONNECT_S) -> None:
                              "give HOST:PORT)")
         address = found
     host, port = _ray_host_port(address)
+    t0 = time.monotonic()
     try:
         with socket.create_connection((host, port), timeout=timeout):
             pass
     except OSError as exc:
         why = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or type(exc).__name__)
         raise UsageError(f"--ray {address}: cannot reach {host}:{port} ({why}; waited at most {timeout:g} s)") from None
+    if "://" not in address:  # a GCS address (ray:// is Ray Client's own protocol): ask it what Ray asks first
+        _probe_gcs(address, host, port, max(0.5, timeout - (time.monotonic() - t0)))
+
+
+def _probe_gcs(address: str, host: str, port: int, timeout: float) -> None:
+    """Refuse a port that answers but is no Ray cluster this client may join (another service, a proxy, a cluster
+    wanting another auth token), which ``ray.init`` would retry for 20–40 s with a warning a second: the cluster id
+    Ray's client asks for first, within ``timeout``."""
+    try:
+        from ray._raylet import GcsClient
+    except ImportError:
+        return  # without Ray, the connection names the missing package
+    box: dict = {}
+
+    def probe():
+        try:
+            GcsClient(address=f"{host}:{port}")
+            box["ok"] = True
+        except Exception as exc:  # Ray's RpcError and its kin
+            box["error"] = " ".join(str(exc).split())[:200]
+
+    with _quiet_stderr():  # Ray's C++ client logs each retry to the terminal
+        t = threading.Thread(target=probe, name="photoreal-ray-probe", daemon=True)
+        t.start()
+        t.join(timeout)
+    if "ok" in box:
+        return
+    # ray.init begins with this very request and would retry it for 20–40 s: its answer is the connection's
+    why = box.get("error") or f"no answer within {timeout:.1f} s"
+    if "Unauthenticated" in why or "AuthToken" in why:
+        raise UsageError(f"--ray {address}: the Ray cluster there wants its authentication token: set "
+                         "RAY_AUTH_MODE=token here, with the cluster's token in ~/.ray/auth_token or RAY_AUTH_TOKEN "
+                         f"({why})")
+    raise UsageError(f"--ray {address}: {host}:{port} answers, but not as a Ray cluster ({why})")
+
+
+@contextlib.contextmanager
+def _quiet_stderr():
+    """File descriptor 2 to /dev/null (C++ libraries write there directly), unless the user asked for Ray's logs
+    (PHOTOREAL_DEBUG or RAY_BACKEND_LOG_LEVEL set)."""
+    if os.environ.get("PHOTOREAL_DEBUG", "") not in ("", "0") or "RAY_BACKEND_LOG_LEVEL" in os.environ:
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(null)
 
 
 def _current_cluster() -> str | None:

@@ -236,3 +236,29 @@ def test_an_unreachable_or_malformed_ray_address_fails_before_any_work(tmp_path,
     assert err.strip().splitlines() == ["photoreal: error: --ray 127.0.0.1:1: cannot reach 127.0.0.1:1 (Connection "
                                         "refused; waited at most 3 s)"]
     assert not (tmp_path / "d").exists()
+
+
+def test_a_port_that_answers_but_is_no_ray_cluster_is_refused_within_the_bound(tmp_path, capsys):
+    """A web server (or a proxy) at the address: Ray's own client retried for 20–40 s, a warning line a second."""
+    import http.server
+    import threading
+    import time
+
+    class Quiet(http.server.BaseHTTPRequestHandler):
+        def log_message(self, *args):  # the test reads stderr
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Quiet)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    address = f"127.0.0.1:{server.server_address[1]}"
+    try:
+        t = time.perf_counter()
+        code = main(["render", str(SCENES / "material_test.xml"), "--out-dir", str(tmp_path / "d"), "--ray", address])
+        seconds = time.perf_counter() - t
+    finally:
+        server.shutdown()
+    err = capsys.readouterr().err
+    assert code == 2 and seconds < 10, (code, seconds, err)
+    assert err.strip().splitlines() == [f"photoreal: error: --ray {address}: {address} answers, but not as a Ray "
+                                        "cluster (no answer within 3.0 s)"], err
+    assert not (tmp_path / "d").exists()
