@@ -294,6 +294,11 @@ def _exit_with_parent(parent: int, period: float = 0.5) -> None:
 def _pool_init(threads: int, parent: int | None = None) -> None:
     if parent is not None:
         _exit_with_parent(parent)
+    # tqdm's default lock is a multiprocessing semaphore; a worker terminated on Ctrl-C could not release it, and
+    # the driver's resource tracker would warn of it at exit. A worker's bars (disabled) need only a thread lock.
+    import tqdm
+
+    tqdm.tqdm.set_lock(threading.RLock())
     _prepare(threads)
 
 
@@ -455,9 +460,9 @@ def _stop_workers(ex: cf.ProcessPoolExecutor) -> None:
     for p in procs:
         if p.is_alive():
             p.terminate()
-    ex.shutdown(wait=False, cancel_futures=True)
     for p in procs:
         p.join(timeout=5)
+    ex.shutdown(wait=True, cancel_futures=True)  # the pool sees its workers gone and closes its queues
 
 
 _RAY_STARTED = False
