@@ -25,7 +25,8 @@ Other features use only the names below.
 """
 
 from .benchmark import (TRUTH_NORMALS, ARTIFACT_REGIONS, Camera, MorphBenchmark, MorphBenchmarkMeta, MorphBenchmarkSettings,
-                        artifact_masks, load_morph_benchmark, make_morph_benchmark, sensor_dict, silhouette_margins,
+                        artifact_masks, benchmark_capture, load_morph_benchmark, make_morph_benchmark, sensor_dict,
+                        silhouette_margins,
                         truth_scene, truth_start_benchmark)
 from .evaluate import MorphEvaluation, evaluate_morph
 from .errors import ErrorReport, SurfaceErrors, benchmark_errors, benchmark_surface_errors, surface_errors
@@ -61,7 +62,7 @@ __all__ = [
     "MORPH_SEED_MAX", "PLANARITY_WHERE", "PRIOR_TIES", "TRUTH_NORMALS", "ARTIFACT_REGIONS", "Camera", "ErrorReport", "SurfaceErrors", "benchmark_errors", "benchmark_surface_errors", "surface_errors", "Candidate", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
     "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "MorphStage", "PlanarityDecision",
     "RepairReport", "StepSelection", "artifact_masks", "candidate_settings", "light_choice_draws", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",
-    "load_morph_benchmark", "make_morph_benchmark", "mask_integrator", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",
+    "benchmark_capture", "load_morph_benchmark", "make_morph_benchmark", "mask_integrator", "morph_scene", "photo_at", "planarity_prior", "projective_integrator", "remesh",
     "render_views", "repair_flips", "run_gcn_morph", "gcn_settings", "run_item", "run_morph", "sensor_dict", "start_mesh",
     "KINDS", "UNSEEN", "PleatReport", "SpikeReport", "iron_spikes", "SUITE", "TracePoint", "silhouette_margins", "saturated_silhouette", "suite_mesh", "truth_scene",
     "truth_start_benchmark", "TurnReport", "border_zone", "iron_border_turns",

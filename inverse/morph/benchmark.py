@@ -587,3 +587,20 @@ def artifact_masks(bench: MorphBenchmark, ids: list[int], spp: int = 16,
     masks["edges"] = np.stack(edges)
     masks["flat"] = np.stack(surface) & ~masks["edges"] & ~masks["eroded_parts"] & ~masks["floating_parts"]
     return masks
+
+
+def benchmark_capture(bench: MorphBenchmark):
+    """The benchmark as a capture (:mod:`inverse.capture`): its photos and cameras, the coarse mesh, the truth."""
+    from inverse.capture import MITSUBA_FROM_COLMAP, CaptureCamera, CaptureMeta, Capture
+
+    meta, res = bench.meta, bench.meta.resolution
+    f = 0.5 * res / np.tan(np.radians(meta.fov / 2))
+    cams = []
+    for i, cam in enumerate(meta.cameras):
+        to_world = np.array(mi.ScalarTransform4f().look_at(origin=list(cam.eye), target=list(cam.target),
+                                                            up=[0, 1, 0]).matrix, np.float64)
+        cams.append(CaptureCamera(f"view{i:02d}", res, res, float(f), res / 2, res / 2,
+                                  (to_world @ np.linalg.inv(MITSUBA_FROM_COLMAP)).tolist()))
+    cm = CaptureMeta(cams, [f"view{i:02d}" for i in meta.train], [f"view{i:02d}" for i in meta.test],
+                     {"format": "morph-benchmark", "path": str(bench.path)}, mesh="coarse.ply", truth="ground_truth.ply")
+    return Capture(bench.path, cm, {c.name: bench.photo(i) for i, c in enumerate(cams)})

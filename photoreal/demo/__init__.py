@@ -9,6 +9,7 @@ module         what
 =============  ==================================================================
 ``report``     settings, sections stitched into ``index.html``, figures, tables
 ``scenes``     the built-in scenes and their intrinsic layers
+``capture``    a real capture through structure from motion, its coarse mesh at a held-out photo
 ``face``       a fit on a real scan, one photo to a face, the learned stages
 ``morph``      a morph and why its choices went so, the GANs, the diffusion renderer
 ``materials``  fitted and generated neural materials
@@ -22,6 +23,7 @@ from pathlib import Path
 
 from foundation.files import check_output_dir, write_json
 
+from .capture import demo_capture
 from .face import demo_face, demo_face_learned, demo_photo
 from .materials import demo_btf, demo_matdiff
 from .morph import demo_diffrender, demo_gan, demo_morph
@@ -29,7 +31,7 @@ from .report import DemoSettings, bench_section, write_index
 from .scenes import demo_scenes
 from .tables import demo_benchmarks, demo_scale
 
-__all__ = ["DemoSettings", "demo_benchmarks", "demo_btf", "demo_diffrender", "demo_face", "demo_face_learned",
+__all__ = ["DemoSettings", "demo_benchmarks", "demo_capture", "demo_btf", "demo_diffrender", "demo_face", "demo_face_learned",
            "demo_gan", "demo_matdiff", "demo_morph", "demo_photo", "demo_scale", "demo_scenes", "run_demo"]
 
 
@@ -49,6 +51,9 @@ def run_demo(out_dir: str | Path = "out/demo", s: DemoSettings | None = None,
                                     render_res=min(s.resolution, 192), render_spp=min(s.spp, 64))
         results["photo"] = demo_photo(out_dir, uv_res=s.face_uv_res, seed=s.seed,  # relit like the other renders
                                       relight_res=min(s.resolution, 256), relight_spp=min(s.spp, 64))
+    if s.capture:
+        results["capture"] = demo_capture(out_dir, resolution=min(s.resolution, 384), spp=min(s.spp, 16), seed=s.seed,
+                                          bench_dir=bench_dir)
     if s.morph_iterations > 0:
         results["morph"] = demo_morph(out_dir, iterations=s.morph_iterations, seed=s.seed, bench_dir=bench_dir)
     if s.btf:

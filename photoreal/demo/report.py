@@ -23,6 +23,7 @@ class DemoSettings:
     morph_iterations: int = 100  #: 0 skips the morphing section
     btf: bool = True  #: neural materials scene (+ `photoreal bench btf` tables when present)
     plugin_bench: bool = True  #: time ggx_uv against principled (a short run of `photoreal bench plugins`)
+    capture: bool = True  #: a real capture (the vendored ruins) through structure from motion
 
     def __post_init__(self):
         validate.integer("resolution", self.resolution, 8, 4096)

@@ -159,6 +159,9 @@ def test_demo_writes_report(tmp_path, capsys):
     assert "photo/relit_studio.png" in index and summary["photo"]["landmark_reprojection_px"] < 3.0
     # neural materials among classic ones (vendored basis + fitted materials, scenes/assets/neural)
     assert "neural_materials.png" in index
+    # a real capture: structure from motion on the vendored ruins, the coarse mesh at a held-out photo
+    assert "capture/heldout_mesh.png" in index and summary["capture"]["sfm"]["registered"] >= 8
+    assert np.isfinite(summary["capture"]["heldout"]["psnr"])
     img = imageio.read_exr(out / "neural_materials.exr")
     assert np.isfinite(imageio.exr_layer(img, "")).all() and imageio.exr_layer(img, "").mean() > 0.01
 

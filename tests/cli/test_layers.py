@@ -25,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 LAYERS = {"mi_plugins": 0, "foundation": 1, "inverse": 2, "generative": 3, "photoreal": 4}
 FEATURE_LAYERS = ("inverse", "generative")
-SHARED = {"generative.diffusion"}  #: cores a layer's features build on (public names only)
+SHARED = {"generative.diffusion", "inverse.capture"}  #: cores a layer's features build on (public names only)
 
 
 def unit(module: str) -> str:

@@ -1,0 +1,93 @@
+"""Coarse meshes of a capture: the one a photogrammetry tool made (OBJ + MTL texture, PLY, GLB), or one made here
+from sparse points (screened Poisson, as the CPU allows: no dense stereo, no Delaunay meshing; see
+docs/capture.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from foundation.errors import UsageError
+
+POISSON_DEPTH = 8  #: octree depth of the screened Poisson reconstruction (depth 8: the shape, holes where untextured)
+TRIM_QUANTILE = 0.08  #: Poisson vertices of the lowest point density dropped (the surface it invents far from points)
+
+
+def load_coarse_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(vertices, triangles, linear vertex colours or None) of a tool's mesh; a texture (OBJ's MTL, GLB's) is
+    sampled to vertex colours and decoded from sRGB."""
+    import pymeshlab
+
+    from foundation.imageio import srgb_to_linear
+    from foundation.mesh import MeshError, check_mesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise UsageError(f"{path}: no such mesh file")
+    if path.suffix.lower() not in (".obj", ".ply", ".glb", ".gltf", ".off", ".stl"):
+        raise UsageError(f"{path}: mesh expected as OBJ, PLY, GLB/glTF, OFF or STL")
+    ms = pymeshlab.MeshSet()
+    try:
+        ms.load_new_mesh(str(path))
+    except Exception as exc:  # pymeshlab's own exception, several lines long
+        raise UsageError(f"{path}: cannot read mesh ({' '.join(str(exc).split())[:200]})") from None
+    if ms.mesh_number() > 1:  # a scene of several meshes (glTF): one mesh
+        ms.generate_by_merging_visible_meshes()
+    m = ms.current_mesh()
+    colours = None
+    if m.has_wedge_tex_coord() or m.has_vertex_tex_coord():
+        try:
+            if m.has_wedge_tex_coord() and not m.has_vertex_tex_coord():
+                ms.compute_texcoord_transfer_wedge_to_vertex()
+            ms.compute_color_from_texture_per_vertex()
+            colours = srgb_to_linear(ms.current_mesh().vertex_color_matrix()[:, :3])
+        except Exception:  # no readable texture image: geometry only, named in the record by the caller
+            colours = None
+    m = ms.current_mesh()
+    if colours is None and m.has_vertex_color():
+        c = m.vertex_color_matrix()[:, :3]
+        if not np.allclose(c, c[:1]):  # meshlab fills colourless meshes with one grey
+            colours = srgb_to_linear(c)
+    v, f = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+    try:
+        check_mesh(v, f, path)
+    except MeshError as exc:
+        raise UsageError(str(exc)) from None
+    return v, f, (None if colours is None else np.asarray(colours, np.float32))
+
+
+def coarse_mesh_from_points(points: np.ndarray, colours: np.ndarray | None, cam_centres: np.ndarray,
+                            depth: int = POISSON_DEPTH) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A screened Poisson surface of sparse points: normals from 10 neighbours, turned toward the nearest camera;
+    the faces of least point support trimmed; the largest piece kept; vertex colours from the nearest point."""
+    import pymeshlab
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, np.float64)
+    if len(pts) < 100:
+        raise UsageError(f"{len(pts)} triangulated points: too few for a mesh (at least 100)")
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts))
+    ms.compute_normal_for_point_clouds(k=10, smoothiter=2)
+    n = ms.current_mesh().vertex_normal_matrix()
+    near = cam_centres[cKDTree(cam_centres).query(pts)[1]]
+    n = np.where(((near - pts) * n).sum(1, keepdims=True) < 0, -n, n)
+    ms.clear()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts, v_normals_matrix=n))
+    ms.generate_surface_reconstruction_screened_poisson(depth=depth, preclean=True)
+    m = ms.current_mesh()
+    q = m.vertex_scalar_array() if m.has_vertex_scalar() else np.zeros(0)  # Poisson's point density
+    if len(q) and np.ptp(q) > 0:
+        ms.compute_selection_by_condition_per_vertex(condselect=f"q < {np.quantile(q, TRIM_QUANTILE)}")
+        ms.meshing_remove_selected_vertices()
+    ms.meshing_remove_connected_component_by_diameter(mincomponentdiag=pymeshlab.PercentageValue(20))
+    ms.meshing_remove_unreferenced_vertices()
+    m = ms.current_mesh()
+    v, f = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+    if len(f) < 20:
+        raise UsageError(f"the Poisson surface of {len(pts)} points has {len(f)} faces: no usable mesh")
+    c = None
+    if colours is not None:
+        c = np.asarray(colours, np.float32)[cKDTree(pts).query(v)[1]]
+    return v, f, c

@@ -1,0 +1,249 @@
+"""Structure from motion on the CPU with pycolmap: SIFT features, matching, incremental mapping (photos only), and
+triangulation with cameras already known (a capture imported without points or mesh). Measured behaviour and the
+mapper options used: docs/capture.md."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from foundation.errors import FailureError, UsageError
+
+from .sources import PHOTO_SUFFIXES, Source, SourceFrame
+
+
+@dataclass
+class SfmSettings:
+    """Settings of `photoreal capture sfm`."""
+
+    max_size: int = 1024  #: longest side the features are found at (pixels; the photos themselves are kept)
+    max_features: int = 8192  #: SIFT features per photo
+    #: exhaustive matching up to this many photos (its cost grows with the square); sequential beyond
+    exhaustive_up_to: int = 80
+    #: mapper options that join low-texture captures into one model (a flash-lit skull split into 3 with COLMAP's
+    #: defaults: 44 + 20 + 5 photos; one model of 64/66 with these)
+    relaxed: bool = True
+    seed: int = 0
+
+    def __post_init__(self):
+        from foundation import validate
+
+        validate.integer("max_size", self.max_size, 64, 16384)
+        validate.integer("max_features", self.max_features, 64)
+        validate.integer("exhaustive_up_to", self.exhaustive_up_to, 2)
+        validate.seed("seed", self.seed)
+
+
+def focal_prior(path: Path, width: int) -> float | None:
+    """Focal length in pixels at ``width`` from a photo's EXIF: its 35 mm equivalent, else the focal length over the
+    sensor width (``FocalPlaneXResolution`` describes the full-resolution sensor even in a downsampled copy, so the
+    sensor width comes from it and ``PixelXDimension``, the original width)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            sub = exif.get_ifd(0x8769)
+            orig_w = sub.get(0xA002) or im.size[0]
+    except (OSError, ValueError):
+        return None
+    f35, f = sub.get(0xA405), sub.get(0x920A)
+    if f35:
+        return float(f35) / 36.0 * width
+    res, unit = sub.get(0xA20E), sub.get(0xA210, 2)
+    if f and res:
+        mm = {2: 25.4, 3: 10.0, 4: 1.0}.get(int(unit))
+        if mm:
+            sensor_mm = float(orig_w) / float(res) * mm
+            if 2.0 < sensor_mm < 80.0:
+                return float(f) / sensor_mm * width
+    return None
+
+
+def _prepare_photos(photos: list[Path], folder: Path, max_size: int) -> dict[str, tuple[Path, float, float | None]]:
+    """Upright 8-bit copies at most ``max_size`` on their longest side: name → (original, scale, focal prior)."""
+    from PIL import Image
+
+    from foundation.imageio import read_image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    out = {}
+    for p in photos:
+        img = read_image(p, channels=3, linear=False, what="photo")
+        h, w = img.shape[:2]
+        s = min(1.0, max_size / max(w, h))
+        im = Image.fromarray(np.round(img * 255).astype(np.uint8))
+        if s < 1.0:
+            im = im.resize((max(1, round(w * s)), max(1, round(h * s))), Image.LANCZOS)
+        name = f"{p.stem}.png"
+        im.save(folder / name)
+        prior = focal_prior(p, im.size[0])
+        out[name] = (p, im.size[0] / w, prior)
+    return out
+
+
+def quiet_colmap(verbose: bool = False) -> None:
+    """COLMAP logs every step at INFO level to stderr; keep warnings and errors only (unless PHOTOREAL_DEBUG)."""
+    import os
+
+    import pycolmap
+
+    if not verbose and os.environ.get("PHOTOREAL_DEBUG", "") in ("", "0"):
+        pycolmap.logging.minloglevel = 1
+        pycolmap.logging.stderrthreshold = 1
+
+
+def run_sfm(photos: str | Path, work: str | Path, s: SfmSettings | None = None,
+            progress=None) -> Source:
+    """Cameras and points of a folder of photos; ``work`` keeps COLMAP's database and model. Returns the
+    largest model as a source; its ``notes["sfm"]`` holds the figures (registered/total, models, points,
+    reprojection error, seconds per step, the photos left out)."""
+    import pycolmap
+
+    s = s or SfmSettings()
+    quiet_colmap()
+    folder = Path(photos)
+    if not folder.is_dir():
+        raise UsageError(f"{folder}: no such folder of photos")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES and p.suffix.lower() != ".exr")
+    if len(files) < 3:
+        raise UsageError(f"{folder}: {len(files)} photos (JPEG/PNG/TIFF); structure from motion needs at least 3")
+    work = Path(work)
+    say = progress or (lambda msg: None)
+    seconds: dict[str, float] = {}
+    t = time.perf_counter()
+    say(f"preparing {len(files)} photos (longest side {s.max_size})")
+    prepared = _prepare_photos(files, work / "images", s.max_size)
+    seconds["prepare"] = time.perf_counter() - t
+    db = work / "database.db"
+    db.unlink(missing_ok=True)
+    pycolmap.set_random_seed(s.seed)
+    t = time.perf_counter()
+    say("SIFT features")
+    ex = pycolmap.FeatureExtractionOptions()
+    ex.max_image_size = s.max_size
+    ex.sift.max_num_features = s.max_features
+    ex.num_threads = -1
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "SIMPLE_RADIAL"
+    pycolmap.extract_features(db, work / "images", camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader,
+                              extraction_options=ex, device=pycolmap.Device.cpu)
+    _set_focal_priors(db, prepared)
+    seconds["features"] = time.perf_counter() - t
+    t = time.perf_counter()
+    exhaustive = len(files) <= s.exhaustive_up_to
+    say(f"matching ({'exhaustive' if exhaustive else 'sequential'})")
+    if exhaustive:
+        pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_sequential(db, device=pycolmap.Device.cpu)
+    seconds["matching"] = time.perf_counter() - t
+    t = time.perf_counter()
+    say("incremental mapping")
+    opts = pycolmap.IncrementalPipelineOptions()
+    if s.relaxed:
+        opts.min_num_matches = 10
+        opts.mapper.init_min_num_inliers = 50
+        opts.mapper.abs_pose_min_num_inliers = 15
+        opts.mapper.abs_pose_min_inlier_ratio = 0.1
+        opts.triangulation.ignore_two_view_tracks = False
+    (work / "sparse").mkdir(exist_ok=True)
+    models = pycolmap.incremental_mapping(db, work / "images", work / "sparse", options=opts)
+    seconds["mapping"] = time.perf_counter() - t
+    if not models:
+        raise FailureError(f"{folder}: no two photos could be registered (too little texture or overlap)")
+    best_id = max(models, key=lambda k: models[k].num_reg_images())
+    rec = models[best_id]
+    frames = []
+    registered = set()
+    for _, im in sorted(rec.images.items()):
+        if not im.has_pose:
+            continue
+        orig, scale, _ = prepared[im.name]
+        cam = rec.cameras[im.camera_id]
+        w2c = np.eye(4)
+        w2c[:3] = im.cam_from_world().matrix()
+        full = pycolmap.Camera(model=cam.model, width=cam.width, height=cam.height, params=cam.params)
+        full.rescale(round(cam.width / scale), round(cam.height / scale))
+        frames.append(SourceFrame(orig.stem, orig, full, np.linalg.inv(w2c)))
+        registered.add(im.name)
+    pts = np.array([p.xyz for p in rec.points3D.values()], np.float64).reshape(-1, 3)
+    cols = np.array([p.color for p in rec.points3D.values()], np.float64).reshape(-1, 3) / 255.0
+    left = sorted(prepared[n][0].name for n in prepared if n not in registered)
+    figures = {"photos": len(files), "registered": len(frames), "models": len(models),
+               "model_sizes": sorted((m.num_reg_images() for m in models.values()), reverse=True),
+               "points": int(len(pts)), "reprojection_px": float(rec.compute_mean_reprojection_error()),
+               "mean_track_length": float(rec.compute_mean_track_length()),
+               "matching": "exhaustive" if exhaustive else "sequential", "max_size": s.max_size,
+               "seconds": {k: round(v, 2) for k, v in seconds.items()}, "unregistered": left}
+    return Source("sfm", folder, frames, pts, cols, {"sfm": figures})
+
+
+def _set_focal_priors(db: Path, prepared: dict) -> None:
+    """Focal lengths from EXIF, in pixels of the copies (COLMAP's own prior reads the focal-plane resolution of the
+    full-size sensor and comes out several times too long for a downsampled photo)."""
+    import pycolmap
+
+    database = pycolmap.Database.open(str(db))
+    try:
+        images = {im.name: im for im in database.read_all_images()}
+        for name, (_, _, prior) in prepared.items():
+            if prior is None or name not in images:
+                continue
+            cam = database.read_camera(images[name].camera_id)
+            params = np.array(cam.params)
+            params[0] = prior
+            cam.params = params
+            cam.has_prior_focal_length = True
+            database.update_camera(cam)
+    finally:
+        database.close()
+
+
+def triangulate_known(capture_dir: Path, cams: list, show_progress: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) and colours (N, 3, sRGB) triangulated from a capture's own photos and pinhole cameras (known
+    poses: features, exhaustive matching, triangulation; nothing is re-estimated)."""
+    import tempfile
+
+    import pycolmap
+    from PIL import Image
+
+    from foundation import imageio
+
+    quiet_colmap()
+    with tempfile.TemporaryDirectory(prefix="photoreal-triangulate-") as tmp:
+        tmp = Path(tmp)
+        (tmp / "images").mkdir()
+        for c in cams:
+            img = imageio.exr_layer(imageio.read_exr(capture_dir / "images" / f"{c.name}.exr"), "")[..., :3]
+            Image.fromarray(imageio.to_uint8_srgb(img)).save(tmp / "images" / f"{c.name}.png")
+        db = tmp / "database.db"
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "PINHOLE"
+        pycolmap.extract_features(db, tmp / "images", camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                                  reader_options=reader, device=pycolmap.Device.cpu)
+        pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+        by_name = {f"{c.name}.png": c for c in cams}
+        database = pycolmap.Database.open(str(db))
+        try:
+            images = database.read_all_images()
+            rec = pycolmap.Reconstruction()
+            for im in images:
+                c = by_name[im.name]
+                cam = database.read_camera(im.camera_id)
+                cam.params = np.array([c.f, c.f, c.cx, c.cy])
+                rec.add_camera_with_trivial_rig(cam)
+                w2c = np.linalg.inv(c.matrix)
+                rec.add_image_with_trivial_frame(pycolmap.Image(name=im.name, camera_id=im.camera_id,
+                                                                image_id=im.image_id),
+                                                 pycolmap.Rigid3d(w2c[:3]))
+        finally:
+            database.close()
+        (tmp / "tri").mkdir()
+        rec = pycolmap.triangulate_points(rec, db, tmp / "images", tmp / "tri")
+    pts = np.array([p.xyz for p in rec.points3D.values()], np.float64).reshape(-1, 3)
+    cols = np.array([p.color for p in rec.points3D.values()], np.float64).reshape(-1, 3) / 255.0
+    return pts, cols

@@ -1,0 +1,207 @@
+"""Captures: the Mitsuba sensor of a capture camera against its pinhole projection, import round trips of the three
+formats (cameras within 1e-6, renders equal), the undistortion against an exact distortion of a known image, and bad
+captures refused in one line with nothing written."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from inverse.capture import (Capture, CaptureCamera, CaptureMeta, export_capture, import_capture, load_capture,
+                             read_source, render_mesh, sensor, undistort)
+from photoreal.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+ARMADILLO = ROOT / "scenes" / "assets" / "meshes" / "armadillo.ply"
+
+
+def _look(eye, target) -> list[list[float]]:
+    """cam_to_world (COLMAP axes) of a camera at ``eye`` looking at ``target``, y up."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, -1.0, 0.0])  # COLMAP: y down, so image right = z × (−up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    m = np.eye(4)
+    m[:3, :3] = np.stack([x, y, z], 1)
+    m[:3, 3] = eye
+    return m.tolist()
+
+
+def _capture(tmp: Path, n: int = 4, w: int = 40, h: int = 30) -> Capture:
+    """An in-memory capture: cameras on a circle with their own focal lengths and off-centre principal points."""
+    rng = np.random.default_rng(0)
+    cams = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        cams.append(CaptureCamera(f"p{k}", w, h, 35.0 + 3 * k, w / 2 + 2.5 - k, h / 2 - 1.5 + 0.5 * k,
+                                  _look([3 * np.cos(a), 0.8, 3 * np.sin(a)], [0.0, 0.1, 0.0])))
+    meta = CaptureMeta(cams, [c.name for c in cams[:-1]], [cams[-1].name])
+    return Capture(tmp, meta, {c.name: rng.uniform(0, 1, (h, w, 3)).astype(np.float32) for c in cams})
+
+
+def test_the_mitsuba_sensor_sees_what_the_pinhole_projects():
+    """Oracle: a world point projected by the pinhole (f, cx, cy, COLMAP axes) lies on Mitsuba's ray through that
+    pixel (principal_point_offset = 0.5 − c/size, x and y flipped)."""
+    import mi_plugins  # noqa: F401
+    import mitsuba as mi
+
+    cam = CaptureCamera("c", 64, 48, 50.0, 36.5, 20.25, _look([1.0, 2.0, 3.0], [0.0, 0.0, 0.0]))
+    s = mi.load_dict(sensor(cam))
+    pts = np.random.default_rng(1).normal(scale=0.5, size=(20, 3))
+    uv, z = cam.project(pts)
+    assert (z > 0).all()
+    for p, (u, v) in zip(pts, uv):
+        ray, _ = s.sample_ray(0.0, 0.5, mi.Point2f(float(u) / cam.width, float(v) / cam.height), mi.Point2f(0.5, 0.5))
+        o, d = np.array(ray.o, np.float64).ravel(), np.array(ray.d, np.float64).ravel()
+        to, d = (p - o) / np.linalg.norm(p - o), d / np.linalg.norm(d)
+        assert np.degrees(np.linalg.norm(np.cross(to, d))) < 1e-4  # the same ray, to float32 precision
+
+
+@pytest.mark.parametrize("fmt", ["colmap", "colmap-text", "transforms"])
+def test_export_then_import_gives_the_same_cameras_and_photos(fmt, tmp_path):
+    cap = _capture(tmp_path / "mem")
+    src = read_source(export_capture(cap, tmp_path / "exp", fmt))
+    back = load_capture(import_capture(src, tmp_path / "cap", resolution=None, show_progress=False,
+                                       triangulate=False))
+    for c in cap.meta.cameras:
+        b = back.cameras[c.name]
+        assert (b.width, b.height) == (c.width, c.height)
+        assert np.abs(b.matrix - c.matrix).max() < 1e-6 and abs(b.f - c.f) < 1e-6
+        assert abs(b.cx - c.cx) < 1e-6 and abs(b.cy - c.cy) < 1e-6
+        # photos: 8-bit sRGB PNG in between (half a quantisation step in sRGB), undistortion an identity
+        from foundation.imageio import linear_to_srgb
+
+        assert np.abs(linear_to_srgb(back.photo(c.name)) - linear_to_srgb(cap.photo(c.name))).max() < 0.6 / 255 + 2e-3
+    assert back.meta.train and back.meta.test and back.meta.source["format"] == fmt.split("-")[0].replace(
+        "transforms", "transforms")
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory):
+    from inverse.morph import MorphBenchmarkSettings, benchmark_capture, load_morph_benchmark, make_morph_benchmark
+
+    out = make_morph_benchmark(ARMADILLO, tmp_path_factory.mktemp("cap") / "b",
+                               MorphBenchmarkSettings(n_views=4, resolution=32, spp=2, coarse_vertices=300),
+                               show_progress=False)
+    return benchmark_capture(load_morph_benchmark(out))
+
+
+@pytest.mark.parametrize("fmt", ["colmap", "transforms", "llff"])
+def test_a_benchmark_exported_and_imported_renders_the_same(fmt, bench, tmp_path):
+    """The three formats on a morph benchmark (LLFF: one focal length, centred principal points): the cameras come
+    back within 1e-6 and a render of the coarse mesh through them equals the render through the originals (same
+    seed: within float32 of the camera, far below the Monte-Carlo noise of 4 spp)."""
+    from foundation.mesh import read_ply_colours
+
+    src = read_source(export_capture(bench, tmp_path / "exp", fmt))
+    back = load_capture(import_capture(src, tmp_path / "cap", resolution=None, mesh=bench.mesh, show_progress=False))
+    v, f, col = read_ply_colours(bench.mesh)
+    for c in bench.meta.cameras:
+        b = back.cameras[c.name]
+        assert np.abs(b.matrix - c.matrix).max() < 1e-6 and abs(b.f - c.f) < 1e-6
+    c = bench.meta.cameras[0]
+    a, b = render_mesh(v, f, col, c, spp=4), render_mesh(v, f, col, back.cameras[c.name], spp=4)
+    assert np.abs(a - b).mean() < 1e-4, np.abs(a - b).mean()
+    assert back.meta.mesh == "mesh.ply"
+
+
+def test_undistortion_puts_every_point_back_within_a_pixel(tmp_path):
+    """Oracle: bright dots at known pinhole positions, drawn where an OPENCV camera (k1, k2, p1, p2) images them
+    (pycolmap's own projection), then undistorted here: each dot's centroid lands within a pixel of where the
+    pinhole puts it (measured: within 0.05 px)."""
+    from inverse.capture import camera
+    from inverse.capture.build import working_camera
+
+    w, h = 160, 120
+    cam = camera("OPENCV", w, h, [100.0, 100.0, 82.0, 58.0, -0.28, 0.09, 0.001, -0.0015], "test")
+    _, pin = working_camera("d", cam, np.eye(4), None)
+    rays = np.array([[x, y, 1.0] for x in np.linspace(-0.55, 0.55, 6) for y in np.linspace(-0.4, 0.4, 5)])
+    dots = cam.img_from_cam(rays, False)
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    img = np.zeros((h, w, 3), np.float32)
+    for u, v in dots:
+        img += np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 1.2 ** 2))[..., None]
+    out, inside = undistort(img, cam, pin)
+    assert inside.mean() > 0.9
+    want = np.stack([pin.f * rays[:, 0] + pin.cx, pin.f * rays[:, 1] + pin.cy], 1)
+    errs = []
+    for u, v in want:
+        win = (np.abs(xx - u) < 4) & (np.abs(yy - v) < 4)
+        wgt = out[..., 0] * win
+        errs.append(np.hypot((wgt * xx).sum() / wgt.sum() - u, (wgt * yy).sum() / wgt.sum() - v))
+    assert max(errs) < 1.0, max(errs)
+    assert max(errs) < 0.2  # bilinear resampling of a 1.2 px blob: a tenth of a pixel, measured 0.05
+
+
+def _run(argv, capsys) -> tuple[int, str]:
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return code, err
+
+
+def test_bad_captures_are_named_and_nothing_is_written(bench, tmp_path, capsys):
+    out = tmp_path / "out"
+
+    def fails(source, msg, code=2):
+        c, err = _run(["capture", "import", source, "--out", out, "--mesh", bench.mesh], capsys)
+        assert c == code and msg in err.strip().splitlines()[-1], err
+        assert not out.exists()
+
+    col = export_capture(bench, tmp_path / "col", "colmap")
+    (col / "images" / "view01.png").unlink()
+    fails(col, f"{col / 'images' / 'view01.png'}: photo missing")
+    txt = export_capture(bench, tmp_path / "txt", "colmap-text")
+    images = txt / "sparse" / "0" / "images.txt"
+    lines = images.read_text().splitlines()
+    lines = [(" ".join(ln.split()[:8] + ["99"] + ln.split()[9:]) if ln and not ln.startswith("#") and
+              ln.split()[-1].endswith(".png") else ln) for ln in lines]
+    images.write_text("\n".join(lines) + "\n")
+    fails(txt, "not a readable COLMAP model")  # an image naming a camera the model lacks
+    cut = export_capture(bench, tmp_path / "cut", "colmap")
+    data = (cut / "sparse" / "0" / "cameras.bin").read_bytes()
+    (cut / "sparse" / "0" / "cameras.bin").write_bytes(data[: len(data) // 2])
+    fails(cut, f"{cut / 'sparse' / '0'}: not a readable COLMAP model")
+    tj = export_capture(bench, tmp_path / "tj", "transforms")
+    d = json.loads((tj / "transforms.json").read_text())
+    for fr in d["frames"]:
+        for k in ("fl_x", "fl_y"):
+            fr.pop(k)
+    (tj / "transforms.json").write_text(json.dumps(d))
+    fails(tj, f"{tj / 'transforms.json'} frame 0: no intrinsics (fl_x/fl_y or camera_angle_x")
+    d = json.loads((tj / "transforms.json").read_text())
+    for fr in d["frames"]:
+        fr["fl_x"] = 30.0
+    d["frames"][2]["transform_matrix"][0][3] = float("nan")
+    (tj / "transforms.json").write_text(json.dumps(d))
+    fails(tj, f"{tj / 'transforms.json'} frame 2: pose has NaN/Inf values")
+    ll = export_capture(bench, tmp_path / "ll", "llff")
+    (ll / "images" / "view03.png").unlink()
+    fails(ll, "4 poses for 3 photos")
+    pb = np.load(ll / "poses_bounds.npy")
+    shutil.copy(tmp_path / "col" / "images" / "view00.png", ll / "images" / "view03.png")
+    pb[1, 3] = np.nan
+    np.save(ll / "poses_bounds.npy", pb)
+    fails(ll, "row 1 (view01.png): NaN/Inf in the pose")
+    fails(tmp_path / "nothing", "no such file or folder")
+
+
+def test_the_capture_commands_end_to_end(bench, tmp_path, capsys):
+    exp = tmp_path / "exp"
+    assert _run(["capture", "export", bench.path, "--format", "transforms", "--out", exp], capsys)[0] == 0
+    code, _ = _run(["capture", "import", exp, "--out", tmp_path / "cap", "--mesh", bench.mesh, "--resolution",
+                    "24"], capsys)
+    assert code == 0
+    cap = load_capture(tmp_path / "cap")
+    assert {(c.width, c.height) for c in cap.meta.cameras} == {(24, 24)}  # longest side 24
+    assert abs(cap.meta.cameras[0].f - bench.meta.cameras[0].f * 24 / 32) < 1e-9
+    code, _ = _run(["capture", "score", tmp_path / "cap", "--spp", "2", "--json", tmp_path / "s.json"], capsys)
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert code == 0 and set(s["mean"]) == {"psnr", "ssim", "flip", "perceptual"} and len(s["views"]) == 1
+    assert s["mean"]["psnr"] > 10  # the coarse armadillo against its own photo: far from noise
