@@ -230,7 +230,11 @@ def _deep(p: Path) -> bool:
 
 
 def _read_deep(p: Path, what: str) -> np.ndarray:
-    import cv2
+    try:
+        import cv2
+    except ImportError:
+        raise ImageIOError(f"{p}: a 16-bit colour {what} needs OpenCV to keep its 16 bits (pip install "
+                           "opencv-python-headless; `make install` brings it with the face extra)") from None
 
     a = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
     if a is None or a.dtype != np.uint16:

@@ -205,3 +205,25 @@ def test_the_capture_commands_end_to_end(bench, tmp_path, capsys):
     s = json.loads((tmp_path / "s.json").read_text())
     assert code == 0 and set(s["mean"]) == {"psnr", "ssim", "flip", "perceptual"} and len(s["views"]) == 1
     assert s["mean"]["psnr"] > 10  # the coarse armadillo against its own photo: far from noise
+
+
+def test_the_poisson_mesh_of_sparse_points_is_the_surface_they_sample():
+    """Oracle: 3000 noisy points (σ 0.5 %) on a unit sphere, cameras around it: the coarse mesh's vertices lie within
+    1 % of the radius in the median, 4 % at the 99th percentile, 10 % at worst (measured 2.5 % and 8.8 %, near the
+    holes the trimming leaves), the mesh faces outward (normals turned toward the cameras), colours come from the points."""
+    from foundation.mesh import vertex_normals
+    from inverse.capture import coarse_mesh_from_points
+
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(3000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    pts = p * (1 + rng.normal(scale=0.005, size=(3000, 1)))
+    cols = np.repeat((p[:, :1] > 0).astype(np.float64), 3, 1)
+    a = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    cams = np.stack([3 * np.cos(a), 0.5 * np.sin(3 * a), 3 * np.sin(a)], 1)
+    v, f, c = coarse_mesh_from_points(pts, cols, cams)
+    r = np.linalg.norm(v, axis=1)
+    e = np.abs(r - 1)
+    assert len(f) > 500 and np.median(e) < 0.01 and np.quantile(e, 0.99) < 0.04 and e.max() < 0.1
+    assert (np.einsum("ij,ij->i", vertex_normals(v, f), v / r[:, None]) > 0).mean() > 0.95
+    assert np.mean((c[:, 0] > 0.5) == (v[:, 0] > 0)) > 0.97
