@@ -57,6 +57,19 @@ def load_coarse_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return v, f, (None if colours is None else np.asarray(colours, np.float32))
 
 
+def inliers(points: np.ndarray, k: int = 8, sigmas: float = 2.0, tail: float = 0.01) -> np.ndarray:
+    """Points worth a surface: statistical outliers (mean distance to their ``k`` neighbours beyond mean + ``sigmas``
+    σ) and the far ``tail`` of each axis (a few background points would stretch Poisson's octree over the whole
+    room, leaving the object a handful of cells) dropped."""
+    from scipy.spatial import cKDTree
+
+    d = cKDTree(points).query(points, k + 1)[0][:, 1:].mean(1)
+    keep = d <= d.mean() + sigmas * d.std()
+    lo, hi = np.quantile(points[keep], tail, axis=0), np.quantile(points[keep], 1 - tail, axis=0)
+    pad = 0.05 * (hi - lo)
+    return keep & np.all((points >= lo - pad) & (points <= hi + pad), axis=1)
+
+
 def coarse_mesh_from_points(points: np.ndarray, colours: np.ndarray | None, cam_centres: np.ndarray,
                             depth: int = POISSON_DEPTH) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """A screened Poisson surface of sparse points: normals from 10 neighbours, turned toward the nearest camera;
@@ -67,6 +80,8 @@ def coarse_mesh_from_points(points: np.ndarray, colours: np.ndarray | None, cam_
     pts = np.asarray(points, np.float64)
     if len(pts) < 100:
         raise UsageError(f"{len(pts)} triangulated points: too few for a mesh (at least 100)")
+    keep = inliers(pts)
+    pts, colours = pts[keep], (None if colours is None else np.asarray(colours)[keep])
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts))
     ms.compute_normal_for_point_clouds(k=10, smoothiter=2)
