@@ -9,12 +9,14 @@ module                    what
 ``sources``               readers of COLMAP (pycolmap), transforms.json, LLFF → photos + the tool's cameras
 ``build``                 a source → a capture: linear photos, area resize, undistortion, masks, mesh
 ``coarse``                the tool's mesh (OBJ+MTL, PLY, GLB) or a Poisson mesh of sparse points
+``align``                 similarity alignment of recovered cameras to known ones (Umeyama)
 ``sfm``                   structure from motion and triangulation with known cameras (pycolmap)
 ``export``                a capture → COLMAP, transforms.json, LLFF
 ``scores``                held-out photos against renders of a mesh (PSNR, SSIM, ꟻLIP, MobileNetV2)
 ========================  =============================================================
 """
 
+from .align import camera_errors, similarity
 from .build import area_resize, import_capture, undistort
 from .coarse import coarse_mesh_from_points, load_coarse_mesh
 from .export import FORMATS, export_capture
@@ -26,7 +28,7 @@ from .sfm import SfmSettings, focal_prior, run_sfm, triangulate_known
 from .sources import Source, SourceFrame, camera, read_colmap, read_llff, read_source, read_transforms
 
 __all__ = ["FORMAT", "FORMATS", "HELD_OUT_EVERY", "MARKER", "MITSUBA_FROM_COLMAP", "Capture", "CaptureCamera", "CaptureMeta", "SfmSettings",
-           "Source", "SourceFrame", "area_resize", "camera", "check_camera", "coarse_mesh_from_points", "colour_from_photos",
+           "Source", "SourceFrame", "area_resize", "camera", "camera_errors", "check_camera", "coarse_mesh_from_points", "colour_from_photos",
            "export_capture", "focal_prior", "heldout_scores", "import_capture", "load_capture", "load_coarse_mesh", "read_colmap",
-           "read_llff", "read_source", "read_transforms", "render_mesh", "run_sfm", "sensor", "split", "triangulate_known",
+           "read_llff", "read_source", "read_transforms", "render_mesh", "run_sfm", "sensor", "similarity", "split", "triangulate_known",
            "undistort"]

@@ -26,6 +26,8 @@ class SfmSettings:
     #: mapper options that join low-texture captures into one model (a flash-lit skull split into 3 with COLMAP's
     #: defaults: 44 + 20 + 5 photos; one model of 64/66 with these)
     relaxed: bool = True
+    #: photos of one size share one camera (one body and lens, as nerfstudio assumes); mixed sizes get one each
+    single_camera: bool = True
     seed: int = 0
 
     def __post_init__(self):
@@ -102,6 +104,7 @@ def run_sfm(photos: str | Path, work: str | Path, s: SfmSettings | None = None,
     largest model as a source; its ``notes["sfm"]`` holds the figures (registered/total, models, points,
     reprojection error, seconds per step, the photos left out)."""
     import pycolmap
+    from PIL import Image
 
     s = s or SfmSettings()
     quiet_colmap()
@@ -129,7 +132,10 @@ def run_sfm(photos: str | Path, work: str | Path, s: SfmSettings | None = None,
     ex.num_threads = -1
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "SIMPLE_RADIAL"
-    pycolmap.extract_features(db, work / "images", camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader,
+    sizes = {Image.open(work / "images" / n).size for n in prepared}
+    single = s.single_camera and len(sizes) == 1
+    mode = pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE
+    pycolmap.extract_features(db, work / "images", camera_mode=mode, reader_options=reader,
                               extraction_options=ex, device=pycolmap.Device.cpu)
     _set_focal_priors(db, prepared)
     seconds["features"] = time.perf_counter() - t
@@ -178,6 +184,7 @@ def run_sfm(photos: str | Path, work: str | Path, s: SfmSettings | None = None,
                "points": int(len(pts)), "reprojection_px": float(rec.compute_mean_reprojection_error()),
                "mean_track_length": float(rec.compute_mean_track_length()),
                "matching": "exhaustive" if exhaustive else "sequential", "max_size": s.max_size,
+               "cameras": "single" if single else "per photo",
                "seconds": {k: round(v, 2) for k, v in seconds.items()}, "unregistered": left}
     return Source("sfm", folder, frames, pts, cols, {"sfm": figures})
 

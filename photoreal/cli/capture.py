@@ -122,6 +122,8 @@ def _add_sfm(p: argparse.ArgumentParser) -> None:
         opt(p, SfmSettings, name)
     opt(p, SfmSettings, "relaxed", "--default-mapper", help="COLMAP's default mapper options (they split "
         "low-texture captures into several models)")
+    opt(p, SfmSettings, "single_camera", "--per-photo-cameras", help="a camera of its own for every photo (zoom "
+        "lenses, several bodies); by default photos of one size share one")
     p.set_defaults(func=_cmd_sfm)
 
 
