@@ -250,7 +250,9 @@ def triangulate_known(capture_dir: Path, cams: list, show_progress: bool = True)
         finally:
             database.close()
         (tmp / "tri").mkdir()
-        rec = pycolmap.triangulate_points(rec, db, tmp / "images", tmp / "tri")
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.triangulation.ignore_two_view_tracks = False  # a point two photos agree on is a point (few photos)
+        rec = pycolmap.triangulate_points(rec, db, tmp / "images", tmp / "tri", options=opts)
     pts = np.array([p.xyz for p in rec.points3D.values()], np.float64).reshape(-1, 3)
     cols = np.array([p.color for p in rec.points3D.values()], np.float64).reshape(-1, 3) / 255.0
     return pts, cols

@@ -254,3 +254,79 @@ def test_the_similarity_of_camera_centres_is_recovered_exactly():
     moved["c0"][:3, 3] += rot.T @ np.array([0.15, 0.0, 0.0]) / s  # 0.15 = 5 % of the radius, in the truth's frame
     e = camera_errors(moved, truth, radius=3.0)
     assert 0.02 < e["centre_error_max"] < 0.05  # the fit absorbs part of it in scale and rotation (measured 2.6 %)
+
+
+def _glb(path: Path, pos: np.ndarray, idx: np.ndarray) -> Path:
+    """A minimal glTF binary: one primitive (positions, indices)."""
+    import struct
+
+    blobs = [pos.astype(np.float32).tobytes(), idx.astype(np.uint32).tobytes()]
+    attrs = {"POSITION": 0}
+    acc = [{"bufferView": 0, "componentType": 5126, "count": len(pos), "type": "VEC3",
+            "min": pos.min(0).tolist(), "max": pos.max(0).tolist()},
+           {"bufferView": 1, "componentType": 5125, "count": idx.size, "type": "SCALAR"}]
+    views, off = [], 0
+    for b in blobs:
+        views.append({"buffer": 0, "byteOffset": off, "byteLength": len(b)})
+        off += len(b)
+    body = b"".join(blobs)
+    gltf = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+            "meshes": [{"primitives": [{"attributes": attrs, "indices": 1}]}], "buffers": [{"byteLength": len(body)}],
+            "bufferViews": views, "accessors": acc}
+    j = json.dumps(gltf).encode()
+    j += b" " * (-len(j) % 4)
+    body += b"\0" * (-len(body) % 4)
+    path.write_bytes(struct.pack("<III", 0x46546C67, 2, 28 + len(j) + len(body)) + struct.pack("<II", len(j), 0x4E4F534A)
+                     + j + struct.pack("<II", len(body), 0x004E4942) + body)
+    return path
+
+
+def test_a_tools_mesh_comes_with_its_colours(tmp_path):
+    """OBJ + MTL texture (a real scan) sampled to vertex colours; a GLB's geometry; another format named."""
+    from inverse.capture import load_coarse_mesh
+
+    v, f, c = load_coarse_mesh(ROOT / "scenes" / "assets" / "face" / "cyberheads" / "paul.obj")
+    assert len(v) == 1600 and c is not None and c.shape == (1600, 3) and 0 <= c.min() and c.max() <= 1
+    assert c.std(0).min() > 0.01  # the texture, not one grey
+    pos = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    idx = np.array([0, 2, 1, 0, 3, 2, 0, 1, 3, 1, 2, 3])
+    v, f, c = load_coarse_mesh(_glb(tmp_path / "t.glb", pos, idx))
+    assert v.shape == (4, 3) and f.shape == (4, 3) and np.allclose(np.sort(v, 0), np.sort(pos, 0))
+    (tmp_path / "t.txt").write_text("x")
+    with pytest.raises(Exception, match="t.txt: mesh expected as OBJ, PLY, GLB"):
+        load_coarse_mesh(tmp_path / "t.txt")
+
+
+def test_a_capture_without_points_or_mesh_is_triangulated_with_its_own_cameras(tmp_path):
+    """A transforms.json of 20 renders of a speckled bunny with their true cameras, no points, no mesh: the import
+    triangulates SIFT matches with the given cameras (pycolmap) and meshes them. Oracle: the points lie on the true
+    surface (median distance < 1 % of its size, measured 0.2 %)."""
+    import mi_plugins  # noqa: F401
+    import mitsuba as mi
+    from scipy.spatial import cKDTree
+
+    from foundation.mesh import _read_own_ply, sample_surface, write_ply
+    from inverse.capture import Capture, CaptureMeta
+    from inverse.morph import suite_mesh
+    from photoreal.benchmarks.capture import _orbit, _speckled
+
+    v, f, col = _speckled(suite_mesh("bunny", tmp_path), 0, min_vertices=30_000)
+    centre = 0.5 * (v.min(0) + v.max(0))
+    bound = float(np.linalg.norm(v - centre, axis=1).max())
+    cams = _orbit(20, centre, 1.3 * bound / np.tan(np.radians(20.0)), 192)
+    ply = write_ply(tmp_path / "truth.ply", v, f, col)
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2},
+                          "sky": {"type": "constant", "radiance": 0.6},
+                          "m": {"type": "ply", "filename": str(ply), "bsdf": {"type": "diffuse", "reflectance": {
+                              "type": "mesh_attribute", "name": "vertex_color"}}}})
+    photos = {c.name: np.array(mi.render(scene, sensor=mi.load_dict(sensor(c)), spp=8, seed=k))[..., :3]
+              for k, c in enumerate(cams)}
+    cap = Capture(tmp_path, CaptureMeta(cams, [c.name for c in cams[1:]], [cams[0].name]), photos)
+    src = read_source(export_capture(cap, tmp_path / "exp", "transforms"))
+    assert src.points is None
+    out = load_capture(import_capture(src, tmp_path / "cap", resolution=None, show_progress=False))
+    assert out.meta.points > 200 and out.meta.mesh == "mesh.ply"
+    pts, _, _ = _read_own_ply(out.path / "points.ply", (out.path / "points.ply").read_bytes())
+    size = float(np.linalg.norm(v.max(0) - v.min(0)))
+    d = cKDTree(sample_surface(v, f, 200_000, np.random.default_rng(0))[0]).query(pts)[0]
+    assert np.median(d) < 0.01 * size, np.median(d) / size
