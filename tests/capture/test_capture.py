@@ -330,3 +330,32 @@ def test_a_capture_without_points_or_mesh_is_triangulated_with_its_own_cameras(t
     size = float(np.linalg.norm(v.max(0) - v.min(0)))
     d = cKDTree(sample_surface(v, f, 200_000, np.random.default_rng(0))[0]).query(pts)[0]
     assert np.median(d) < 0.01 * size, np.median(d) / size
+
+
+def test_masks_travel_with_their_photos_and_limit_the_scores(tmp_path):
+    """A capture with masks exported as transforms.json (mask_path per frame) and imported back: the same masks;
+    scores are then taken inside them (a render that differs from the photo only outside the masks scores as exact)."""
+    from foundation import imageio
+    from inverse.capture import heldout_scores
+
+    cap = _capture(tmp_path / "mem")
+    (tmp_path / "mem" / "masks").mkdir(parents=True)
+    yy, xx = np.mgrid[0:30, 0:40]
+    for k, c in enumerate(cap.meta.cameras):
+        m = ((xx - 20) ** 2 + (yy - 15) ** 2 < (8 + k) ** 2).astype(np.float32)
+        imageio.write_png(tmp_path / "mem" / "masks" / f"{c.name}.png", np.repeat(m[..., None], 3, -1), linear=False)
+    cap.meta.masks = True
+    src = read_source(export_capture(cap, tmp_path / "exp", "transforms"))
+    assert all(fr.mask is not None for fr in src.frames)
+    back = load_capture(import_capture(src, tmp_path / "cap", resolution=None, show_progress=False,
+                                       triangulate=False))
+    assert back.meta.masks
+    for c in cap.meta.cameras:
+        assert np.array_equal(back.mask(c.name), cap.mask(c.name))
+    # unlit render of a big quad far behind: black everywhere; the photo made black inside the mask only
+    name = back.meta.test[0]
+    back.photos[name] = back.photo(name) * ~back.mask(name)[..., None]
+    quad_v = np.array([[-50, -50, -40], [50, -50, -40], [50, 50, -40], [-50, 50, -40]], float)
+    quad_f = np.array([[0, 1, 2], [0, 2, 3]])
+    r = heldout_scores(back, quad_v, quad_f, colours=np.zeros((4, 3), np.float32), spp=1)
+    assert r["masked"] and r["views"][name]["psnr"] > 60
