@@ -110,12 +110,13 @@ def _foreign_entries(p: Path, derived: tuple[str, ...] = ()) -> list[str]:
     names matching a ``derived`` pattern (caches computed from the folder's own files) do not count."""
     import fnmatch
 
+    rest = sorted(e.name for e in p.iterdir() if e.name not in _OWN
+                  and not any(fnmatch.fnmatchcase(e.name, d) for d in derived))
     try:
         own = set(json.loads((p / MANIFEST).read_text()))
-    except (OSError, ValueError, TypeError):
-        return ["(no readable manifest: made by an older photoreal or by hand)"]
-    return sorted(e.name for e in p.iterdir() if e.name not in own and e.name not in _OWN
-                  and not any(fnmatch.fnmatchcase(e.name, d) for d in derived))
+    except (OSError, ValueError, TypeError):  # only derived entries (a work folder): nothing of the user's
+        return ["(no readable manifest: made by an older photoreal or by hand)"] if rest else []
+    return [e for e in rest if e not in own]
 
 
 def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: str = "output folder",
@@ -133,7 +134,10 @@ def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: s
     if p.exists():
         if not p.is_dir():
             raise UsageError(f"{what} {p}: is a file, expected a folder")
-        if _entries(p) and (marker is None or not (p / marker).is_file()):
+        import fnmatch
+
+        held = [e for e in _entries(p) if not any(fnmatch.fnmatchcase(e, d) for d in derived)]
+        if held and (marker is None or not (p / marker).is_file()):
             hint = f" (no {marker}: not a previous output of this command)" if marker else ""
             raise UsageError(f"{what} {p}: folder exists and is not empty{hint}; choose another path or empty it")
         foreign = _foreign_entries(p, derived) if replace and _entries(p) else []

@@ -86,12 +86,13 @@ def _fit_camera_to_photo(cam, photo_size: tuple[int, int], image: Path):
 
 
 def import_capture(source, out: str | Path, resolution: int | None = 512, mesh: str | Path | None = None,
-                   show_progress: bool = True, triangulate: bool = True) -> Path:
+                   show_progress: bool = True, triangulate: bool = True, derived: tuple[str, ...] = ()) -> Path:
     """Write the capture folder ``out`` (atomically) from a source; returns it.
 
     ``resolution``: the longest side of the working photos (never enlarged; None keeps the photos' size).
     ``mesh``: the tool's coarse mesh (OBJ with its MTL texture, PLY with or without vertex colours, GLB); without
-    one, a coarse mesh is made from the source's points, or from points triangulated with the given cameras."""
+    one, a coarse mesh is made from the source's points, or from points triangulated with the given cameras.
+    ``derived``: entries of ``out`` that the new capture replaces (a structure-from-motion work folder inside it)."""
     from foundation import imageio
     from foundation.files import atomic_dir, write_json
     from foundation.mesh import write_ply
@@ -105,7 +106,7 @@ def import_capture(source, out: str | Path, resolution: int | None = 512, mesh: 
         raise UsageError(f"resolution must be an integer in [16, 8192], got {resolution}")
     user_mesh = load_coarse_mesh(mesh) if mesh is not None else None  # a bad mesh is named before any work
     frames = sorted(source.frames, key=lambda fr: fr.name)
-    with atomic_dir(out, MARKER) as tmp:
+    with atomic_dir(out, MARKER, derived=derived) as tmp:
         (tmp / "images").mkdir()
         if any(fr.mask is not None for fr in frames):
             if not all(fr.mask is not None for fr in frames):

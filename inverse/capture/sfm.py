@@ -4,6 +4,8 @@ mapper options used: docs/capture.md."""
 
 from __future__ import annotations
 
+import json
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -115,38 +117,69 @@ def run_sfm(photos: str | Path, work: str | Path, s: SfmSettings | None = None,
     if len(files) < 3:
         raise UsageError(f"{folder}: {len(files)} photos (JPEG/PNG/TIFF); structure from motion needs at least 3")
     work = Path(work)
+    work.mkdir(parents=True, exist_ok=True)
     say = progress or (lambda msg: None)
-    seconds: dict[str, float] = {}
-    t = time.perf_counter()
-    say(f"preparing {len(files)} photos (longest side {s.max_size})")
-    prepared = _prepare_photos(files, work / "images", s.max_size)
-    seconds["prepare"] = time.perf_counter() - t
+    # Resumable: each finished step is recorded in steps.json under a key of the settings and the photos; a rerun
+    # after an interruption skips what is done (the mapping, seconds on the CPU, always runs again).
+    from dataclasses import asdict
+
+    from foundation.files import write_json
+    from foundation.records import json_digest
+
+    key = json_digest([asdict(s), [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files]])
+    steps_file = work / "steps.json"
+    try:
+        steps = json.loads(steps_file.read_text())
+        steps = steps if steps.get("key") == key else None
+    except (OSError, ValueError):
+        steps = None
+    steps = steps or {"key": key, "done": [], "seconds": {}}
+    seconds: dict[str, float] = steps["seconds"]
+
+    def done(step: str) -> None:
+        steps["done"].append(step)
+        write_json(steps_file, steps)
+
     db = work / "database.db"
-    db.unlink(missing_ok=True)
+    if "prepare" in steps["done"]:
+        prepared = {n: (Path(o), sc, pr) for n, (o, sc, pr) in steps["prepared"].items()}
+        say(f"{len(prepared)} photos prepared before: reusing them")
+    else:
+        t = time.perf_counter()
+        say(f"preparing {len(files)} photos (longest side {s.max_size})")
+        prepared = _prepare_photos(files, work / "images", s.max_size)
+        seconds["prepare"] = time.perf_counter() - t
+        steps["prepared"] = {n: [str(o), sc, pr] for n, (o, sc, pr) in prepared.items()}
+        done("prepare")
     pycolmap.set_random_seed(s.seed)
-    t = time.perf_counter()
-    say("SIFT features")
-    ex = pycolmap.FeatureExtractionOptions()
-    ex.max_image_size = s.max_size
-    ex.sift.max_num_features = s.max_features
-    ex.num_threads = -1
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "SIMPLE_RADIAL"
     sizes = {Image.open(work / "images" / n).size for n in prepared}
     single = s.single_camera and len(sizes) == 1
-    mode = pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE
-    pycolmap.extract_features(db, work / "images", camera_mode=mode, reader_options=reader,
-                              extraction_options=ex, device=pycolmap.Device.cpu)
-    _set_focal_priors(db, prepared)
-    seconds["features"] = time.perf_counter() - t
-    t = time.perf_counter()
+    if "features" not in steps["done"]:
+        db.unlink(missing_ok=True)
+        t = time.perf_counter()
+        say("SIFT features")
+        ex = pycolmap.FeatureExtractionOptions()
+        ex.max_image_size = s.max_size
+        ex.sift.max_num_features = s.max_features
+        ex.num_threads = -1
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "SIMPLE_RADIAL"
+        mode = pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE
+        pycolmap.extract_features(db, work / "images", camera_mode=mode, reader_options=reader,
+                                  extraction_options=ex, device=pycolmap.Device.cpu)
+        _set_focal_priors(db, prepared)
+        seconds["features"] = time.perf_counter() - t
+        done("features")
     exhaustive = len(files) <= s.exhaustive_up_to
-    say(f"matching ({'exhaustive' if exhaustive else 'sequential'})")
-    if exhaustive:
-        pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
-    else:
-        pycolmap.match_sequential(db, device=pycolmap.Device.cpu)
-    seconds["matching"] = time.perf_counter() - t
+    if "matching" not in steps["done"]:
+        t = time.perf_counter()
+        say(f"matching ({'exhaustive' if exhaustive else 'sequential'})")
+        if exhaustive:
+            pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+        else:
+            pycolmap.match_sequential(db, device=pycolmap.Device.cpu)
+        seconds["matching"] = time.perf_counter() - t
+        done("matching")
     t = time.perf_counter()
     say("incremental mapping")
     opts = pycolmap.IncrementalPipelineOptions()
@@ -156,7 +189,8 @@ def run_sfm(photos: str | Path, work: str | Path, s: SfmSettings | None = None,
         opts.mapper.abs_pose_min_num_inliers = 15
         opts.mapper.abs_pose_min_inlier_ratio = 0.1
         opts.triangulation.ignore_two_view_tracks = False
-    (work / "sparse").mkdir(exist_ok=True)
+    shutil.rmtree(work / "sparse", ignore_errors=True)
+    (work / "sparse").mkdir()
     models = pycolmap.incremental_mapping(db, work / "images", work / "sparse", options=opts)
     seconds["mapping"] = time.perf_counter() - t
     if not models:

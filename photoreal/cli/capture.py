@@ -9,6 +9,7 @@ from pathlib import Path
 from ..options import arg_opt, opt, settings_from
 from .common import add_subcommands, out_opt, print_json, usage
 
+SFM_WORK = ".sfm"  #: COLMAP's database and model while `capture sfm` runs (inside --out)
 HELP = "real captures: import COLMAP / transforms.json / LLFF, structure from motion, export, held-out scores"
 
 
@@ -37,19 +38,18 @@ def _cmd_import(a) -> int:
 
 
 def _cmd_sfm(a) -> int:
-    import tempfile
-
     from inverse.capture import SfmSettings, import_capture, run_sfm
 
     s = settings_from(SfmSettings, a)
-    with tempfile.TemporaryDirectory(prefix="photoreal-sfm-") as work:
-        src = run_sfm(a.photos, work, s, progress=_say)
-        fig = src.notes["sfm"]
-        _say(f"registered {fig['registered']}/{fig['photos']} photos in {fig['models']} model(s), {fig['points']} "
-             f"points, {fig['reprojection_px']:.2f} px")
-        if fig["unregistered"]:
-            _say(f"not registered (too few matches with the others): {', '.join(fig['unregistered'])}")
-        import_capture(src, a.out, a.resolution, mesh=a.mesh)
+    # COLMAP's work inside the output folder: an interrupted run resumes from its last finished step; the finished
+    # capture replaces it
+    src = run_sfm(a.photos, Path(a.out) / SFM_WORK, s, progress=_say)
+    fig = src.notes["sfm"]
+    _say(f"registered {fig['registered']}/{fig['photos']} photos in {fig['models']} model(s), {fig['points']} "
+         f"points, {fig['reprojection_px']:.2f} px")
+    if fig["unregistered"]:
+        _say(f"not registered (too few matches with the others): {', '.join(fig['unregistered'])}")
+    import_capture(src, a.out, a.resolution, mesh=a.mesh, derived=(SFM_WORK,))
     print_json(_summary(Path(a.out)))
     return 0
 

@@ -114,7 +114,7 @@ def test_a_benchmark_exported_and_imported_renders_the_same(fmt, bench, tmp_path
 def test_undistortion_puts_every_point_back_within_a_pixel(tmp_path):
     """Oracle: bright dots at known pinhole positions, drawn where an OPENCV camera (k1, k2, p1, p2) images them
     (pycolmap's own projection), then undistorted here: each dot's centroid lands within a pixel of where the
-    pinhole puts it (measured: within 0.05 px)."""
+    pinhole puts it (measured: 0.06 px at worst; the distortion moves them by up to 6.3 px)."""
     from inverse.capture import camera
     from inverse.capture.build import working_camera
 
@@ -136,7 +136,7 @@ def test_undistortion_puts_every_point_back_within_a_pixel(tmp_path):
         wgt = out[..., 0] * win
         errs.append(np.hypot((wgt * xx).sum() / wgt.sum() - u, (wgt * yy).sum() / wgt.sum() - v))
     assert max(errs) < 1.0, max(errs)
-    assert max(errs) < 0.2  # bilinear resampling of a 1.2 px blob: a tenth of a pixel, measured 0.05
+    assert max(errs) < 0.2  # bilinear resampling of a 1.2 px blob: a tenth of a pixel, measured 0.06
 
 
 def _run(argv, capsys) -> tuple[int, str]:
@@ -359,3 +359,25 @@ def test_masks_travel_with_their_photos_and_limit_the_scores(tmp_path):
     quad_f = np.array([[0, 1, 2], [0, 2, 3]])
     r = heldout_scores(back, quad_v, quad_f, colours=np.zeros((4, 3), np.float32), spp=1)
     assert r["masked"] and r["views"][name]["psnr"] > 60
+
+
+def test_sfm_resumes_from_its_last_finished_step(tmp_path):
+    """Structure from motion on the vendored ruins (10 real photos) at 256 px: every photo registered below a pixel;
+    a second call with the same photos and settings reuses the prepared photos, features and matches and maps
+    again; other settings start over."""
+    from inverse.capture import SfmSettings, run_sfm
+
+    photos = ROOT / "scenes" / "assets" / "captures" / "ruins" / "images"
+    said = []
+    s = SfmSettings(max_size=256)
+    src = run_sfm(photos, tmp_path / "w", s, progress=said.append)
+    fig = src.notes["sfm"]
+    assert fig["registered"] == fig["photos"] == 10 and fig["reprojection_px"] < 1.0 and fig["points"] > 500
+    assert fig["cameras"] == "per photo"  # one photo is stored rotated: two sizes, a camera each
+    said.clear()
+    again = run_sfm(photos, tmp_path / "w", s, progress=said.append)
+    assert said == ["10 photos prepared before: reusing them", "incremental mapping"]  # no features, no matching
+    assert again.notes["sfm"]["registered"] == 10
+    said.clear()
+    run_sfm(photos, tmp_path / "w", SfmSettings(max_size=256, max_features=2048), progress=said.append)
+    assert "SIFT features" in said
