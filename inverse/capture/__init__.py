@@ -8,7 +8,7 @@ module                    what
 ``format``                the capture folder, its cameras (COLMAP axes), Mitsuba sensors, the split
 ``sources``               readers of COLMAP (pycolmap), transforms.json, LLFF → photos + the tool's cameras
 ``build``                 a source → a capture: linear photos, area resize, undistortion, masks, mesh
-``coarse``                the tool's mesh (OBJ+MTL, PLY, GLB) or a Poisson mesh of sparse points
+``coarse``                the tool's mesh (OBJ+MTL, PLY, GLB), a Poisson mesh of sparse points, a visual hull
 ``align``                 similarity alignment of recovered cameras to known ones (Umeyama)
 ``sfm``                   structure from motion and triangulation with known cameras (pycolmap)
 ``export``                a capture → COLMAP, transforms.json, LLFF
@@ -18,7 +18,7 @@ module                    what
 
 from .align import camera_errors, similarity
 from .build import area_resize, import_capture, undistort
-from .coarse import coarse_mesh_from_points, load_coarse_mesh
+from .coarse import coarse_mesh_from_points, load_coarse_mesh, visual_hull
 from .export import FORMATS, export_capture
 from .format import (FORMAT, HELD_OUT_EVERY, MARKER, MITSUBA_FROM_COLMAP, Capture, CaptureCamera, CaptureMeta,
                      check_camera,
@@ -31,4 +31,4 @@ __all__ = ["FORMAT", "FORMATS", "HELD_OUT_EVERY", "MARKER", "MITSUBA_FROM_COLMAP
            "Source", "SourceFrame", "area_resize", "camera", "camera_errors", "check_camera", "coarse_mesh_from_points", "colour_from_photos",
            "export_capture", "focal_prior", "heldout_scores", "import_capture", "load_capture", "load_coarse_mesh", "read_colmap",
            "read_llff", "read_source", "read_transforms", "render_mesh", "run_sfm", "sensor", "similarity", "split", "triangulate_known",
-           "undistort"]
+           "undistort", "visual_hull"]

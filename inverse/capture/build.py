@@ -86,13 +86,17 @@ def _fit_camera_to_photo(cam, photo_size: tuple[int, int], image: Path):
 
 
 def import_capture(source, out: str | Path, resolution: int | None = 512, mesh: str | Path | None = None,
-                   show_progress: bool = True, triangulate: bool = True, derived: tuple[str, ...] = ()) -> Path:
+                   show_progress: bool = True, triangulate: bool = True, derived: tuple[str, ...] = (),
+                   coarse: str = "auto") -> Path:
     """Write the capture folder ``out`` (atomically) from a source; returns it.
 
     ``resolution``: the longest side of the working photos (never enlarged; None keeps the photos' size).
     ``mesh``: the tool's coarse mesh (OBJ with its MTL texture, PLY with or without vertex colours, GLB); without
     one, a coarse mesh is made from the source's points, or from points triangulated with the given cameras.
-    ``derived``: entries of ``out`` that the new capture replaces (a structure-from-motion work folder inside it)."""
+    ``derived``: entries of ``out`` that the new capture replaces (a structure-from-motion work folder inside it).
+    ``coarse`` (without ``mesh``): "poisson" (the points' surface), "hull" (the masks' visual hull, coloured from the
+    training photos), "auto": Poisson when the source has points, else the hull when it has masks, else Poisson of
+    points triangulated with the cameras."""
     from foundation import imageio
     from foundation.files import atomic_dir, write_json
     from foundation.mesh import write_ply
@@ -104,6 +108,10 @@ def import_capture(source, out: str | Path, resolution: int | None = 512, mesh: 
     t0 = time.perf_counter()
     if resolution is not None and not (isinstance(resolution, int) and 16 <= resolution <= 8192):
         raise UsageError(f"resolution must be an integer in [16, 8192], got {resolution}")
+    if coarse not in ("auto", "poisson", "hull"):
+        raise UsageError(f"coarse {coarse!r}: auto, poisson or hull")
+    if coarse == "hull" and not all(fr.mask is not None for fr in source.frames):
+        raise UsageError("coarse hull: needs a mask for every photo (--masks)")
     user_mesh = load_coarse_mesh(mesh) if mesh is not None else None  # a bad mesh is named before any work
     frames = sorted(source.frames, key=lambda fr: fr.name)
     with atomic_dir(out, MARKER, derived=derived) as tmp:
@@ -136,7 +144,9 @@ def import_capture(source, out: str | Path, resolution: int | None = 512, mesh: 
         train, test = split([c.name for c in cams])
         points = 0
         pts, cols = source.points, source.colours
-        if pts is None and user_mesh is None and triangulate:
+        masked = (tmp / "masks").is_dir()
+        hull = user_mesh is None and (coarse == "hull" or (coarse == "auto" and pts is None and masked))
+        if pts is None and user_mesh is None and triangulate and not hull:
             from .sfm import triangulate_known
 
             pts, cols = triangulate_known(tmp, cams, show_progress)
@@ -145,6 +155,14 @@ def import_capture(source, out: str | Path, resolution: int | None = 512, mesh: 
             write_ply(tmp / "points.ply", pts, np.zeros((0, 3), np.int64),
                       None if cols is None else imageio.srgb_to_linear(cols))
         mesh_name = None
+        if hull:
+            from .coarse import visual_hull
+            from .format import Capture
+            from .scores import colour_from_photos
+
+            interim = Capture(tmp, CaptureMeta(cams, train, test, masks=True))
+            v, f = visual_hull(cams, {c.name: interim.mask(c.name) for c in cams})
+            user_mesh = (v, f, colour_from_photos(interim, v, f))
         if user_mesh is not None:
             v, f, c = user_mesh
             write_ply(tmp / "mesh.ply", v, f, c)
@@ -156,7 +174,7 @@ def import_capture(source, out: str | Path, resolution: int | None = 512, mesh: 
             mesh_name = "mesh.ply"
         meta = CaptureMeta(cams, train, test, {"format": source.kind, "path": str(source.path), **source.notes,
                                                "seconds": time.perf_counter() - t0},
-                           mesh=mesh_name, masks=(tmp / "masks").is_dir(), points=points,
+                           mesh=mesh_name, masks=masked, points=points,
                            sfm=source.notes.get("sfm"))
         write_json(tmp / MARKER, to_json(meta))
     return Path(out)

@@ -106,3 +106,48 @@ def coarse_mesh_from_points(points: np.ndarray, colours: np.ndarray | None, cam_
     if colours is not None:
         c = np.asarray(colours, np.float32)[cKDTree(pts).query(v)[1]]
     return v, f, c
+
+
+def _axes_centre(cams) -> np.ndarray:
+    """The point nearest to every camera's optical axis (least squares): where an orbit looks."""
+    a, b = np.zeros((3, 3)), np.zeros(3)
+    for c in cams:
+        m = c.matrix
+        d = m[:3, 2] / np.linalg.norm(m[:3, 2])
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ m[:3, 3]
+    return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
+def visual_hull(cams, masks: dict, res: int = 96, bounds: tuple[np.ndarray, np.ndarray] | None = None):
+    """(vertices, triangles) of the visual hull of ``masks`` (name → (H, W) bool) seen by capture cameras: the voxels
+    of a ``res``³ grid that project into the object's mask in every photo that sees them, meshed by marching cubes.
+    Closed by construction; it cannot see concavities. ``bounds`` default: a cube about the point the cameras look
+    at, as wide as 0.8 × their median distance to it."""
+    from scipy.ndimage import gaussian_filter
+    from skimage.measure import marching_cubes
+
+    cams = [c for c in cams if c.name in masks]
+    if len(cams) < 2:
+        raise UsageError(f"a visual hull needs masks of at least 2 photos, got {len(cams)}")
+    if bounds is None:
+        centre = _axes_centre(cams)
+        half = 0.4 * float(np.median([np.linalg.norm(c.centre - centre) for c in cams]))
+        bounds = (centre - half, centre + half)
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
+    axes = [np.linspace(lo[k], hi[k], res) for k in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    inside = np.ones(len(grid), bool)
+    for c in cams:
+        m = np.asarray(masks[c.name], bool)
+        uv, z = c.project(grid)
+        col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        seen = (z > 0) & (col >= 0) & (col < m.shape[1]) & (row >= 0) & (row < m.shape[0])
+        inside[seen] &= m[row[seen], col[seen]]
+    occ = gaussian_filter(inside.reshape(res, res, res).astype(np.float32), 0.7)
+    if occ.max() < 0.5:
+        raise UsageError("the masks' visual hull is empty (masks and cameras disagree)")
+    step = (hi - lo) / (res - 1)
+    v, f, _, _ = marching_cubes(np.pad(occ, 1), 0.5, spacing=tuple(step))
+    return v + lo - step, f[:, ::-1].astype(np.int64)  # outward winding

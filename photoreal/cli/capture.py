@@ -32,7 +32,7 @@ def _cmd_import(a) -> int:
 
     src = read_source(a.source, images=a.images, masks=a.masks)
     _say(f"{len(src.frames)} photos with {src.kind} cameras from {src.path}")
-    import_capture(src, a.out, a.resolution, mesh=a.mesh)
+    import_capture(src, a.out, a.resolution, mesh=a.mesh, coarse=a.coarse)
     print_json(_summary(Path(a.out)))
     return 0
 
@@ -108,6 +108,9 @@ def _add_import(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh", default=None, help="the tool's coarse mesh (OBJ with MTL texture, PLY, GLB); without "
                    "it, one is made from the model's points or from points triangulated with the cameras")
     arg_opt(p, import_capture, "resolution", type=int, help="longest side of the working photos (never enlarged)")
+    arg_opt(p, import_capture, "coarse", choices=["auto", "poisson", "hull"],
+            help="without --mesh: the Poisson surface of the points, or the masks' visual hull (auto: Poisson when the "
+                 "source has points, else the hull when it has masks)")
     p.set_defaults(func=_cmd_import)
 
 

@@ -333,8 +333,8 @@ def test_a_capture_without_points_or_mesh_is_triangulated_with_its_own_cameras(t
 
 
 def test_masks_travel_with_their_photos_and_limit_the_scores(tmp_path):
-    """A capture with masks exported as transforms.json (mask_path per frame) and imported back: the same masks;
-    scores are then taken inside them (a render that differs from the photo only outside the masks scores as exact)."""
+    """A capture with masks exported as transforms.json (mask_path per frame) and imported back: the same masks, and
+    their visual hull as the coarse mesh (no points); scores are then taken inside them (a render that differs from the photo only outside the masks scores as exact)."""
     from foundation import imageio
     from inverse.capture import heldout_scores
 
@@ -349,7 +349,7 @@ def test_masks_travel_with_their_photos_and_limit_the_scores(tmp_path):
     assert all(fr.mask is not None for fr in src.frames)
     back = load_capture(import_capture(src, tmp_path / "cap", resolution=None, show_progress=False,
                                        triangulate=False))
-    assert back.meta.masks
+    assert back.meta.masks and back.meta.mesh == "mesh.ply"  # no points, masks: the coarse mesh is their hull
     for c in cap.meta.cameras:
         assert np.array_equal(back.mask(c.name), cap.mask(c.name))
     # unlit render of a big quad far behind: black everywhere; the photo made black inside the mask only
@@ -381,3 +381,28 @@ def test_sfm_resumes_from_its_last_finished_step(tmp_path):
     said.clear()
     run_sfm(photos, tmp_path / "w", SfmSettings(max_size=256, max_features=2048), progress=said.append)
     assert "SIFT features" in said
+
+
+def test_the_visual_hull_of_masks_contains_the_object_and_hugs_it():
+    """Oracle: exact silhouettes of a unit sphere from 16 cameras on two rings: the hull contains the sphere (every
+    vertex at radius ≥ 1 − one voxel) and stays close to it (median radius < 1.1: a hull of 16 views bulges between
+    their cones), and faces outward."""
+    from foundation.mesh import vertex_normals
+    from inverse.capture import visual_hull
+
+    cams = [CaptureCamera(f"c{k}", 64, 48, 60.0, 32.0, 24.0,
+                          _look([4 * np.cos(a) * np.cos(e), 4 * np.sin(e), 4 * np.sin(a) * np.cos(e)], [0, 0, 0]))
+            for k, (a, e) in enumerate([(2 * np.pi * i / 8, el) for el in (0.3, -0.4) for i in range(8)])]
+    masks = {}
+    yy, xx = np.mgrid[0:48, 0:64] + 0.5
+    for c in cams:
+        d = np.stack([(xx - c.cx) / c.f, (yy - c.cy) / c.f, np.ones_like(xx)], -1) @ c.matrix[:3, :3].T
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        o = c.centre
+        closest = np.linalg.norm(o - (d @ o)[..., None] * d, axis=-1)  # distance of the ray to the sphere's centre
+        masks[c.name] = closest < 1.0
+    v, f = visual_hull(cams, masks, res=64, bounds=(np.full(3, -1.5), np.full(3, 1.5)))
+    r = np.linalg.norm(v, axis=1)
+    voxel = 3.0 / 63
+    assert r.min() > 1 - 1.5 * voxel and np.median(r) < 1.1, (r.min(), np.median(r))
+    assert (np.einsum("ij,ij->i", vertex_normals(v, f), v / r[:, None]) > 0).mean() > 0.95
