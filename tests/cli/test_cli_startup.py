@@ -39,10 +39,11 @@ def test_an_unknown_command_is_a_usage_error_without_the_libraries():
 
 
 @pytest.mark.parametrize("argv", [("render", "--help"), ("morph", "run", "--help"), ("demo", "--help"),
+                                  ("capture", "sfm", "--help"), ("capture", "import", "--help"),
                                   ("render",), ("morph", "run", "--iterations", "many")])
-def test_render_morph_and_demo_help_and_errors_never_import_torch(argv):
-    """`render`, `morph` and `demo` options come from settings of modules that torch stays out of (the GCN
-    variant loads it on first use); an argument error exits 2 the same way."""
+def test_render_morph_capture_and_demo_help_and_errors_never_import_torch(argv):
+    """`render`, `morph`, `capture` and `demo` options come from settings of modules that torch stays out of (the
+    GCN variant loads it on first use); an argument error exits 2 the same way."""
     r = _loaded(*argv)
     assert r["code"] == (0 if argv[-1] == "--help" else 2) and "torch" not in r["loaded"], r
     assert "diffusers" not in r["loaded"], r
