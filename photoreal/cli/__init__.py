@@ -40,20 +40,22 @@ def build_parser(only: str | None | tuple[str, ...] = GROUPS, wanted: str | None
     return p
 
 
+def _actions(parser: argparse.ArgumentParser, argv: list[str]):
+    """The options of the (sub)commands the command line names, outermost first."""
+    for act in parser._actions:
+        if isinstance(act, argparse._SubParsersAction):
+            for name, sp in act.choices.items():
+                if name in argv:
+                    yield from _actions(sp, argv)
+        elif act.option_strings:
+            yield act
+
+
 def _flags(parser: argparse.ArgumentParser, argv: list[str]) -> dict[str, str]:
     """dest → option string of the subcommand that ran (to name flags, not field names, in errors)."""
     out: dict[str, str] = {}
-
-    def walk(p: argparse.ArgumentParser) -> None:
-        for act in p._actions:
-            if isinstance(act, argparse._SubParsersAction):
-                for name, sp in act.choices.items():
-                    if name in argv:
-                        walk(sp)
-            elif act.option_strings:
-                out.setdefault(act.dest, max(act.option_strings, key=len))
-
-    walk(parser)
+    for act in _actions(parser, argv):
+        out.setdefault(act.dest, max(act.option_strings, key=len))
     return out
 
 
@@ -126,18 +128,9 @@ def _claim_outputs(parser: argparse.ArgumentParser, argv: list[str], args) -> li
     from foundation.files import FOLDER, OutputPath, claim_output_folder
 
     out = []
-
-    def walk(p: argparse.ArgumentParser) -> None:
-        for act in p._actions:
-            if isinstance(act, argparse._SubParsersAction):
-                for name, sp in act.choices.items():
-                    if name in argv:
-                        walk(sp)
-            elif isinstance(act.type, OutputPath) and act.type.kind == FOLDER:
-                value = getattr(args, act.dest, None)
-                if value is not None:
-                    out.append((value, claim_output_folder(value, act.type.command)))
-
-    walk(parser)
+    for act in _actions(parser, argv):
+        value = getattr(args, act.dest, None)
+        if isinstance(act.type, OutputPath) and act.type.kind == FOLDER and value is not None:
+            out.append((value, claim_output_folder(value, act.type.command)))
     return out
 
