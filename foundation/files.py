@@ -158,12 +158,14 @@ def check_output_dir(path: str | os.PathLike, marker: str | None = None, what: s
 FILE, FOLDER = "file", "folder"
 
 
-def check_command_folder(path: str | os.PathLike, command: str, marker: str | None = None, what: str = "") -> Path:
+def check_command_folder(path: str | os.PathLike, command: str, marker: str | None = None, what: str = "",
+                         legacy: tuple[str, ...] = ()) -> Path:
     """``path`` can be the output folder of ``command``: absent, empty, or a previous output of it.
 
     A previous output is recognised by its :data:`RECORD` (written by :func:`claim_output_folder`) or, for a folder
     the library wrote with :func:`atomic_dir`, by its manifest and ``marker``; the command then resumes or
-    replaces it. A folder of another command, or one holding anything else, is refused: its files are the user's.
+    replaces it. ``legacy``: names that together mark an output of the command written before records existed.
+    A folder of another command, or one holding anything else, is refused: its files are the user's.
     """
     p = Path(path)
     if str(path) == "":
@@ -176,7 +178,8 @@ def check_command_folder(path: str | os.PathLike, command: str, marker: str | No
             raise UsageError(f"{what} {p}: holds the output of `photoreal {owner}`, not of `photoreal {command}`; "
                              "choose another path".strip())
         held = _entries(p)
-        previous = owner == command or bool(marker and (p / MANIFEST).is_file() and (p / marker).is_file())
+        previous = (owner == command or bool(marker and (p / MANIFEST).is_file() and (p / marker).is_file())
+                    or bool(legacy and all((p / n).exists() for n in legacy)))
         if held and not previous:
             shown = ", ".join(held[:4]) + (", …" if len(held) > 4 else "")
             raise UsageError(f"{what} {p}: holds files `photoreal {command}` did not write ({shown}); choose another "
@@ -198,10 +201,10 @@ class OutputPath:
     ``tests/cli/test_outputs.py`` checks that every output flag of every subcommand has one.
     """
 
-    def __init__(self, kind: str, command: str, marker: str | None = None):
+    def __init__(self, kind: str, command: str, marker: str | None = None, legacy: tuple[str, ...] = ()):
         if kind not in (FILE, FOLDER):
             raise ValueError(f"kind {kind!r}: expected {FILE!r} or {FOLDER!r}")
-        self.kind, self.command, self.marker = kind, command, marker
+        self.kind, self.command, self.marker, self.legacy = kind, command, marker, tuple(legacy)
         self.__name__ = f"{kind} path"  # what argparse calls the value in its messages
 
     def __call__(self, value: str) -> str:
@@ -211,7 +214,7 @@ class OutputPath:
             if self.kind == FILE:
                 check_output_file(value, "")
             else:
-                check_command_folder(value, self.command, self.marker)
+                check_command_folder(value, self.command, self.marker, legacy=self.legacy)
         except UsageError as exc:
             raise argparse.ArgumentTypeError(str(exc).strip()) from None
         return value

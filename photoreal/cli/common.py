@@ -71,12 +71,13 @@ def out_opt(p: argparse.ArgumentParser, *flags: str, kind: str = "folder", marke
     return p.add_argument(*flags, type=output_type(p, kind, marker), **kw)
 
 
-def output_type(p: argparse.ArgumentParser, kind: str = "folder", marker: str | None = None):
+def output_type(p: argparse.ArgumentParser, kind: str = "folder", marker: str | None = None,
+                legacy: tuple[str, ...] = ()):
     """The argparse ``type`` of an output flag of the (sub)command ``p``."""
     from foundation.files import OutputPath
 
     command = p.prog.split(" ", 1)[1] if " " in p.prog else p.prog  # "photoreal btf fit" → "btf fit"
-    return OutputPath(kind, command, marker)
+    return OutputPath(kind, command, marker, legacy)
 
 
 def check_out_dir(path: str, flag: str = "--out-dir") -> Path:

@@ -9,6 +9,8 @@ from ..options import arg_opt, opt, settings_from
 from .common import output_type
 
 HELP = "render the built-in scenes and write an HTML report"
+#: what marks a report written before output folders carried their record: it is replaced like a recorded one
+DEMO_FILES = ("index.html", "demo.json", "sections")
 
 
 def _cmd_demo(a) -> int:
@@ -28,8 +30,8 @@ def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
     from ..demo import DemoSettings, run_demo
 
     d = parser
-    arg_opt(d, run_demo, "out_dir", "--out", dest="out", type=output_type(d, "folder", "index.html"), metavar="DIR",
-            help="report folder")
+    arg_opt(d, run_demo, "out_dir", "--out", dest="out", type=output_type(d, "folder", "index.html", DEMO_FILES),
+            metavar="DIR", help="report folder")
     d.add_argument("--bench-dir", default=None,
                    help="folder with `photoreal bench` JSON files for the report's tables (default: OUT/../bench)")
     opt(d, DemoSettings, "resolution", help="image side of the renders (the face's camera renders: at most 192)")

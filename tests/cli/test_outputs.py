@@ -107,3 +107,17 @@ def test_output_kinds_are_checked():
     assert OutputPath(FILE, "render")("x.exr") == "x.exr"
     with pytest.raises(argparse.ArgumentTypeError, match="is a folder"):
         OutputPath(FILE, "render")(str(Path(__file__).parent))
+
+
+def test_a_report_written_before_records_is_still_the_demos_but_a_users_page_is_not(tmp_path, capsys):
+    old = tmp_path / "old"
+    (old / "sections").mkdir(parents=True)
+    (old / "index.html").write_text("<html>")
+    (old / "demo.json").write_text("{}")
+    assert build_parser("demo").parse_args(["demo", "--out", str(old)]).out == str(old)
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "index.html").write_text("<html>my page</html>")
+    with pytest.raises(SystemExit):
+        build_parser("demo").parse_args(["demo", "--out", str(site)])
+    assert "holds files `photoreal demo` did not write (index.html)" in capsys.readouterr().err
