@@ -143,9 +143,17 @@ def load_mesh_any(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     pymeshlab drops NaN vertices (and their faces) without a word; that is refused here, as are
     meshes without faces and degenerate ones. A failed load no longer moves the working folder.
     """
+    ms = _load_meshset(Path(path))  # kept alive: its current mesh is a view into it
+    m = ms.current_mesh()
+    v, f = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+    check_mesh(v, f, path)
+    return v, f
+
+
+def _load_meshset(path: Path):
+    """A pymeshlab MeshSet holding the file as one mesh (a glTF scene's meshes merged), NaN vertices refused."""
     import pymeshlab
 
-    path = Path(path)
     if not path.is_file():
         raise MeshError(f"{path}: no such mesh file")
     ms = pymeshlab.MeshSet()
@@ -157,14 +165,39 @@ def load_mesh_any(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         raise MeshError(f"{path}: cannot read mesh ({detail})") from None
     finally:
         os.chdir(cwd)  # pymeshlab changes into the file's folder and stays there when loading fails
-    m = ms.current_mesh()
-    v, f = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+    if ms.mesh_number() > 1:
+        ms.generate_by_merging_visible_meshes()
     declared = _declared_vertices(path)
-    if declared is not None and declared > len(v):
-        raise MeshError(f"{path}: {declared - len(v)} of {declared} vertices are NaN/Inf or unreadable "
-                        "(refusing to drop them silently; repair the file)")
+    if declared is not None and declared > ms.current_mesh().vertex_number():
+        raise MeshError(f"{path}: {declared - ms.current_mesh().vertex_number()} of {declared} vertices are NaN/Inf "
+                        "or unreadable (refusing to drop them silently; repair the file)")
+    return ms
+
+
+def load_mesh_colours(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`load_mesh_any` (also GLB/glTF, STL) with linear vertex colours: its texture (an OBJ's MTL, a glTF's)
+    sampled at the vertices, else its own vertex colours, sRGB-decoded; None when it has neither."""
+    from .imageio import srgb_to_linear
+
+    path = Path(path)
+    ms = _load_meshset(path)
+    m = ms.current_mesh()
+    colours = None
+    if m.has_wedge_tex_coord() or m.has_vertex_tex_coord():
+        try:
+            if m.has_wedge_tex_coord() and not m.has_vertex_tex_coord():
+                ms.compute_texcoord_transfer_wedge_to_vertex()
+            ms.compute_color_from_texture_per_vertex()
+            colours = ms.current_mesh().vertex_color_matrix()[:, :3]
+        except Exception:  # pymeshlab's error for a texture it cannot read: the geometry stands without colours
+            colours = None
+    m = ms.current_mesh()
+    if colours is None and m.has_vertex_color():
+        c = m.vertex_color_matrix()[:, :3]
+        colours = None if np.allclose(c, c[:1]) else c  # meshlab fills a colourless mesh with one grey
+    v, f = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
     check_mesh(v, f, path)
-    return v, f
+    return v, f, None if colours is None else np.asarray(srgb_to_linear(colours), np.float32)
 
 
 def normalise_mesh(v: np.ndarray) -> np.ndarray:

@@ -15,46 +15,16 @@ TRIM_QUANTILE = 0.08  #: Poisson vertices of the lowest point density dropped (t
 
 
 def load_coarse_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """(vertices, triangles, linear vertex colours or None) of a tool's mesh; a texture (OBJ's MTL, GLB's) is
-    sampled to vertex colours and decoded from sRGB."""
-    import pymeshlab
-
-    from foundation.imageio import srgb_to_linear
-    from foundation.mesh import MeshError, check_mesh
+    """(vertices, triangles, linear vertex colours or None) of a tool's mesh (:func:`foundation.mesh.load_mesh_colours`:
+    a texture, an OBJ's MTL or a GLB's, is sampled to vertex colours)."""
+    from foundation.mesh import load_mesh_colours
 
     path = Path(path)
     if not path.is_file():
         raise UsageError(f"{path}: no such mesh file")
     if path.suffix.lower() not in (".obj", ".ply", ".glb", ".gltf", ".off", ".stl"):
         raise UsageError(f"{path}: mesh expected as OBJ, PLY, GLB/glTF, OFF or STL")
-    ms = pymeshlab.MeshSet()
-    try:
-        ms.load_new_mesh(str(path))
-    except Exception as exc:  # pymeshlab's own exception, several lines long
-        raise UsageError(f"{path}: cannot read mesh ({' '.join(str(exc).split())[:200]})") from None
-    if ms.mesh_number() > 1:  # a scene of several meshes (glTF): one mesh
-        ms.generate_by_merging_visible_meshes()
-    m = ms.current_mesh()
-    colours = None
-    if m.has_wedge_tex_coord() or m.has_vertex_tex_coord():
-        try:
-            if m.has_wedge_tex_coord() and not m.has_vertex_tex_coord():
-                ms.compute_texcoord_transfer_wedge_to_vertex()
-            ms.compute_color_from_texture_per_vertex()
-            colours = srgb_to_linear(ms.current_mesh().vertex_color_matrix()[:, :3])
-        except Exception:  # no readable texture image: geometry only, named in the record by the caller
-            colours = None
-    m = ms.current_mesh()
-    if colours is None and m.has_vertex_color():
-        c = m.vertex_color_matrix()[:, :3]
-        if not np.allclose(c, c[:1]):  # meshlab fills colourless meshes with one grey
-            colours = srgb_to_linear(c)
-    v, f = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
-    try:
-        check_mesh(v, f, path)
-    except MeshError as exc:
-        raise UsageError(str(exc)) from None
-    return v, f, (None if colours is None else np.asarray(colours, np.float32))
+    return load_mesh_colours(path)
 
 
 def inliers(points: np.ndarray, k: int = 8, sigmas: float = 2.0, tail: float = 0.01) -> np.ndarray:

@@ -75,10 +75,13 @@ def colour_from_photos(cap: Capture, v: np.ndarray, f: np.ndarray, names: list[s
 def render_mesh(v: np.ndarray, f: np.ndarray, colours: np.ndarray, cam: CaptureCamera, spp: int = 16,
                 seed: int = 0) -> np.ndarray:
     """The unlit render (H, W, 3) of a coloured mesh at a capture camera."""
+    return _render(_scene(v, f, colours), cam, spp, seed)
+
+
+def _render(scene, cam: CaptureCamera, spp: int, seed: int) -> np.ndarray:
     import mi_plugins  # noqa: F401  (the variant)
     import mitsuba as mi
 
-    scene = _scene(v, f, colours)
     return np.array(mi.render(scene, sensor=mi.load_dict(sensor(cam)), spp=spp, seed=seed))[..., :3]
 
 
@@ -92,9 +95,9 @@ def heldout_scores(cap: Capture, v: np.ndarray, f: np.ndarray, colours: np.ndarr
     colours = colour_from_photos(cap, v, f) if colours is None else colours
     rows = {}
     renders = {}
+    scene = _scene(v, f, colours)  # one scene for every held-out camera
     for name in cap.meta.test:
-        cam = cap.cameras[name]
-        img = render_mesh(v, f, colours, cam, spp, seed)
+        img = _render(scene, cap.cameras[name], spp, seed)
         ref = cap.photo(name)
         m = cap.mask(name)
         a, b = (img, ref) if m is None else (img * m[..., None], ref * m[..., None])

@@ -295,6 +295,9 @@ def test_a_tools_mesh_comes_with_its_colours(tmp_path):
     (tmp_path / "t.txt").write_text("x")
     with pytest.raises(Exception, match="t.txt: mesh expected as OBJ, PLY, GLB"):
         load_coarse_mesh(tmp_path / "t.txt")
+    (tmp_path / "nan.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv nan 1 1\nf 1 2 3\nf 2 4 3\n")
+    with pytest.raises(Exception, match="nan.obj: 1 of 4 vertices are NaN/Inf"):  # foundation's loader refuses it
+        load_coarse_mesh(tmp_path / "nan.obj")
 
 
 def test_a_capture_without_points_or_mesh_is_triangulated_with_its_own_cameras(tmp_path):
