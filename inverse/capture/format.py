@@ -52,6 +52,12 @@ class CaptureCamera:
     def centre(self) -> np.ndarray:
         return self.matrix[:3, 3]
 
+    def scaled(self, width: int) -> "CaptureCamera":
+        """The same camera with its image resampled to ``width`` pixels across (the height keeps the aspect)."""
+        k = width / self.width
+        return CaptureCamera(self.name, int(width), max(1, int(round(self.height * k))), self.f * k, self.cx * k,
+                             self.cy * k, self.cam_to_world)
+
     def K(self) -> np.ndarray:
         return np.array([[self.f, 0.0, self.cx], [0.0, self.f, self.cy], [0.0, 0.0, 1.0]])
 

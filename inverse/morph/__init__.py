@@ -37,6 +37,8 @@ from .batch import load_result, run_item
 from .results import (Candidate, ColourPriorDecision, ColourSelection, MorphResult, PlanarityDecision, StepSelection,
                       TracePoint)
 from .run import run_morph
+from .capture_input import CAPTURE_FIT_WIDTH, CaptureBenchmark, evaluate_capture_morph, is_capture, load_morph_input
+from .results import ModeSelection, PhotoFit
 from .select import candidate_settings, light_choice_draws
 from .settings import MORPH_SEED_MAX, PLANARITY_WHERE, PRIOR_TIES, MorphSettings
 from .stage import MorphStage, start_mesh
@@ -67,4 +69,6 @@ __all__ = [
     "KINDS", "UNSEEN", "PleatReport", "SpikeReport", "iron_spikes", "SUITE", "TracePoint", "silhouette_margins", "saturated_silhouette", "suite_mesh", "truth_scene",
     "truth_start_benchmark", "TurnReport", "border_zone", "iron_border_turns",
     "unfold_pleats", "mask_scene", "photo_masks", "morph_views",
+    "CAPTURE_FIT_WIDTH", "CaptureBenchmark", "evaluate_capture_morph", "is_capture", "load_morph_input",
+    "ModeSelection", "PhotoFit",
 ]

@@ -42,8 +42,14 @@ def framing_distance(v: np.ndarray, centre: np.ndarray, fov: float, margin: floa
     return r * np.sqrt(1.0 + t * t) / t  # d with r/d = sin(atan(t))
 
 
-def sensor_dict(cam: Camera, res: int, fov: float, sample_border: bool = False) -> dict:
-    """Perspective camera; ``sample_border`` for shape optimisation (geometry entering the frame)."""
+def sensor_dict(cam, res: int, fov: float | None, sample_border: bool = False) -> dict:
+    """Perspective camera; ``sample_border`` for shape optimisation (geometry entering the frame). ``cam``: a look-at
+    :class:`Camera` (square ``res``² film, ``fov`` degrees) or a capture's pinhole camera (its own intrinsics, resampled
+    to ``res`` pixels across)."""
+    if not isinstance(cam, Camera):
+        from inverse.capture import sensor
+
+        return sensor(cam.scaled(res), sample_border=sample_border)
     return {"type": "perspective", "fov": fov,
             "to_world": mi.ScalarTransform4f().look_at(origin=list(cam.eye), target=list(cam.target), up=[0, 1, 0]),
             "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"},

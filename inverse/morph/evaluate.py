@@ -48,6 +48,9 @@ class MorphEvaluation:
     facing_against_truth_area: float = float("nan")
     facing_against_truth_area_input: float = float("nan")
     facing_against_truth_area_start: float = float("nan")
+    #: the ImageNet MobileNetV2 distance of the held-out renders (captures; NaN where not measured)
+    perceptual_heldout_input: float = float("nan")
+    perceptual_heldout_morphed: float = float("nan")
 
 
 def evaluate_morph(bench: MorphBenchmark, v_in, f_in, c_in, v_out, f_out, c_out, mode: str, res: int,

@@ -61,12 +61,13 @@ class Candidate:
     colour: float | None = None  #: the colour prior's weight (None: the rule's)
     light: bool = False  #: with the light estimate and colour large steps (:attr:`MorphSettings.light_select_every`)
     step: bool = False  #: with the quantile step (:attr:`MorphSettings.step_select_quantile`, ``step_select_lr``)
+    unlit: bool = False  #: in 'unlit' mode (:class:`ModeSelection`)
 
     @property
     def folder(self) -> str:
         return (f"start_{self.lambda_start:g}" + ("" if self.planarity is None else f"_planarity_{self.planarity:g}")
                 + ("" if self.colour is None else f"_colour_{self.colour:g}") + ("_step" if self.step else "")
-                + ("_light" if self.light else ""))
+                + ("_light" if self.light else "") + ("_unlit" if self.unlit else ""))
 
 
 @dataclass
@@ -155,6 +156,41 @@ class LightSelection:
 
 
 @dataclass
+class ModeSelection:
+    """Where the light is fitted (a capture), the 'lit' winner so far also ran in 'unlit' mode (vertex colours as
+    radiance, the light baked in as photogrammetry textures have it) from the same start to the selection point;
+    'lit' continued only where its validation L1 there was below (1 − ``margin``) × the unlit run's (it models more:
+    the photos must ask for it)."""
+
+    candidate: str  #: folder of the winner so far ('lit')
+    at_iteration: int
+    validation_l1_lit: float | None
+    validation_l1_unlit: float | None
+    kept: bool  #: the unlit run continued
+    trial_seconds: float  #: the run not continued, to the selection point (included in ``seconds``)
+    _: KW_ONLY
+    margin: float = 0.0
+
+
+@dataclass
+class PhotoFit:
+    """What a run fitted beside the mesh where the photos needed it (:mod:`inverse.morph.photo_model`)."""
+
+    mode: str  #: the appearance model the run ended with ('lit' under the fitted light, or 'unlit')
+    refined_cameras: bool
+    exposure: bool
+    fitted_light: bool
+    train_views: list[int]  #: the photos fitted (the corrections below are theirs, in this order)
+    #: how far the refined cameras moved from the imported poses (degrees, × scene size)
+    camera_movement: dict | None = None
+    camera_rotation: list | None = None  #: per fitted photo, the rotation vector (radians, world axes)
+    camera_shift: list | None = None  #: per fitted photo, the centre's shift (world units)
+    #: per photo, its RGB gain (held-out and validation photos: their two nearest fitted cameras' mean)
+    gains: dict | None = None
+    environment: str | None = None  #: the fitted environment map, in the run folder
+
+
+@dataclass
 class MorphResult(MorphEvaluation):
     """``metrics.json`` of a morph run."""
 
@@ -182,11 +218,13 @@ class MorphResult(MorphEvaluation):
     step_selection: StepSelection | None = None  #: when they decided the step (uniform or quantile Adam)
     #: radiance above which pixels stayed out of the loss (``settings.saturation`` × the photos' 99th percentile)
     saturation_level: float = 0.0
+    photo_fit: PhotoFit | None = None  #: the cameras, gains and light fitted with the mesh (captures)
+    mode_selection: ModeSelection | None = None  #: when the validation photos chose 'lit' or 'unlit'
 
     @property
     def trial_seconds(self) -> float:
         """Time of the selection's runs not continued (in ``seconds``, not in the finished run's iterations)."""
         return sum(c.trial_seconds for c in (self.lambda_selection, self.colour_selection, self.light_selection,
-                                             self.step_selection) if c is not None)
+                                             self.step_selection, self.mode_selection) if c is not None)
 
 

@@ -19,13 +19,14 @@ from .benchmark import Camera, MorphBenchmark, sensor_dict
 MODES = ("unlit", "lit")
 
 
-def morph_scene(mesh_ply: Path, mode: str, hdri: str | Path, integrator: dict | None = None) -> mi.Scene:
+def morph_scene(mesh_ply: Path, mode: str, hdri: str | Path | dict, integrator: dict | None = None) -> mi.Scene:
     """Scene with the morphable mesh (PLY with vertex colours) and the HDR environment.
 
     ``unlit``: the mesh emits its vertex colour (the thesis); ``lit``: diffuse vertex colour under ``hdri``
     (a bundled name or an EXR file).
     """
     colour = {"type": "mesh_attribute", "name": "vertex_color"}
+    env = hdri if isinstance(hdri, dict) else envmap(hdri)  # a dict: a fitted map (photo_model.fitted_envmap)
     if mode == "unlit":
         shape = {"type": "ply", "filename": str(mesh_ply), "bsdf": {"type": "diffuse", "reflectance": 0.0},
                  "emitter": {"type": "area", "radiance": colour}}
@@ -37,7 +38,7 @@ def morph_scene(mesh_ply: Path, mode: str, hdri: str | Path, integrator: dict | 
     # Remeshed/decimated reconstructions often have a few non-manifold vertices (expected here).
     with mitsuba_log_level(mi.LogLevel.Error):
         return mi.load_dict({"type": "scene", "integrator": integrator or {"type": "direct_projective", "sppi": 0},
-                             "env": envmap(hdri), "mesh": shape})
+                             "env": env, "mesh": shape})
 
 
 def mask_scene(mesh_ply: Path, integrator: dict | None = None) -> mi.Scene:
@@ -67,7 +68,9 @@ def photo_masks(bench: MorphBenchmark, res: int, views: list[int] | None = None,
                 ) -> dict[int, np.ndarray]:
     """The photos' masks (alpha): per view (``views``; None: every camera), the fraction of each pixel the truth
     covers, (res, res) float32 in [0, 1], rendered from the benchmark's truth at ``spp`` (seed = the view), as a
-    segmentation of the photos gives. A benchmark of real photos would carry its own."""
+    segmentation of the photos gives. A capture gives its own masks (none where it has none)."""
+    if hasattr(bench, "masks_at"):
+        return bench.masks_at(res, range(len(bench.meta.cameras)) if views is None else views)
     meta = bench.meta
     scene = mask_scene(bench.ground_truth, integrator={"type": "direct"})
     out = {}
@@ -122,7 +125,10 @@ def upsample_bilinear(img: np.ndarray, size: int) -> np.ndarray:
 
 
 def photo_at(bench: MorphBenchmark, i: int, res: int) -> np.ndarray:
-    """Photo ``i`` at ``res``² (box-filtered when smaller than the benchmark's), float32 (res, res, 3)."""
+    """Photo ``i`` at ``res``² (box-filtered when smaller than the benchmark's), float32 (res, res, 3); a capture's at
+    ``res`` pixels across, its aspect kept."""
+    if hasattr(bench, "photo_at"):
+        return bench.photo_at(i, res)
     img = bench.photo(i)
     if img.shape[0] != res:
         from PIL import Image
@@ -141,7 +147,7 @@ def saturation_level(photos: list[np.ndarray], factor: float) -> float:
     over a sky that reaches 6 and diffuse objects below 2; its sun reaches 30,000."""
     if factor <= 0 or not photos:
         return 0.0
-    return float(factor * np.quantile(np.stack([p.max(axis=-1) for p in photos]), 0.99))
+    return float(factor * np.quantile(np.concatenate([p.max(axis=-1).ravel() for p in photos]), 0.99))
 
 
 def unsaturated_mask(photo_hot: np.ndarray, render: np.ndarray, level: float) -> np.ndarray | None:

@@ -21,7 +21,7 @@ from foundation.records import from_json, to_json
 
 from .benchmark import MorphBenchmark
 
-from .results import (Candidate, ColourSelection, LambdaSelection, LightSelection, MorphResult,
+from .results import (Candidate, ColourSelection, LambdaSelection, LightSelection, ModeSelection, MorphResult,
                       StepSelection)
 from .settings import (MorphSettings)
 from .stage import (MorphStage, decide_colour_prior, decide_planarity, run_stage, start_mesh)
@@ -78,6 +78,8 @@ def candidate_settings(s: MorphSettings, c: Candidate) -> MorphSettings:
         out = replace(out, planarity_where=s.planarity_select_where)
     if c.step:
         out = replace(out, adam_quantile=s.step_select_quantile, lr=s.step_select_lr)
+    if c.unlit:
+        out = replace(out, mode="unlit")
     return replace(out, indirect_every=s.light_select_every, colour_lambda=s.light_select_colour_lambda) \
         if c.light else out
 
@@ -359,7 +361,7 @@ class LightChoice(TwinChoice):
     scoring_counts = True
 
     def on(self, bench, s):
-        return light_select_on(s)
+        return light_select_on(s) and bench.meta.hdri is not None
 
     def twin(self, winner):
         return replace(winner, light=True)
@@ -391,9 +393,39 @@ class LightChoice(TwinChoice):
                 + "; not for these settings")
 
 
-COLOUR, STEP, LIGHT = ColourChoice(), StepChoice(), LightChoice()
+class ModeChoice(TwinChoice):
+    """Where the light is fitted (no HDRI known) and the run is 'lit': the twin runs 'unlit'. Unlit models less (no
+    light, no shading), so it continues unless the lit run is lower by the margin."""
+
+    file, kind, what = "mode_decision.json", ModeSelection, "mode selection"
+
+    def on(self, bench, s):
+        return s.mode_select and s.mode == "lit" and bench.meta.hdri is None
+
+    def twin(self, winner):
+        return replace(winner, unlit=True)
+
+    def takes_twin(self, l1_winner, l1_twin, s):
+        return None not in (l1_winner, l1_twin) and \
+            choose_with_margin([l1_twin, l1_winner], [False, True], s.prior_margin) == 0
+
+    def record(self, winner, at, l1_winner, l1_twin, took, seconds, s):
+        return ModeSelection(winner.folder, at, l1_winner, l1_twin, took, seconds, margin=s.prior_margin)
+
+    def made_for(self, d, s):
+        return d.candidate, d.at_iteration, d.margin
+
+    def wanted(self, winner, at, s):
+        return winner.folder, at, s.prior_margin
+
+    def describe(self, d, winner, at, s):
+        return (f"{d.candidate} at iteration {d.at_iteration} with prior_margin {d.margin:g}, not {winner.folder} at "
+                f"{at} with {s.prior_margin:g}")
+
+
+COLOUR, STEP, LIGHT, MODE = ColourChoice(), StepChoice(), LightChoice(), ModeChoice()
 #: the choices after λ and the planarity prior, in the order they are made (each starts from the one before's winner)
-TWIN_CHOICES = (COLOUR, STEP, LIGHT)
+TWIN_CHOICES = (MODE, COLOUR, STEP, LIGHT)
 
 
 def run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progress: bool,
@@ -478,6 +510,7 @@ def run_selected(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progre
                 shutil.copyfile(f, tmp)
     r = replace(r, settings=s, lambda_selection=sel, colour_selection=made.get(COLOUR.file),
                 step_selection=made.get(STEP.file), light_selection=made.get(LIGHT.file),
+                mode_selection=made.get(MODE.file),
                 seconds=r.seconds + sel.trial_seconds + extra)
     write_json(out / "metrics.json", to_json(r))
     return r

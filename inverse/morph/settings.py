@@ -24,6 +24,8 @@ MORPH_SEED_MAX = 200_000
 PLAIN_RUN_INDIRECT_SPP = 64
 #: the edges the planarity prior acts on (:attr:`MorphSettings.planarity_where`)
 PLANARITY_WHERE = ("all", "seen", "thick")
+#: the values of the real-photo switches (:attr:`MorphSettings.refine_cameras`, ``exposure``)
+AUTO_ON_OFF = ("auto", "on", "off")
 #: how a tied prior choice goes (:attr:`MorphSettings.prior_ties`)
 PRIOR_TIES = ("keep", "drop")
 #: the light estimate's render seeds are 9_000_011 + view (+ this × the draw, for :func:`light_choice_draws`)
@@ -130,6 +132,21 @@ class MorphSettings:
     mask_weight: float = 2.0
     mask_every: int = 1  #: the silhouette L1 every this many steps, at this × the weight
     mask_downsample: int = 1  #: the masks at the photos' resolution // this
+    #: refine each training photo's camera pose with the mesh (a rotation and a shift, pulled toward the imported pose by
+    #: ``camera_weight``): "auto" where the cameras were estimated (captures), not a benchmark's exact ones
+    refine_cameras: Literal["auto", "on", "off"] = "auto"
+    lr_camera: float = 0.0005  #: Adam's step of the corrections: radians, and × scene size for the shifts
+    #: weight of the camera prior (mean over photos of |ω|²/(0.5°)² + |t|²/(1 % of the scene)²)
+    camera_weight: float = 0.001
+    #: a colour gain per photo (exposure and white balance): "auto" on for captures (photos of a camera), off for a
+    #: benchmark's renders; held-out photos take their two nearest fitted cameras' mean gain
+    exposure: Literal["auto", "on", "off"] = "auto"
+    lr_exposure: float = 0.005  #: Adam's step of the log-gains
+    #: where the light is not known (captures): the fitted environment map's height (its width is twice that)
+    env_resolution: int = 8
+    lr_env: float = 0.01  #: Adam's step of the fitted environment's texels
+    #: where the light is fitted, 'lit' runs' twin in 'unlit' mode is asked of the photos (:class:`ModeSelection`)
+    mode_select: bool = True
     seed: int = 0
 
     def __post_init__(self):
@@ -177,6 +194,13 @@ class MorphSettings:
         validate.in_range("step_select_quantile", self.step_select_quantile, 0.0, 1.0, lo_open=True)
         validate.positive("step_select_lr", self.step_select_lr)
         validate.seed("seed", self.seed, MORPH_SEED_MAX)
+        validate.one_of("refine_cameras", self.refine_cameras, AUTO_ON_OFF)
+        validate.one_of("exposure", self.exposure, AUTO_ON_OFF)
+        validate.non_negative("lr_camera", self.lr_camera)
+        validate.non_negative("camera_weight", self.camera_weight)
+        validate.non_negative("lr_exposure", self.lr_exposure)
+        validate.integer("env_resolution", self.env_resolution, 2, 256)
+        validate.non_negative("lr_env", self.lr_env)
         validate.integer("validation_views", self.validation_views, 0)
         validate.in_range("validation_fraction", self.validation_fraction, 0.0, 0.5)
         validate.integer("check_every", self.check_every, 1)

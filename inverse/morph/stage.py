@@ -44,9 +44,10 @@ import drjit as dr
 import mitsuba as mi
 from mi_plugins.arrays import aligned
 
+from foundation import imageio
 from foundation.errors import UsageError
 from foundation.files import array_key, file_digest
-from foundation.loop import (DrJitStage, LoopSettings, RunState, StepResult, rng_state, run_loop,
+from foundation.loop import (DrJitStage, LoopSettings, RunState, StepResult, all_finite, rng_state, run_loop,
                              set_rng_state)
 from foundation.mesh import face_normals, load_mesh_any, read_ply_colours, unique_edges, write_ply
 from foundation.mesh_metrics import chamfer
@@ -55,7 +56,9 @@ from foundation.optim_state import load_optimizer_state, optimizer_state
 from foundation.quantile_adam import QuantileAdam
 from foundation.scene import mitsuba_log_level
 
+from . import photo_model as pm
 from .benchmark import MorphBenchmark, sensor_dict
+from .capture_input import evaluate_capture_morph, is_capture
 from .evaluate import evaluate_morph
 from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (iron_border_turns, iron_spikes, remesh,
@@ -63,7 +66,7 @@ from .mesh_edit import (iron_border_turns, iron_spikes, remesh,
 from .scene import (inward_thickness, mask_integrator, mask_scene, morph_scene, photo_l1, photo_masks,
                     photo_saturation, photo_tensors, projective_integrator, render_views, upsample_bilinear, views_seeing)
 
-from .results import (ColourPriorDecision, MorphResult,
+from .results import (ColourPriorDecision, MorphResult, PhotoFit,
                       PlanarityDecision, TracePoint)
 from .settings import (ESTIMATE_DRAW_STRIDE, PLAIN_RUN_INDIRECT_SPP, MorphSettings)
 
@@ -154,6 +157,17 @@ class MorphStage(DrJitStage):
             raise UsageError(f"mask_downsample: {s.mask_downsample} leaves {self.mask_res}² masks of the {self.res}² "
                              "photos (at least 8² are needed)")
         self.size = meta.scene_size
+        self.capture = is_capture(bench)
+        #: what a real photo adds (:mod:`.photo_model`): refined cameras, a gain per photo, a fitted environment
+        self.refine = s.refine_cameras == "on" or (s.refine_cameras == "auto" and
+                                                   bool(getattr(meta, "estimated_cameras", False)))
+        self.exposure = s.exposure == "on" or (s.exposure == "auto" and self.capture)
+        self.env_fit = meta.hdri is None
+        self.per_view = self.refine or self.exposure or self.env_fit
+        if self.env_fit and s.indirect_every:
+            raise UsageError("indirect_every: the light estimate needs a known light (a benchmark's HDRI); a "
+                             "capture's light is fitted")
+        self.mask_weight = s.mask_weight if not self.capture or bench.has_masks else 0.0
         self.photos = photo_tensors(bench, self.res)
         self.saturation_level, self.photo_hot = photo_saturation(self.photos, meta.train, s.saturation)
         (self.v_in, self.f_in, self.c_in), (v0, f0, c0) = start_mesh(bench, s)
@@ -169,6 +183,14 @@ class MorphStage(DrJitStage):
         self.val_ids = validation_split(meta.train, min(s.validation_views,
                                                         int(s.validation_fraction * len(meta.train))))
         self.train_ids = [i for i in meta.train if i not in self.val_ids]
+        self.train_index = {int(i): k for k, i in enumerate(self.train_ids)}
+        self.centres = np.array([c.centre if hasattr(c, "centre") else c.eye for c in meta.cameras], np.float64)
+        #: a photo not fitted takes the mean gain of these fitted neighbours (never its own pixels)
+        self.gain_from = pm.nearest_fitted(self.centres, self.train_ids)
+        n = len(self.train_ids)
+        self.cam_rot, self.cam_shift = np.zeros((n, 3)), np.zeros((n, 3))
+        self.log_gain = np.zeros((n, 3))
+        self.env_values = self._initial_env() if self.env_fit else None
         self.trace: list[TracePoint] = []
         self.snapshots: list[np.ndarray] = []  #: vertices at the trace points (same topology only)
         self.validation_seconds = 0.0
@@ -179,7 +201,7 @@ class MorphStage(DrJitStage):
         self.shared_spp = s.boundary_spp is None or s.boundary_spp == s.spp
         #: the photos' masks as the mask scene renders them (1 − coverage, RGB), training views only
         self.sky = {i: mi.TensorXf(aligned(np.repeat((1.0 - m)[..., None], 3, axis=-1)))
-                    for i, m in photo_masks(bench, self.mask_res, self.train_ids).items()} if s.mask_weight > 0 else {}
+                    for i, m in photo_masks(bench, self.mask_res, self.train_ids).items()} if self.mask_weight > 0 else {}
         self._build(v0, v0, f0, c0)
         if self.planarity.weight and dr.width(self.pairs) == 0:  # no manifold edge (an unwelded soup)
             self.planarity.weight = 0.0
@@ -192,10 +214,11 @@ class MorphStage(DrJitStage):
         s = self.s
         self.faces, self.v_ref = f, v_ref
         write_ply(self.work_ply, v, f, c)
-        self.scene = morph_scene(self.work_ply, s.mode, self.bench.meta.hdri,
+        light = pm.fitted_envmap(self.env_values) if self.env_fit else self.bench.meta.hdri
+        self.scene = morph_scene(self.work_ply, s.mode, light,
                                  integrator=None if self.shared_spp else projective_integrator(s.spp, s.boundary_spp))
         self.params = mi.traverse(self.scene)
-        if s.mask_weight > 0:  # the same mesh file: both scenes get the step's positions
+        if self.mask_weight > 0:  # the same mesh file: both scenes get the step's positions
             self.mask_scene = mask_scene(self.work_ply, integrator=mask_integrator(None if self.shared_spp else
                                                                                    s.boundary_spp))
             self.mask_params = mi.traverse(self.mask_scene)
@@ -217,6 +240,19 @@ class MorphStage(DrJitStage):
             if s.colour_lambda > 0 else None
         self.opt["c"] = self._to_colour_key(mi.Float(aligned(c).ravel()))
         self.opt.set_learning_rate({"c": s.lr_colour})
+        # the photo model's own Adam, per entry: one photo's large residual must not set every other photo's step
+        # (the mesh's uniform Adam would)
+        self.popt = mi.ad.Adam(lr=s.lr_exposure) if self.per_view else None
+        if self.refine:
+            self.popt["cam_rot"] = mi.Float(aligned(self.cam_rot).ravel())
+            self.popt["cam_shift"] = mi.Float(aligned(self.cam_shift / self.size).ravel())  # × scene size
+        if self.exposure:
+            self.popt["gain"] = mi.Float(aligned(self.log_gain).ravel())
+        if self.env_fit:
+            self.popt["env"] = mi.Float(aligned(self.env_values).ravel())
+            self.env_index = mi.UInt32(pm.envmap_index(*self.env_values.shape[:2]))
+            self.env_shape = tuple(self.params["env.data"].shape)
+        self._extra_rates(1.0)
 
     def _prior_pairs(self, v_ref: np.ndarray, f: np.ndarray) -> np.ndarray:
         """The planarity prior's face pairs: every interior edge, or (``planarity_where`` "seen") those beside a
@@ -233,6 +269,53 @@ class MorphStage(DrJitStage):
             pairs = pairs[thick[pairs[:, 0]] & thick[pairs[:, 1]]]
         self.planarity.edges = len(pairs)
         return pairs
+
+    def _initial_env(self) -> np.ndarray:
+        """The fitted environment's start: the training photos' pixels that miss the start mesh, where their rays end
+        (:func:`~inverse.morph.photo_model.env_from_photos`): the background, and the light a far scene gives."""
+        meta = self.bench.meta
+        return pm.env_from_photos([meta.cameras[i] for i in self.train_ids],
+                                  [np.asarray(self.photos[i]) for i in self.train_ids],
+                                  self.v_start, self.f_start, self.s.env_resolution)
+
+    def _extra_rates(self, decay: float) -> None:
+        s = self.s
+        rates = {}
+        if self.refine:
+            rates.update(cam_rot=s.lr_camera * decay, cam_shift=s.lr_camera * decay)
+        if self.exposure:
+            rates["gain"] = s.lr_exposure * decay
+        if self.env_fit:
+            rates["env"] = s.lr_env * decay
+        if rates:
+            self.popt.set_learning_rate(rates)
+
+    def _sync_extras(self) -> None:
+        """The fitted cameras, gains and environment from the optimiser into numpy (for checkpoints and rebuilds)."""
+        if self.popt is None:
+            return
+        n = len(self.train_ids)
+        if self.refine:
+            self.cam_rot = np.array(self.popt["cam_rot"], np.float64).reshape(n, 3)
+            self.cam_shift = np.array(self.popt["cam_shift"], np.float64).reshape(n, 3) * self.size
+        if self.exposure:
+            self.log_gain = np.array(self.popt["gain"], np.float64).reshape(n, 3)
+        if self.env_fit:
+            self.env_values = np.array(self.popt["env"], np.float32).reshape(self.env_values.shape)
+
+    def gain_of(self, i: int) -> np.ndarray:
+        """Photo ``i``'s RGB gain: its own where fitted, else its fitted neighbours' mean (1 without exposure)."""
+        if not self.exposure:
+            return np.ones(3)
+        self._sync_extras()
+        k = {v: j for j, v in enumerate(self.train_ids)}
+        ids = [k[int(i)]] if int(i) in k else [k[j] for j in self.gain_from[int(i)]]
+        return np.exp(self.log_gain[ids].mean(axis=0))
+
+    def _set_env(self) -> None:
+        if self.env_fit:
+            data = dr.gather(mi.Float, dr.maximum(self.popt["env"], 0.0), self.env_index)
+            self.params["env.data"] = mi.TensorXf(data, self.env_shape)
 
     def _to_colour_key(self, c):
         return self.ls_c.to_differential(c) if self.ls_c is not None else c
@@ -255,7 +338,7 @@ class MorphStage(DrJitStage):
     def fingerprint(self) -> dict:
         # these only decide between runs (the decision files record them); a run's own steps do not read them
         between = ("prior_margin", "prior_ties", "light_select_every", "light_select_colour_lambda",
-                   "step_select_quantile", "step_select_lr", "planarity_select_where")
+                   "step_select_quantile", "step_select_lr", "planarity_select_where", "mode_select")
         finish_only = ("border_turn_deg",)  # acts in :meth:`finish`, on the state the checkpoint holds
         # fields added later, at the value that computes what runs made before them did (bit for bit): those runs'
         # checkpoints still match
@@ -268,7 +351,9 @@ class MorphStage(DrJitStage):
             (("mask_every",) if self.s.mask_every == 1 or self.s.mask_weight == 0 else ()) + \
             (("mask_downsample",) if self.s.mask_downsample == 1 or self.s.mask_weight == 0 else ()) + \
             (("planarity_where",) if self.s.planarity_where == "all" else ()) + \
-            (("planarity_min_thickness",) if self.s.planarity_where != "thick" else ())
+            (("planarity_min_thickness",) if self.s.planarity_where != "thick" else ()) + \
+            (() if self.per_view else ("refine_cameras", "lr_camera", "camera_weight", "exposure", "lr_exposure",
+                                       "env_resolution", "lr_env"))
         settings = {k: v for k, v in asdict(self.s).items() if k not in between + finish_only + same}
         if not self.s.indirect_every:  # no estimate: its settings unread, kept as runs before their defaults changed
             settings["indirect_spp"] = PLAIN_RUN_INDIRECT_SPP
@@ -290,8 +375,13 @@ class MorphStage(DrJitStage):
         return fp
 
     def state(self) -> dict:
-        return {"faces": self.faces, "v_ref": self.v_ref, "vertices": self.vertices(), "colours": self.colours(),
-                "optimizer": optimizer_state(self.opt), "rng": rng_state(self.rng), "lambda": self.lam,
+        self._sync_extras()
+        extras = {"cam_rot": self.cam_rot, "cam_shift": self.cam_shift, "log_gain": self.log_gain}
+        if self.env_fit:
+            extras["env"] = self.env_values
+        return {**extras, "faces": self.faces, "v_ref": self.v_ref, "vertices": self.vertices(), "colours": self.colours(),
+                "optimizer": optimizer_state(self.opt),
+                **({"photo_optimizer": optimizer_state(self.popt)} if self.popt is not None else {}), "rng": rng_state(self.rng), "lambda": self.lam,
                 "trace": [to_json(t) for t in self.trace], "snapshots": list(self.snapshots),
                 "anneal": list(self.anneal) if self.anneal else None,
                 "validation_seconds": self.validation_seconds,
@@ -299,8 +389,15 @@ class MorphStage(DrJitStage):
 
     def load_state(self, tree: dict) -> None:
         self.lam = float(tree["lambda"])
+        for k in ("cam_rot", "cam_shift", "log_gain"):
+            if k in tree:
+                setattr(self, k, np.asarray(tree[k], np.float64))
+        if self.env_fit and "env" in tree:
+            self.env_values = np.asarray(tree["env"], np.float32)
         self._build(tree["vertices"], tree["v_ref"], tree["faces"], tree["colours"])
         load_optimizer_state(self.opt, tree["optimizer"], "morph optimizer")
+        if self.popt is not None and "photo_optimizer" in tree:
+            load_optimizer_state(self.popt, tree["photo_optimizer"], "morph photo optimizer")
         set_rng_state(self.rng, tree["rng"])
         self.trace = [from_json(TracePoint, t, "morph checkpoint: trace") for t in tree["trace"]]
         self.snapshots = [np.asarray(x) for x in tree["snapshots"]]
@@ -317,13 +414,15 @@ class MorphStage(DrJitStage):
             return None
         meta = self.bench.meta
         with dr.suspend_grad():
+            if self.per_view:  # the last step left the last view's pose in the scene
+                self._set_mesh(dr.detach(self._flat()), dr.detach(self.colour_values()))
             imgs = render_views(self.scene, self.params, meta.cameras, self.val_ids, self.res, meta.fov,
                                 max(self.s.spp, 8), 7_000_003)
             return float(np.mean([np.asarray(self._l1(img, i)).item() for img, i in zip(imgs, self.val_ids)]))
 
     def _l1(self, img, i):
         """L1 against photo ``i`` without its saturated pixels (:func:`~inverse.morph.scene.photo_l1`)."""
-        return photo_l1(self._with_indirect(img, i), self.photos[int(i)], self.photo_hot.get(int(i)),
+        return photo_l1(self._exposed(img, i), self.photos[int(i)], self.photo_hot.get(int(i)),
                         self.saturation_level)
 
     def _with_indirect(self, img, i):
@@ -418,6 +517,9 @@ class MorphStage(DrJitStage):
         s, meta = self.s, self.bench.meta
         decay = self.lr_factor(it)
         self.opt.set_learning_rate({self.key: self.lr_pos * decay, "c": s.lr_colour * decay})
+        self._extra_rates(decay)
+        if self.per_view:
+            return self._step_per_view(it)
         flat = dr.ravel(self.positions()) if self.ls is not None else self.positions()
         self.params["mesh.vertex_positions"] = flat
         colours = self.colour_values()
@@ -449,10 +551,95 @@ class MorphStage(DrJitStage):
         dr.backward(loss)
         return self.result(loss)
 
+    def _flat(self):
+        return dr.ravel(self.positions()) if self.ls is not None else self.positions()
+
+    def _view_flat(self, flat, i: int):
+        """The positions that view ``i`` renders: moved by its camera's correction where it is fitted."""
+        if not self.refine or int(i) not in self.train_index:
+            return flat
+        k = self.train_index[int(i)]
+        w = pm.pick3(self.popt["cam_rot"], k)
+        t = pm.pick3(self.popt["cam_shift"], k) * self.size
+        return pm.view_positions(flat, self.centres[int(i)], w, t)
+
+    def _exposed(self, img, i: int):
+        """The render's RGB times photo ``i``'s gain (its own, differentiable, where fitted)."""
+        img = self._with_indirect(img, i)
+        if not self.exposure:
+            return img
+        if int(i) in self.train_index:
+            g = dr.exp(pm.pick3(self.popt["gain"], self.train_index[int(i)]))
+            return img * mi.TensorXf(dr.ravel(g), (1, 1, 3))
+        return img * mi.TensorXf(self.gain_of(i).astype(np.float32).reshape(1, 1, 3))
+
+    def _set_mesh(self, flat, colours) -> None:
+        self.params["mesh.vertex_positions"] = flat
+        self.params["mesh.vertex_color"] = colours
+        self._set_env()
+        with mitsuba_log_level(mi.LogLevel.Error):
+            self.params.update()
+
+    def _step_per_view(self, it: int) -> StepResult:
+        """One step where each view renders its own mesh pose (refined cameras) or gain: every view's loss is
+        differentiated right after its render (Mitsuba's backward pass renders the scene as it then is), the
+        gradients adding up in the optimiser's variables."""
+        s, meta = self.s, self.bench.meta
+        views = self.rng.choice(self.train_ids, size=min(s.views_per_step, len(self.train_ids)), replace=False)
+        total, n = 0.0, len(views)
+        for k, i in enumerate(views):
+            seed = s.seed * 7919 + it * 101
+            flat = self._view_flat(self._flat(), i)
+            self._set_mesh(flat, self.colour_values())
+            img, = render_views(self.scene, self.params, meta.cameras, [i], self.res, meta.fov, s.spp, seed + k,
+                                integrator_spp=not self.shared_spp)
+            loss = photo_l1(self._exposed(img, i), self.photos[int(i)], self.photo_hot.get(int(i)),
+                            self.saturation_level) / n
+            if self.mask_weight > 0 and it % s.mask_every == 0:
+                self.mask_params["mesh.vertex_positions"] = flat
+                with mitsuba_log_level(mi.LogLevel.Error):
+                    self.mask_params.update()
+                sky, = render_views(self.mask_scene, self.mask_params, meta.cameras, [i], self.mask_res, meta.fov,
+                                    s.spp, seed + k + 1_000_003, integrator_spp=not self.shared_spp)
+                loss += self.mask_weight * s.mask_every * dr.mean(dr.abs(sky[..., :3] - self.sky[int(i)]),
+                                                                  axis=None) / n
+            dr.backward(loss)
+            total += float(loss.array[0])
+        extra = 0
+        if self.planarity.weight > 0 or self.colour_prior.weight > 0:
+            flat = self._flat()
+            if self.planarity.weight > 0:
+                extra += self.planarity.weight * planarity_prior(dr.unravel(mi.Point3f, flat), self.f_mi, self.pairs,
+                                                                 self.sigma)
+            if self.colour_prior.weight > 0:
+                extra += self.colour_prior.weight * colour_prior(self.colour_values(), self.edges)
+        if self.refine and s.camera_weight > 0:  # the prior toward the imported poses (photo_model's scales)
+            r, t = self.popt["cam_rot"], self.popt["cam_shift"]
+            extra += s.camera_weight * (dr.sum(r * r) / pm.CAMERA_PRIOR_ROT ** 2 +
+                                        dr.sum(t * t) / pm.CAMERA_PRIOR_SHIFT ** 2) / len(self.train_ids)
+        if not isinstance(extra, int):
+            dr.backward(extra)
+            total += float(extra.array[0])
+        grads = [dr.grad(o[k]) for o in (self.opt, self.popt) for k in o.keys()]
+        dr.eval(*grads)
+        return StepResult(total, all_finite(*grads), log={})
+
+    def discard(self, it: int) -> None:
+        super().discard(it)
+        for k in (self.popt.keys() if self.popt is not None else ()):
+            dr.set_grad(self.popt[k], 0)
+
     def apply(self, it: int) -> None:
         s = self.s
         v_before = self.vertices() if s.forbid_flips else None
         self.opt.step()
+        if self.popt is not None:
+            self.popt.step()
+        if self.exposure:  # one overall gain is the colours' (and the light's): the gains' mean stays 0
+            g = dr.unravel(mi.Vector3f, self.popt["gain"])
+            self.popt["gain"] = dr.ravel(g - mi.Vector3f(*[dr.mean(g[k]) for k in range(3)]))
+        if self.env_fit:
+            self.popt["env"] = dr.maximum(dr.detach(self.popt["env"]), 0.0)
         c = dr.clip(dr.detach(self.colour_values()), 0.0, 1.0 if s.mode == "lit" else 10.0)
         self.opt["c"] = self._to_colour_key(c)
         if v_before is not None:
@@ -469,6 +656,7 @@ class MorphStage(DrJitStage):
         if self.s.indirect_every and run.step % self.s.indirect_every == 0 and not (run.done or run.stopped):
             self.estimate_indirect()
         if run.step in self.s.remesh_at and not run.done:
+            self._sync_extras()
             v, f, c = remesh(self.vertices(), self.faces, self.colours())
             self._build(v, v, f, c)
         if self.anneal is not None and run.step >= self.anneal[0] + self.anneal[1]:
@@ -492,11 +680,17 @@ class MorphStage(DrJitStage):
             v_out, spike_report = iron_spikes(v_out, self.faces, self.v_start)
         write_ply(self.out / "morphed.ply", v_out, self.faces, np.clip(c_out, 0, 1))
         seconds = self.setup_seconds + run.train_seconds
+        self._sync_extras()
+        fit = self.photo_fit() if self.capture or self.per_view else None
         self.close()
-        ev = evaluate_morph(self.bench, self.v_in, self.f_in, self.c_in, v_out, self.faces, c_out, s.mode, self.res,
+        if self.capture:
+            ev = evaluate_capture_morph(self, self.v_in, self.f_in, self.c_in, v_out, self.faces, c_out,
+                                        start=(self.v_start, self.f_start) if not s.remesh_at else None)
+        else:
+            ev = evaluate_morph(self.bench, self.v_in, self.f_in, self.c_in, v_out, self.faces, c_out, s.mode, self.res,
                             self.out, start=(self.v_start, self.f_start) if not s.remesh_at else None)
         trace_in = None
-        if self.snapshots:  # the convergence curve in Chamfer (coarser estimator than the headline figure)
+        if self.snapshots and self.bench.ground_truth is not None and not self.capture:  # the convergence curve in Chamfer (coarser estimator than the headline figure)
             gv, gf = load_mesh_any(self.bench.ground_truth)
 
             def quick(v, f):
@@ -511,11 +705,26 @@ class MorphStage(DrJitStage):
                            trace=self.trace,
                            stopped_early=run.stopped,
                            validation_views=list(self.val_ids), validation_seconds=self.validation_seconds,
-                           trace_chamfer_input=trace_in, saturation_level=self.saturation_level)
+                           trace_chamfer_input=trace_in, saturation_level=self.saturation_level, photo_fit=fit)
+
+    def photo_fit(self) -> PhotoFit:
+        """What the fit made of the photos beside the mesh: cameras moved, gains, the fitted light (written as
+        ``environment.exr`` in the run folder)."""
+        meta = self.bench.meta
+        env = None
+        if self.env_fit:
+            env = str(imageio.write_exr(self.out / "environment.exr", {"": self.env_values}, half=False).name)
+        gains = {int(i): [float(x) for x in self.gain_of(i)] for i in range(len(meta.cameras))}
+        return PhotoFit(mode=self.s.mode, refined_cameras=self.refine, exposure=self.exposure,
+                        fitted_light=self.env_fit, train_views=list(map(int, self.train_ids)),
+                        camera_movement=pm.camera_movement(self.cam_rot, self.cam_shift, self.size) if self.refine
+                        else None, camera_rotation=self.cam_rot.tolist() if self.refine else None,
+                        camera_shift=self.cam_shift.tolist() if self.refine else None,
+                        gains=gains if self.exposure else None, environment=env)
 
     def close(self) -> None:
         """Free the scene (Mitsuba traces every live plugin instance in every render) and the work file."""
-        self.scene = self.params = self.opt = self.ls = self.ls_c = None
+        self.scene = self.params = self.opt = self.popt = self.ls = self.ls_c = None
         self.work_ply.unlink(missing_ok=True)
 
 
@@ -531,8 +740,9 @@ def photos_digest(bench: MorphBenchmark) -> str:
     """The photos a run fits and the cameras they were taken from, for its fingerprint: a benchmark made again over
     the same coarse mesh with other photos must not resume a run's optimiser as if nothing had changed."""
     meta = bench.meta
-    return array_key(*(bench.photo(i) for i in range(len(meta.cameras))),
-                     np.array([[*c.eye, *c.target] for c in meta.cameras], np.float64))[0][:16]
+    poses = np.array([c.matrix.ravel().tolist() + [c.f, c.cx, c.cy, c.width, c.height] if hasattr(c, "matrix")
+                      else [*c.eye, *c.target] for c in meta.cameras], np.float64)
+    return array_key(*(bench.photo(i) for i in range(len(meta.cameras))), poses)[0][:16]
 
 
 def run_stage(bench: MorphBenchmark, out: Path, s: MorphSettings, show_progress: bool = True,

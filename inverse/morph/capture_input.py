@@ -1,0 +1,188 @@
+"""A capture (:mod:`inverse.capture`) as the morph's input: its photos, pinhole cameras and coarse mesh behind the
+interface the morph reads of a benchmark (``meta.cameras``, ``photo(i)``, ``coarse``, ``ground_truth``), so that one
+stage fits both. What a capture does not give is left unknown: the light (fitted, :mod:`.photo_model`), the exposure of
+each photo (fitted), the cameras' last bit of accuracy (refined), and a ground truth (metrics needing one are left
+out unless the capture carries one)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from foundation.errors import UsageError
+
+#: the width the morph fits a capture's photos at unless ``--resolution`` says otherwise (the photos' own when smaller)
+CAPTURE_FIT_WIDTH = 128
+
+
+@dataclass
+class CaptureBenchSettings:
+    photo_max_depth: int = 2  #: the photos are not renders: no path depth to match (the light estimate stays off)
+
+
+@dataclass
+class CaptureMorphMeta:
+    """What the morph reads of a benchmark's record, for a capture."""
+
+    kind: str
+    resolution: int  #: the fitting width
+    scene_size: float  #: the coarse mesh's largest extent (SfM units are arbitrary: every length follows it)
+    cameras: list  #: :class:`inverse.capture.CaptureCamera`, in the capture's order
+    train: list[int]
+    test: list[int]
+    names: list[str]
+    fov: None = None  #: each camera has its own intrinsics
+    hdri: None = None  #: the light is not known: it is fitted
+    settings: CaptureBenchSettings = None  # type: ignore[assignment]
+    #: the cameras came from structure from motion or another tool, not from the renderer: refinement's "auto" is on
+    estimated_cameras: bool = True
+
+
+class CaptureBenchmark:
+    """A capture folder as the morph's input. ``work``: a folder of this run for what the morph derives (the coarse
+    mesh coloured from the training photos, the stored start); the capture folder itself is only read."""
+
+    def __init__(self, capture, work: str | Path):
+        from foundation.mesh import load_mesh_any, write_ply
+        from inverse.capture import colour_from_photos
+
+        self.capture = capture
+        cm = capture.meta
+        if capture.mesh is None:
+            raise UsageError(f"{capture.path}: the capture has no coarse mesh to morph (import one with "
+                             "`photoreal capture import --mesh`, or run `photoreal capture sfm`)")
+        names = [c.name for c in cm.cameras]
+        self.path = Path(work)
+        self.path.mkdir(parents=True, exist_ok=True)
+        v, f = load_mesh_any(capture.mesh)
+        size = float(np.ptp(v, axis=0).max())
+        width = min(CAPTURE_FIT_WIDTH, max(c.width for c in cm.cameras))
+        self.meta = CaptureMorphMeta("capture", width, size, list(cm.cameras), [names.index(n) for n in cm.train],
+                                     [names.index(n) for n in cm.test], names, settings=CaptureBenchSettings(),
+                                     estimated_cameras=not cm.source.get("exact_cameras", False))
+        # the input's colours: the training photos projected onto it (the photogrammetry texture), the held-out never
+        self.coarse = self.path / "coarse.ply"
+        from foundation.files import file_digest
+
+        key = self.path / "coarse.source"
+        from foundation.files import array_key
+
+        want = f"{file_digest(capture.mesh)} {array_key(*(capture.photo(n) for n in cm.train))[0][:16]}"
+        if not (self.coarse.is_file() and key.is_file() and key.read_text() == want):
+            write_ply(self.coarse, v, f, colour_from_photos(capture, v, f))
+            key.write_text(want)
+        self._photos: dict[tuple[int, int], np.ndarray] = {}
+
+    @property
+    def ground_truth(self) -> Path | None:
+        return self.capture.truth
+
+    @property
+    def has_masks(self) -> bool:
+        return bool(self.capture.meta.masks)
+
+    def photo(self, i: int) -> np.ndarray:
+        """Photo ``i`` at the capture's resolution, linear RGB (H, W, 3)."""
+        return self.capture.photo(self.meta.names[int(i)])
+
+    def photo_at(self, i: int, res: int) -> np.ndarray:
+        """Photo ``i`` area-resampled to ``res`` pixels across (its camera :meth:`CaptureCamera.scaled` to match)."""
+        from inverse.capture import area_resize
+
+        if (i, res) not in self._photos:
+            cam = self.meta.cameras[int(i)].scaled(res)
+            self._photos[(i, res)] = np.ascontiguousarray(area_resize(self.photo(i), cam.width, cam.height))
+        return self._photos[(i, res)]
+
+    def masks_at(self, res: int, views) -> dict[int, np.ndarray]:
+        """The capture's masks of ``views`` at ``res`` pixels across, float32 coverage in [0, 1] (empty without)."""
+        from inverse.capture import area_resize
+
+        if not self.has_masks:
+            return {}
+        out = {}
+        for i in views:
+            cam = self.meta.cameras[int(i)].scaled(res)
+            m = self.capture.mask(self.meta.names[int(i)]).astype(np.float32)[..., None]
+            out[int(i)] = np.clip(area_resize(m, cam.width, cam.height)[..., 0], 0.0, 1.0)
+        return out
+
+
+def is_capture(bench) -> bool:
+    return isinstance(bench, CaptureBenchmark)
+
+
+def load_morph_input(path: str | Path, work: str | Path):
+    """A morph benchmark folder (``morph_benchmark.json``) or a capture folder (``capture.json``) as the morph's
+    input; anything else is named."""
+    from inverse.capture import MARKER as CAPTURE_MARKER, load_capture
+
+    from .benchmark import MARKER, load_morph_benchmark
+
+    path = Path(path)
+    if (path / CAPTURE_MARKER).is_file():
+        return CaptureBenchmark(load_capture(path), work)
+    if (path / MARKER).is_file() or not path.exists():
+        return load_morph_benchmark(path)
+    raise UsageError(f"{path}: neither a morph benchmark ({MARKER}) nor a capture ({CAPTURE_MARKER})")
+
+
+def evaluate_capture_morph(stage, v_in, f_in, c_in, v_out, f_out, c_out, start=None):
+    """Held-out photos of a capture against renders of the input and the morphed mesh (no truth: no Chamfer).
+
+    Both are rendered at the held-out photos' imported cameras, at the fitting width, with the fitted exposure (a
+    held-out photo's gain from its two nearest fitted cameras) and the fitted environment as the background (and, for
+    a 'lit' result, the light). The input is scored as photogrammetry gives it: its colours from the training photos,
+    unlit. Renders: ``path`` at depth 2, 32 spp, seed = view index. Spikes and inverted triangles compare the result
+    with the mesh the optimisation started from (``start``), as for a benchmark."""
+    import mi_plugins  # noqa: F401  (the variant)
+    import mitsuba as mi
+
+    from foundation import imageio
+    from foundation.features import perceptual_distance
+    from foundation.mesh import write_ply
+    from foundation.mesh_metrics import spikes
+    from foundation.metrics import ImageMetrics, image_metrics
+
+    from . import photo_model as pm
+    from .cameras import sensor_dict
+    from .evaluate import MorphEvaluation
+    from .scene import morph_scene, photo_at
+
+    bench, meta, out, res = stage.bench, stage.bench.meta, stage.out, stage.res
+    light = pm.fitted_envmap(stage.env_values) if stage.env_values is not None else meta.hdri
+    per: dict[str, list] = {"input": [], "morphed": []}
+    perceptual: dict[str, list] = {"input": [], "morphed": []}
+    meshes = {"input": (v_in, f_in, c_in, "unlit"), "morphed": (v_out, f_out, c_out, stage.s.mode)}
+    for name, (v, f, c, mode) in meshes.items():
+        ply = out / f".eval_{name}.ply"
+        write_ply(ply, v, f, np.clip(c, 0, None))
+        scene = morph_scene(ply, mode, light, integrator={"type": "path", "max_depth": 2})
+        for i in meta.test:
+            sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, None))
+            img = np.array(mi.render(scene, sensor=sensor, spp=32, seed=int(i)))[..., :3] * stage.gain_of(i)
+            ref = photo_at(bench, i, res)
+            per[name].append(image_metrics(img, ref))
+            perceptual[name].append(float(perceptual_distance(img[None], ref[None])[0]))
+            if i == meta.test[0]:
+                imageio.write_png(out / f"heldout_{name}_view{i:02d}.png", img)
+                imageio.write_png(out / f"heldout_photo_view{i:02d}.png", ref)
+        del scene
+        ply.unlink(missing_ok=True)
+    mean = {n: ImageMetrics.mean(ms) for n, ms in per.items()}
+    v0, f0 = start if start is not None else (v_in, f_in)
+    if len(v0) == len(v_out) and np.array_equal(f0, f_out):
+        sp = spikes(v0, v_out, f_out)
+    else:
+        sp = {"spike_vertices": -1, "far_moved_vertices": -1, "inverted_triangles": -1, "spikes": -1}
+    nan = float("nan")
+    return MorphEvaluation(
+        chamfer_input=nan, chamfer_morphed=nan, chamfer_reduction=nan, normal_consistency_input=nan,
+        normal_consistency_morphed=nan, psnr_heldout_input=mean["input"].psnr, psnr_heldout_morphed=mean["morphed"].psnr,
+        heldout_input=mean["input"], heldout_morphed=mean["morphed"], spike_vertices=sp["spike_vertices"],
+        inverted_triangles=sp["inverted_triangles"], spikes=sp["spikes"], far_moved_vertices=sp["far_moved_vertices"],
+        facing_against_truth=-1, facing_against_truth_input=-1, scene_size=meta.scene_size,
+        perceptual_heldout_input=float(np.mean(perceptual["input"])),
+        perceptual_heldout_morphed=float(np.mean(perceptual["morphed"])))

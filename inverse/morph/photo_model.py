@@ -1,0 +1,149 @@
+"""What a real photo adds to the morph's forward model: a correction of each camera's pose, a colour gain per photo
+(exposure and white balance), and an environment map fitted where the light is not known.
+
+Camera corrections are rigid motions G about each camera's centre in world axes (to_world' = G · to_world,
+G(x) = R(ω)(x − c) + c + t). Rendering the scene through the corrected camera is rendering the scene moved by G⁻¹
+through the imported one, so the correction is applied to the mesh's vertices of that view
+(:func:`view_positions`): the gradients reach ω and t through the vertices, silhouettes included, with no change
+to the sensor. In 'lit' mode the environment does not move with the mesh: for the small corrections the prior allows
+(about a degree) the light's turn is left out.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import mi_plugins  # noqa: F401
+import drjit as dr
+import mitsuba as mi
+
+#: the camera prior's scales: a correction of this rotation (radians, 0.5°) or this shift (× scene size) costs 1
+CAMERA_PRIOR_ROT = np.radians(0.5)
+CAMERA_PRIOR_SHIFT = 0.01
+
+
+def rotate_inverse(p, w):
+    """R(ω)ᵀ p by Rodrigues' formula (``w``: mi.Vector3f of width 1, the rotation vector; ``p``: mi.Point3f)."""
+    theta = dr.sqrt(dr.squared_norm(w) + 1e-20)
+    k = w / theta
+    c, s = dr.cos(theta), dr.sin(theta)
+    return p * c - dr.cross(k, p) * s + k * dr.dot(k, p) * (1.0 - c)
+
+
+def view_positions(flat, centre: np.ndarray, w, t):
+    """Flat vertex positions (x, y, z per vertex) moved by G⁻¹: R(ω)ᵀ(v − c − t) + c."""
+    p = dr.unravel(mi.Point3f, flat)
+    c = mi.Point3f(*[float(x) for x in centre])
+    return dr.ravel(rotate_inverse(p - c - t, w) + c)
+
+
+def pick3(values, i: int):
+    """Entries 3i … 3i+2 of a flat Float as a width-1 mi.Vector3f (differentiable)."""
+    return mi.Vector3f(*[dr.gather(mi.Float, values, mi.UInt32(3 * int(i) + k)) for k in range(3)])
+
+
+def moved_cameras(cameras: list, ids: list[int], rot: np.ndarray, shift: np.ndarray) -> list:
+    """Capture cameras ``ids`` with the fitted corrections applied (``rot``, ``shift``: (len(ids), 3), world units)."""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    out = list(cameras)
+    for k, i in enumerate(ids):
+        m = cameras[i].matrix.copy()
+        r = Rotation.from_rotvec(rot[k]).as_matrix()
+        c = m[:3, 3].copy()
+        m[:3, :3] = r @ m[:3, :3]
+        m[:3, 3] = c + shift[k]
+        out[i] = replace(cameras[i], cam_to_world=m.tolist())
+    return out
+
+
+def camera_movement(rot: np.ndarray, shift: np.ndarray, size: float) -> dict:
+    """How far the refined cameras moved from the imported ones: per camera and at most, degrees and × scene size."""
+    deg = np.degrees(np.linalg.norm(rot, axis=1))
+    rel = np.linalg.norm(shift, axis=1) / size
+    return {"rotation_deg": [float(x) for x in deg], "shift_rel": [float(x) for x in rel],
+            "rotation_deg_max": float(deg.max(initial=0.0)), "rotation_deg_mean": float(deg.mean()) if len(deg) else 0.0,
+            "shift_rel_max": float(rel.max(initial=0.0)), "shift_rel_mean": float(rel.mean()) if len(rel) else 0.0}
+
+
+def nearest_fitted(centres: np.ndarray, fitted: list[int], k: int = 2) -> dict[int, list[int]]:
+    """Per camera not in ``fitted``: its ``k`` nearest fitted cameras by centre (a held-out photo's gain is their
+    mean: from its neighbours, never from its own pixels)."""
+    out = {}
+    fc = centres[fitted]
+    for i in range(len(centres)):
+        if i in fitted:
+            continue
+        d = np.linalg.norm(fc - centres[i], axis=1)
+        out[i] = [fitted[j] for j in np.argsort(d, kind="stable")[:k]]
+    return out
+
+
+def envmap_index(height: int, width: int) -> np.ndarray:
+    """Flat indices into an (height, width, 3) map that give Mitsuba ``envmap``'s stored ``data`` (its columns wrapped
+    at both ends, small maps' rows padded), so that the map itself is what the fit optimises. Read from Mitsuba: an
+    envmap of the texel indices themselves."""
+    idx = np.zeros((height, width, 3), np.float32)
+    idx[..., 0] = np.arange(height * width, dtype=np.float32).reshape(height, width) + 1.0  # exact below 2²⁴
+    data = np.array(mi.traverse(mi.load_dict(fitted_envmap(idx)))["data"])[..., 0]
+    base = np.rint(data).astype(np.int64) - 1
+    if base.min() < 0 or base.max() >= height * width or np.abs(data - np.rint(data)).max() > 0:
+        raise RuntimeError("Mitsuba's envmap stores its texels in a way this fit does not know")
+    return (base[..., None] * 3 + np.arange(3)).astype(np.uint32).ravel()
+
+
+def fitted_envmap(values: np.ndarray) -> dict:
+    """An ``envmap`` emitter of an (height, width, 3) map (linear RGB)."""
+    return {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(values, np.float32))}
+
+
+def env_from_photos(cameras: list, photos: list[np.ndarray], v: np.ndarray, f: np.ndarray, height: int,
+                    width: int = 64, reached: bool = False):
+    """A start for the fitted environment: each texel the mean of the photos' pixels whose rays miss the coarse mesh
+    (``v``, ``f``) and end in it, weighted as Mitsuba's envmap interpolates (the normal equations' diagonal: Wᵀy / Wᵀ1,
+    both from one backward pass through ``envmap.eval``). The photos are read ``width`` pixels across; a texel no ray
+    reaches takes the mean of those that are reached. ``reached``: also return which texels rays reach."""
+    from inverse.capture import area_resize
+
+    from .scene import _ray_scene
+
+    dirs, colours = [], []
+    blocker = _ray_scene(v, f, "env-start")
+    for cam, img in zip(cameras, photos):
+        c = cam.scaled(min(width, cam.width))
+        small = area_resize(img, c.width, c.height).reshape(-1, 3)
+        ys, xs = np.mgrid[0:c.height, 0:c.width].astype(np.float64) + 0.5
+        d = np.stack([(xs - c.cx) / c.f, (ys - c.cy) / c.f, np.ones_like(xs)], -1).reshape(-1, 3) @ c.matrix[:3, :3].T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        o = np.broadcast_to(c.centre, d.shape)
+        ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]),
+                       mi.Vector3f(*[mi.Float(d[:, k].astype(np.float32)) for k in range(3)]))
+        miss = ~np.array(blocker.ray_intersect(ray).is_valid())
+        dirs.append(d[miss])
+        colours.append(small[miss])
+    d, y = np.concatenate(dirs), np.concatenate(colours)
+    fallback = np.mean(y, axis=0) if len(y) else np.full(3, 0.5)
+    if not len(y):
+        out = np.tile(fallback.astype(np.float32), (height, 2 * height, 1))
+        return (out, np.zeros(out.shape, bool)) if reached else out
+    index = mi.UInt32(envmap_index(height, 2 * height))
+    em = mi.load_dict(fitted_envmap(np.ones((height, 2 * height, 3), np.float32)))
+    params = mi.traverse(em)
+    shape = tuple(params["data"].shape)
+    si = dr.zeros(mi.SurfaceInteraction3f, len(d))
+    si.wi = mi.Vector3f(*[mi.Float((-d[:, k]).astype(np.float32)) for k in range(3)])
+    sums = []
+    for weights in (y, np.ones_like(y)):
+        e = dr.zeros(mi.Float, height * 2 * height * 3)
+        dr.enable_grad(e)
+        params["data"] = mi.TensorXf(dr.gather(mi.Float, e, index), shape)
+        params.update()
+        val = em.eval(si)
+        w = mi.Color3f(*[mi.Float(weights[:, k].astype(np.float32)) for k in range(3)])
+        dr.backward(dr.sum(val.x * w.x + val.y * w.y + val.z * w.z))
+        sums.append(np.array(dr.grad(e), np.float64).reshape(height, 2 * height, 3))
+    hit = sums[1] > 1e-6
+    out = np.clip(np.where(hit, sums[0] / np.maximum(sums[1], 1e-12), fallback), 0.0, None).astype(np.float32)
+    return (out, hit) if reached else out
