@@ -25,11 +25,14 @@ def _cmd_morph_run(a) -> int:
     from foundation.files import check_output_file, write_json
     from foundation.pool import Item
     from foundation.records import to_json
-    from inverse.morph import MorphSettings, load_morph_benchmark, run_gcn_morph, run_morph
+    from inverse.morph import MorphSettings, load_morph_benchmark, load_morph_input, run_gcn_morph, run_morph
 
     s = settings_from(MorphSettings, a, parameterisation="plain" if a.plain_adam else "large_steps",
                   repair_flips=not a.no_repair, min_vertices=a.min_vertices or None)
     benches = benchmark_dirs(a.benchmark, "morph_benchmark.json")
+    captures = [b for b in benches if (b / "capture.json").is_file()]
+    if captures and len(benches) > 1:
+        raise usage(f"{captures[0]}: a capture is morphed on its own (one CAPTURE per `morph run`)")
     if len(benches) > 1:
         if a.out or a.json:
             raise usage("--out and --json name one run; several benchmarks go to --out-dir (or BENCHMARK/morph)")
@@ -50,16 +53,26 @@ def _cmd_morph_run(a) -> int:
         raise usage("--out-dir is for several benchmarks; one run goes to --out (default BENCHMARK/morph)")
     if a.json:
         check_output_file(a.json, "--json")
-    bench = load_morph_benchmark(benches[0])
     out = Path(a.out) if a.out else benches[0] / "morph"
     if out.exists() and not out.is_dir():
         raise usage(f"--out {out}: is a file, expected a folder")
+    if captures and a.gcn:
+        raise usage("--gcn: the GCN variant morphs benchmarks only; a capture runs the default morph")
+    bench = load_morph_input(benches[0], out / ".capture_input")
     m = run_gcn_morph(bench, out, s) if a.gcn else run_morph(bench, out, s)
     if a.json:
         write_json(a.json, to_json(m))
-    print_json({"chamfer_input": m.chamfer_input, "chamfer_morphed": m.chamfer_morphed,
-            "psnr_heldout_input": m.psnr_heldout_input, "psnr_heldout_morphed": m.psnr_heldout_morphed,
-            "spikes": m.spikes, "seconds": m.seconds})
+    summary = {"psnr_heldout_input": m.psnr_heldout_input, "psnr_heldout_morphed": m.psnr_heldout_morphed,
+               "flip_heldout_input": m.heldout_input.flip, "flip_heldout_morphed": m.heldout_morphed.flip,
+               "spikes": m.spikes, "inverted_triangles": m.inverted_triangles, "seconds": m.seconds}
+    if not captures:
+        summary = {"chamfer_input": m.chamfer_input, "chamfer_morphed": m.chamfer_morphed, **summary}
+    elif m.photo_fit is not None:
+        summary["mode"] = m.photo_fit.mode
+        if m.photo_fit.camera_movement:
+            summary["cameras_moved_deg_max"] = m.photo_fit.camera_movement["rotation_deg_max"]
+            summary["cameras_moved_shift_max"] = m.photo_fit.camera_movement["shift_rel_max"]
+    print_json(summary)
     return 0
 
 
@@ -151,7 +164,8 @@ def _add_make_benchmark(mm: argparse.ArgumentParser) -> None:
 def _add_run(mr: argparse.ArgumentParser) -> None:
     from inverse.morph import PLANARITY_WHERE, PRIOR_TIES, MorphSettings
 
-    mr.add_argument("benchmark", nargs="+", help="benchmark folder(s), or a folder of them")
+    mr.add_argument("benchmark", nargs="+", help="benchmark folder(s), or a folder of them, or one capture folder "
+                    "(`photoreal capture import|sfm`: its light, exposures and cameras' last errors are fitted)")
     out_opt(mr, "--out", default=None, help="output folder of one benchmark (default BENCHMARK/morph)")
     out_opt(mr, "--out-dir", default=None, help="several benchmarks: DIR/NAME (default: each BENCHMARK/morph)")
     out_opt(mr, "--json", kind="file", default=None, help="metrics JSON")
@@ -164,7 +178,20 @@ def _add_run(mr: argparse.ArgumentParser) -> None:
     mr.add_argument("--plain-adam", action="store_true", help="per-vertex Adam instead of large steps")
     opt(mr, MorphSettings, "target_vertices", type=int,
          help="remesh the input to about this many vertices (default: see --min-vertices)")
-    opt(mr, MorphSettings, "resolution", type=int, help="working resolution (default: the benchmark's)")
+    opt(mr, MorphSettings, "resolution", type=int, help="working resolution (default: the benchmark's; a capture's "
+        "photos are fitted 128 pixels across, their aspect kept)")
+    opt(mr, MorphSettings, "refine_cameras", choices=["auto", "on", "off"],
+        help="refine each training photo's camera pose with the mesh, pulled toward the imported pose; auto: where the "
+             "cameras were estimated (captures)")
+    opt(mr, MorphSettings, "lr_camera", help="step of the camera corrections (radians; × scene size for shifts)")
+    opt(mr, MorphSettings, "camera_weight", help="weight of the pull toward the imported poses")
+    opt(mr, MorphSettings, "exposure", choices=["auto", "on", "off"],
+        help="an RGB gain per photo (exposure, white balance); auto: on for captures")
+    opt(mr, MorphSettings, "lr_exposure", help="step of the per-photo log-gains")
+    opt(mr, MorphSettings, "env_resolution", help="captures: height of the fitted environment map (width twice it)")
+    opt(mr, MorphSettings, "lr_env", help="step of the fitted environment's texels")
+    opt(mr, MorphSettings, "mode_select", "--no-mode-select",
+        help="captures: keep --mode as given (by default a lit run's unlit twin is asked of the photos)")
     mr.add_argument("--gcn", action="store_true", help="shape-aware GCN trained through the renderer")
     opt(mr, MorphSettings, "forbid_flips",
          help="undo a step at vertices of triangles it would flip (0 inverted, less accurate)")
