@@ -205,6 +205,22 @@ def test_the_capture_commands_end_to_end(bench, tmp_path, capsys):
     s = json.loads((tmp_path / "s.json").read_text())
     assert code == 0 and set(s["mean"]) == {"psnr", "ssim", "flip", "perceptual"} and len(s["views"]) == 1
     assert s["mean"]["psnr"] > 10  # the coarse armadillo against its own photo: far from noise
+    # the morph takes the capture: a short run writes its mesh, the fitted light and what the cameras did
+    run = tmp_path / "morph"
+    code, err = _run(["morph", "run", tmp_path / "cap", "--out", run, "--iterations", "3", "--resolution", "24",
+                      "--no-early-stop", "--min-vertices", "0", "--lambda-select", "2", "--planarity-select",
+                      "--step-select-quantile", "1", "--json", tmp_path / "m.json"], capsys)
+    assert code == 0, err
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert (run / "morphed.ply").is_file() and (run / "environment.exr").is_file()
+    assert m["photo_fit"]["refined_cameras"] and m["photo_fit"]["exposure"] and m["photo_fit"]["fitted_light"]
+    assert np.isfinite(m["psnr_heldout_morphed"]) and np.isnan(m["chamfer_morphed"])  # no truth: no Chamfer
+    code, err = _run(["morph", "run", tmp_path / "cap", "--gcn", "--out", tmp_path / "g"], capsys)
+    assert code == 2 and "--gcn" in err and not (tmp_path / "g").exists()
+    bare = tmp_path / "bare"
+    assert _run(["capture", "import", exp, "--out", bare, "--resolution", "24"], capsys)[0] == 0
+    code, err = _run(["morph", "run", bare, "--out", tmp_path / "b"], capsys)
+    assert code == 2 and "no coarse mesh" in err
 
 
 def test_the_poisson_mesh_of_sparse_points_is_the_surface_they_sample():
