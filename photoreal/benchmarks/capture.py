@@ -13,6 +13,14 @@ an orbit of cameras under uniform light; the cameras are thrown away, ``capture 
 recovered cameras are aligned to the true ones by a similarity (Umeyama, on the centres): centre errors as a
 fraction of the orbit radius, rotation errors, and the Chamfer distance of the Poisson mesh to the truth. Target:
 centres within 2 % of the orbit radius on ≥ 3 meshes.
+
+The morph on both (issue "Morphing a real capture"), with the default flags: each real capture's SfM mesh morphed
+against its training photos (the light, exposures and the cameras' last errors fitted), scored on the held-out
+photos against the input mesh under the same fitted light and exposure, with camera refinement on (the default) and
+off; each suite mesh morphed from its SfM mesh and cameras, and again from the same mesh mapped into the truth's frame
+with the exact cameras, both judged by the Chamfer distance to the truth after the cameras' alignment. Targets:
+held-out PSNR ≥ +2 dB and ꟻLIP ≥ 15 % lower than the input, 0 spikes, 0 inverted triangles; on the suite a Chamfer
+≥ 30 % below the SfM mesh's and within 1.5× of the exact cameras' morph.
 """
 
 from __future__ import annotations
@@ -41,11 +49,23 @@ class CaptureBenchSettings:
     max_centre_error: float = 0.02  #: target: recovered centres within this fraction of the orbit radius
     min_registered: float = 0.9  #: target: fraction of the photos registered
     max_reprojection_px: float = 1.0  #: target: mean reprojection error
+    no_morph: bool = False  #: no morph of the captures and the suite's SfM meshes (SfM and scores only)
+    #: no second morph of the real captures with camera refinement off (its effect)
+    no_refine_off: bool = False
+    #: no second morph of the suite's meshes from the exact cameras (the reference the real path is judged against)
+    no_exact: bool = False
+    #: the suite's morphs' iteration cap (0: the morph's default; the real captures always run the default)
+    suite_iterations: int = 0
+    min_psnr_gain: float = 2.0  #: target: held-out PSNR of the morphed mesh over the input's (dB)
+    min_flip_reduction: float = 0.15  #: target: ꟻLIP lower by this fraction
+    min_chamfer_reduction: float = 0.3  #: target: suite Chamfer below the SfM mesh's by this fraction
+    max_chamfer_vs_exact: float = 1.5  #: target: suite Chamfer within this factor of the exact cameras' morph
     seed: int = 0
 
     def __post_init__(self):
         self.captures, self.suite = tuple(self.captures), tuple(self.suite)
         validate.integer("suite_views", self.suite_views, 8, 400)
+        validate.integer("suite_iterations", self.suite_iterations, 0)
         validate.integer("suite_resolution", self.suite_resolution, 64, 4096)
         validate.integer("suite_spp", self.suite_spp, 1, 4096)
         for c in self.captures:
@@ -58,6 +78,35 @@ class CaptureBenchSettings:
         validate.in_range("min_registered", self.min_registered, 0.0, 1.0)
         validate.positive("max_reprojection_px", self.max_reprojection_px)
         validate.seed("seed", self.seed)
+
+
+def _morph(cap, out: Path, show_progress: bool, iterations: int | None = None, **overrides):
+    """The default morph of a capture in ``out`` (resumable: a finished run is scored again only)."""
+    from inverse.morph import CaptureBenchmark, MorphSettings, run_morph
+
+    s = MorphSettings(**overrides, **({"iterations": iterations} if iterations else {}))
+    return run_morph(CaptureBenchmark(cap, out / ".capture_input"), out, s, show_progress=show_progress)
+
+
+def _morph_row(r, s: CaptureBenchSettings) -> dict:
+    """A capture morph's figures: held-out input vs morphed, repairs, seconds, what it fitted, the targets."""
+    metrics = ("psnr", "one_minus_ssim", "flip")
+    row = {"input": {k: getattr(r.heldout_input, k) for k in metrics} | {"perceptual": r.perceptual_heldout_input},
+           "morphed": {k: getattr(r.heldout_morphed, k) for k in metrics} | {"perceptual": r.perceptual_heldout_morphed},
+           "spikes": r.spikes, "inverted_triangles": r.inverted_triangles, "seconds": r.seconds,
+           "iterations": r.iterations, "vertices": r.vertices,
+           "mode": r.photo_fit.mode if r.photo_fit else r.settings.mode,
+           "mode_selection": None if r.mode_selection is None else
+           {"lit": r.mode_selection.validation_l1_lit, "unlit": r.mode_selection.validation_l1_unlit},
+           "camera_movement": None if r.photo_fit is None or r.photo_fit.camera_movement is None else
+           {k: v for k, v in r.photo_fit.camera_movement.items() if not isinstance(v, list)}}
+    gain = row["morphed"]["psnr"] - row["input"]["psnr"]
+    flip = 1.0 - row["morphed"]["flip"] / row["input"]["flip"]
+    row["psnr_gain"], row["flip_reduction"] = gain, flip
+    row["targets"] = {f"psnr_gain_at_least_{s.min_psnr_gain}": gain >= s.min_psnr_gain,
+                      f"flip_reduction_at_least_{s.min_flip_reduction}": flip >= s.min_flip_reduction,
+                      "no_spikes": r.spikes == 0, "no_inverted_triangles": r.inverted_triangles == 0}
+    return row
 
 
 def _one(name: str, s: CaptureBenchSettings, work: Path, show_progress: bool) -> dict:
@@ -82,6 +131,11 @@ def _one(name: str, s: CaptureBenchSettings, work: Path, show_progress: bool) ->
         r.pop("renders")
         row["mesh"] = {"vertices": int(len(v)), "faces": int(len(f))}
         row["scores"] = r
+        if not s.no_morph:
+            row["morph"] = _morph_row(_morph(cap, work / name / "morph", show_progress), s)
+            if not s.no_refine_off:
+                row["morph_refine_off"] = _morph_row(_morph(cap, work / name / "morph_refine_off", show_progress,
+                                                            refine_cameras="off"), s)
     reg = sfm.get("registered", 0) / max(1, sfm.get("photos", 1))
     row["registered_fraction"] = reg
     row["targets"] = {f"registered_at_least_{s.min_registered}": reg >= s.min_registered,
@@ -145,8 +199,10 @@ def _suite_case(name: str, s: CaptureBenchSettings, work: Path, show_progress: b
 
     folder = work / "suite" / name
     done = folder / "result.json"
-    if done.is_file():
-        return read_json(done, "suite result")
+    if done.is_file():  # a finished case is reused (a morph part is added to one made without it)
+        row = read_json(done, "suite result")
+        if s.no_morph or "morph" in row or "chamfer" not in row.get("mesh", {}):
+            return row
     v, f, col = _speckled(suite_mesh(name, folder), s.seed)
     centre = 0.5 * (v.min(0) + v.max(0))
     bound = float(np.linalg.norm(v - centre, axis=1).max())
@@ -185,8 +241,66 @@ def _suite_case(name: str, s: CaptureBenchSettings, work: Path, show_progress: b
     except Exception as exc:  # no usable surface from these points: the cameras' figures still stand
         row["mesh"] = {"error": " ".join(str(exc).split())[:200]}
     row["within_target"] = err["centre_error_max"] <= s.max_centre_error
+    if not s.no_morph and "chamfer" in row["mesh"]:
+        row["morph"] = _suite_morph(folder, src, cams, err, v, f, row["mesh"]["chamfer"], s, show_progress)
     write_json(done, row)
     return row
+
+
+def _suite_morph(folder: Path, src, cams: list, err: dict, v, f, chamfer_sfm: float, s: CaptureBenchSettings,
+                 show_progress: bool) -> dict:
+    """The suite mesh's real path on to the morph: the SfM capture (its cameras, the Poisson mesh of its points)
+    morphed with the default flags, and — unless ``no_exact`` — the same mesh mapped by the cameras' similarity into
+    the truth's frame, morphed from the exact cameras and the unprocessed photos; both morphs' Chamfer to the truth
+    (the SfM one after the similarity)."""
+    from dataclasses import replace
+
+    from foundation import imageio
+    from foundation.mesh import read_ply_colours, write_ply
+    from foundation.mesh_metrics import chamfer
+    from inverse.capture import Capture, import_capture, load_capture
+
+    cap_dir = folder / "capture"
+    if not (cap_dir / "capture.json").is_file():
+        import_capture(src, cap_dir, s.suite_resolution, show_progress=show_progress)
+    cap = load_capture(cap_dir)
+    scale, rot, shift = err["scale"], np.asarray(err["rotation"]), np.asarray(err["translation"])
+
+    def to_truth(x):
+        return scale * np.asarray(x, np.float64) @ rot.T + shift
+
+    size = float(np.linalg.norm(v.max(0) - v.min(0)))
+    out = {"chamfer_sfm_mesh": chamfer_sfm}
+    r = _morph(cap, folder / "morph", show_progress, s.suite_iterations)
+    mv, mf, _ = read_ply_colours(folder / "morph" / "morphed.ply")
+    ch = chamfer(to_truth(mv), mf, v, f)
+    out["sfm_cameras"] = {"chamfer": ch["chamfer"], "chamfer_of_size": ch["chamfer"] / size,
+                          "normal_consistency": ch["normal_consistency"], **_morph_row(r, s)}
+    if not s.no_exact:
+        exact = folder / "capture_exact"
+        exact.mkdir(exist_ok=True)
+        cv, cf, cc = read_ply_colours(cap.mesh)
+        write_ply(exact / "mesh.ply", to_truth(cv), cf, cc)
+        names = {c.name for c in cap.meta.cameras}
+        true = [c for c in cams if c.name in names]
+        photos = {c.name: imageio.read_image(folder / "photos" / f"{c.name}.png", channels=3, linear=True,
+                                             what="photo") for c in true}
+        meta = replace(cap.meta, cameras=true, mesh="mesh.ply", masks=False, truth=None,
+                       source={"format": "suite-exact", "exact_cameras": True})
+        r = _morph(Capture(exact, meta, photos), folder / "morph_exact", show_progress, s.suite_iterations)
+        ev, ef, _ = read_ply_colours(folder / "morph_exact" / "morphed.ply")
+        ch = chamfer(ev, ef, v, f)
+        out["exact_cameras"] = {"chamfer": ch["chamfer"], "chamfer_of_size": ch["chamfer"] / size,
+                                "normal_consistency": ch["normal_consistency"], **_morph_row(r, s)}
+    got = out["sfm_cameras"]["chamfer"]
+    out["chamfer_reduction"] = 1.0 - got / chamfer_sfm
+    out["targets"] = {f"chamfer_reduction_at_least_{s.min_chamfer_reduction}":
+                      out["chamfer_reduction"] >= s.min_chamfer_reduction}
+    if "exact_cameras" in out:
+        out["chamfer_vs_exact"] = got / out["exact_cameras"]["chamfer"]
+        out["targets"][f"chamfer_within_{s.max_chamfer_vs_exact}x_exact"] = \
+            out["chamfer_vs_exact"] <= s.max_chamfer_vs_exact
+    return out
 
 
 def run(s: CaptureBenchSettings, work: Path, pool, show_progress: bool) -> dict:
@@ -212,6 +326,20 @@ def summary(result: dict) -> dict:
                                 "centre_error_max": r["cameras"]["centre_error_max"],
                                 "rotation_error_max_deg": r["cameras"]["rotation_error_max_deg"],
                                 "chamfer_of_size": r["mesh"].get("chamfer_of_size"), "within_target": r["within_target"]}
+        if "morph" in r:
+            m = r["morph"]
+            out[f"suite {name}"]["morph"] = {"chamfer_sfm_mesh": m["chamfer_sfm_mesh"],
+                                             "chamfer_morphed": m["sfm_cameras"]["chamfer"],
+                                             "chamfer_exact_cameras": m.get("exact_cameras", {}).get("chamfer"),
+                                             "targets": m["targets"]}
+    for name, r in result["captures"].items():
+        for key in ("morph", "morph_refine_off"):
+            if key in r:
+                m = r[key]
+                out[name][key] = {"psnr": [m["input"]["psnr"], m["morphed"]["psnr"]],
+                                  "flip": [m["input"]["flip"], m["morphed"]["flip"]], "spikes": m["spikes"],
+                                  "inverted_triangles": m["inverted_triangles"], "mode": m["mode"],
+                                  "targets": m["targets"]}
     return out
 
 
