@@ -53,7 +53,7 @@ def run_demo(out_dir: str | Path = "out/demo", s: DemoSettings | None = None,
                                       relight_res=min(s.resolution, 256), relight_spp=min(s.spp, 64))
     if s.capture:
         results["capture"] = demo_capture(out_dir, resolution=min(s.resolution, 384), spp=min(s.spp, 16), seed=s.seed,
-                                          bench_dir=bench_dir)
+                                          bench_dir=bench_dir, morph_iterations=min(s.morph_iterations, 60))
     if s.morph_iterations > 0:
         results["morph"] = demo_morph(out_dir, iterations=s.morph_iterations, seed=s.seed, bench_dir=bench_dir)
     if s.btf:
