@@ -26,7 +26,7 @@ ARMADILLO = Path(__file__).resolve().parents[2] / "scenes" / "assets" / "meshes"
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> Capture:
     out = make_morph_benchmark(ARMADILLO, tmp_path_factory.mktemp("capmorph") / "b",
-                               MorphBenchmarkSettings(n_views=16, resolution=48, spp=8, coarse_vertices=600,
+                               MorphBenchmarkSettings(n_views=12, resolution=64, spp=8, coarse_vertices=600,
                                                       hdri="studio"),
                                show_progress=False)
     return benchmark_capture(load_morph_benchmark(out))
@@ -108,17 +108,26 @@ def test_the_environment_start_is_what_the_photos_see_of_it(capture):
     assert np.abs(start - env)[reached].max() < 0.15 * float(np.ptp(env))
 
 
-def test_perturbed_cameras_come_back_toward_the_truth(capture, tmp_path):
-    """Cameras turned by 0.5° and moved by 1 % of the orbit's radius: after the similarity that best aligns them with
-    the truth (the mesh and the cameras may turn together), the refined poses are closer to the true ones than the
-    imported (perturbed) poses — median rotation error down by at least 5 %, centres no further by 5 % — with no spike or
-    fold."""
+def test_perturbed_cameras_and_known_gains_come_back_toward_the_truth(capture, tmp_path):
+    """Cameras turned by 0.5° and moved by 1 % of the orbit's radius, photos darkened or brightened by known RGB gains
+    (0.6–1.5), one fit of both with the mesh. After the similarity that best aligns them with the truth (the mesh and
+    the cameras may turn together), the refined poses are closer to the true ones than the imported (perturbed)
+    poses: median rotation error down by at least 5 %, centres no further by 5 %. The gains are found up to the one
+    overall gain the colours share, better than assuming none: log-gains (mean removed) correlate with the truth's at
+    r ≥ 0.5 and lie closer to it than zero does. No spike, no fold. At 48 px the perturbation moves the image by about
+    0.6 px; the far background the gains also scale is modelled by a 32 × 64 environment only, whose errors the gains
+    partly absorb (docs/results/capture.md)."""
     cap, rot, shift = _perturbed(capture, 0.5, 0.01, seed=3)
-    base = MorphSettings(iterations=60, resolution=48, min_vertices=None, lambda_select=(), planarity_select=(),
-                         step_select_quantile=1.0, mode="unlit", early_stop=False, check_every=20, refine_cameras="auto",
-                         checkpoint_every=60, validation_views=1)
-    results = {"on": run_morph(CaptureBenchmark(cap, tmp_path / "work"), tmp_path / "on", base, show_progress=False)}
-    fit = results["on"].photo_fit
+    rng = np.random.default_rng(5)
+    gains = np.exp(rng.uniform(np.log(0.6), np.log(1.5), size=(len(cap.meta.cameras), 3)))
+    cap = Capture(cap.path, cap.meta, {c.name: capture.photo(c.name) * gains[k].astype(np.float32)
+                                       for k, c in enumerate(cap.meta.cameras)})
+    s = MorphSettings(iterations=100, resolution=64, min_vertices=None, lambda_select=(), planarity_select=(),
+                      step_select_quantile=1.0, mode="unlit", early_stop=False, check_every=50, checkpoint_every=100,
+                      validation_views=1, lr_exposure=0.03, env_resolution=32)
+    r = run_morph(CaptureBenchmark(cap, tmp_path / "work"), tmp_path / "run", s, show_progress=False)
+    fit = r.photo_fit
+    assert fit.refined_cameras and fit.exposure and fit.fitted_light  # "auto": a capture's cameras are estimated
     true = capture.meta.cameras
     moved = pm.moved_cameras(cap.meta.cameras, fit.train_views, np.array(fit.camera_rotation),
                              np.array(fit.camera_shift))
@@ -127,30 +136,11 @@ def test_perturbed_cameras_come_back_toward_the_truth(capture, tmp_path):
     truth = {names[i]: true[i].matrix for i in fit.train_views}
     before = camera_errors({names[i]: cap.meta.cameras[i].matrix for i in fit.train_views}, truth, radius)
     after = camera_errors({names[i]: moved[i].matrix for i in fit.train_views}, truth, radius)
-    # at 48 px the perturbation moves the image by about 0.6 px: measured, the median rotation error falls 0.51° → 0.45°
     assert after["rotation_error_median_deg"] < 0.95 * before["rotation_error_median_deg"], (before, after)
     assert after["centre_error_median"] < 1.05 * before["centre_error_median"], (before, after)
-    assert results["on"].spikes == 0 and results["on"].inverted_triangles == 0
-    assert fit.camera_movement["rotation_deg_max"] > 0
-
-
-def test_known_gains_are_found(capture, tmp_path):
-    """Photos darkened or brightened by known RGB gains (0.6–1.5): a colour-only fit (positions frozen) finds them up
-    to the one overall gain the colours share, better than assuming none: log-gains (mean removed) correlate with
-    the truth's at r ≥ 0.5 and lie closer to it than zero does. The far background the gains also scale is modelled
-    by a 32 × 64 environment only, whose errors the gains partly absorb (docs/results/capture.md)."""
-    rng = np.random.default_rng(5)
-    names = [c.name for c in capture.meta.cameras]
-    gains = np.exp(rng.uniform(np.log(0.6), np.log(1.5), size=(len(names), 3)))
-    photos = {n: capture.photo(n) * gains[k].astype(np.float32) for k, n in enumerate(names)}
-    cap = Capture(capture.path, capture.meta, photos)
-    s = MorphSettings(iterations=200, resolution=48, min_vertices=None, lambda_select=(), planarity_select=(),
-                      step_select_quantile=1.0, mode="unlit", early_stop=False, check_every=50, checkpoint_every=200,
-                      validation_views=1, lr=0.0, refine_cameras="off", lr_exposure=0.02, env_resolution=32)
-    r = run_morph(CaptureBenchmark(cap, tmp_path / "work"), tmp_path / "run", s, show_progress=False)
-    fit = r.photo_fit
     got = np.log(np.array([fit.gains[i] for i in fit.train_views]))
     want = np.log(gains[fit.train_views])
     got, want = got - got.mean(0), want - want.mean(0)
-    assert np.corrcoef(got.ravel(), want.ravel())[0, 1] >= 0.5
+    assert np.corrcoef(got.ravel(), want.ravel())[0, 1] >= 0.5, np.corrcoef(got.ravel(), want.ravel())[0, 1]
     assert np.abs(got - want).mean() < np.abs(want).mean()
+    assert r.spikes == 0 and r.inverted_triangles == 0
