@@ -20,6 +20,20 @@ import mitsuba as mi
 #: the camera prior's scales: a correction of this rotation (radians, 0.5°) or this shift (× scene size) costs 1
 CAMERA_PRIOR_ROT = np.radians(0.5)
 CAMERA_PRIOR_SHIFT = 0.01
+CAMERA_PRIOR_FOCAL = 0.05  #: a focal length 5 % off costs 1
+
+
+def focal_positions(flat, cam_to_world: np.ndarray, log_k):
+    """Flat positions as the camera with focal length × e^``log_k`` sees them through its imported focal length: in
+    the camera's axes (COLMAP: x right, y down, z forward) x and y scale by k about the optical axis, which scales the
+    image about the principal point. x' = x + (k − 1)(r₀(r₀·d) + r₁(r₁·d)), d = x − c."""
+    p = dr.unravel(mi.Point3f, flat)
+    m = np.asarray(cam_to_world, np.float64)
+    c = mi.Point3f(*[float(x) for x in m[:3, 3]])
+    r0, r1 = (mi.Vector3f(*[float(x) for x in m[:3, j]]) for j in (0, 1))
+    d = p - c
+    k1 = dr.exp(log_k) - 1.0
+    return dr.ravel(p + k1 * (r0 * dr.dot(r0, d) + r1 * dr.dot(r1, d)))
 
 
 def rotate_inverse(p, w):
@@ -42,8 +56,9 @@ def pick3(values, i: int):
     return mi.Vector3f(*[dr.gather(mi.Float, values, mi.UInt32(3 * int(i) + k)) for k in range(3)])
 
 
-def moved_cameras(cameras: list, ids: list[int], rot: np.ndarray, shift: np.ndarray) -> list:
-    """Capture cameras ``ids`` with the fitted corrections applied (``rot``, ``shift``: (len(ids), 3), world units)."""
+def moved_cameras(cameras: list, ids: list[int], rot: np.ndarray, shift: np.ndarray, focal_scale: float = 1.0) -> list:
+    """Capture cameras ``ids`` with the fitted corrections applied (``rot``, ``shift``: (len(ids), 3), world units;
+    ``focal_scale``: every camera's focal length × this)."""
     from dataclasses import replace
 
     from scipy.spatial.transform import Rotation
@@ -55,7 +70,7 @@ def moved_cameras(cameras: list, ids: list[int], rot: np.ndarray, shift: np.ndar
         c = m[:3, 3].copy()
         m[:3, :3] = r @ m[:3, :3]
         m[:3, 3] = c + shift[k]
-        out[i] = replace(cameras[i], cam_to_world=m.tolist())
+        out[i] = replace(cameras[i], cam_to_world=m.tolist(), f=cameras[i].f * focal_scale)
     return out
 
 

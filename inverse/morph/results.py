@@ -188,6 +188,7 @@ class PhotoFit:
     #: per photo, its RGB gain (held-out and validation photos: their two nearest fitted cameras' mean)
     gains: dict | None = None
     environment: str | None = None  #: the fitted environment map, in the run folder
+    focal_scale: float | None = None  #: the shared focal length's factor, where refined (``refine_focal``)
 
 
 @dataclass

@@ -135,6 +135,9 @@ class MorphSettings:
     #: refine each training photo's camera pose with the mesh (a rotation and a shift, pulled toward the imported pose by
     #: ``camera_weight``): "auto" where the cameras were estimated (captures), not a benchmark's exact ones
     refine_cameras: Literal["auto", "on", "off"] = "auto"
+    #: with refined cameras, also one focal length shared by all photos (a capture's pinhole cameras), pulled toward
+    #: the imported one (5 % costs as much as 0.5° of rotation)
+    refine_focal: bool = False
     lr_camera: float = 0.0005  #: Adam's step of the corrections: radians, and × scene size for the shifts
     #: weight of the camera prior (mean over photos of |ω|²/(0.5°)² + |t|²/(1 % of the scene)²)
     camera_weight: float = 0.001

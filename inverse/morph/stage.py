@@ -190,6 +190,9 @@ class MorphStage(DrJitStage):
         n = len(self.train_ids)
         self.cam_rot, self.cam_shift = np.zeros((n, 3)), np.zeros((n, 3))
         self.log_gain = np.zeros((n, 3))
+        #: the shared focal length's log-scale, where refined (capture cameras: their axes are known)
+        self.focal = self.refine and s.refine_focal and all(hasattr(c, "matrix") for c in meta.cameras)
+        self.log_focal = 0.0
         self.env_values = self._initial_env() if self.env_fit else None
         self.trace: list[TracePoint] = []
         self.snapshots: list[np.ndarray] = []  #: vertices at the trace points (same topology only)
@@ -246,6 +249,8 @@ class MorphStage(DrJitStage):
         if self.refine:
             self.popt["cam_rot"] = mi.Float(aligned(self.cam_rot).ravel())
             self.popt["cam_shift"] = mi.Float(aligned(self.cam_shift / self.size).ravel())  # × scene size
+        if self.focal:
+            self.popt["focal"] = mi.Float([self.log_focal])
         if self.exposure:
             self.popt["gain"] = mi.Float(aligned(self.log_gain).ravel())
         if self.env_fit:
@@ -283,6 +288,8 @@ class MorphStage(DrJitStage):
         rates = {}
         if self.refine:
             rates.update(cam_rot=s.lr_camera * decay, cam_shift=s.lr_camera * decay)
+        if self.focal:
+            rates["focal"] = s.lr_camera * decay
         if self.exposure:
             rates["gain"] = s.lr_exposure * decay
         if self.env_fit:
@@ -298,6 +305,8 @@ class MorphStage(DrJitStage):
         if self.refine:
             self.cam_rot = np.array(self.popt["cam_rot"], np.float64).reshape(n, 3)
             self.cam_shift = np.array(self.popt["cam_shift"], np.float64).reshape(n, 3) * self.size
+        if self.focal:
+            self.log_focal = float(np.array(self.popt["focal"])[0])
         if self.exposure:
             self.log_gain = np.array(self.popt["gain"], np.float64).reshape(n, 3)
         if self.env_fit:
@@ -353,7 +362,8 @@ class MorphStage(DrJitStage):
             (("planarity_where",) if self.s.planarity_where == "all" else ()) + \
             (("planarity_min_thickness",) if self.s.planarity_where != "thick" else ()) + \
             (() if self.per_view else ("refine_cameras", "lr_camera", "camera_weight", "exposure", "lr_exposure",
-                                       "env_resolution", "lr_env"))
+                                       "env_resolution", "lr_env")) + \
+            (("refine_focal",) if not self.focal else ())
         settings = {k: v for k, v in asdict(self.s).items() if k not in between + finish_only + same}
         if not self.s.indirect_every:  # no estimate: its settings unread, kept as runs before their defaults changed
             settings["indirect_spp"] = PLAIN_RUN_INDIRECT_SPP
@@ -376,7 +386,8 @@ class MorphStage(DrJitStage):
 
     def state(self) -> dict:
         self._sync_extras()
-        extras = {"cam_rot": self.cam_rot, "cam_shift": self.cam_shift, "log_gain": self.log_gain}
+        extras = {"cam_rot": self.cam_rot, "cam_shift": self.cam_shift, "log_gain": self.log_gain,
+                  "log_focal": np.array([self.log_focal])}
         if self.env_fit:
             extras["env"] = self.env_values
         return {**extras, "faces": self.faces, "v_ref": self.v_ref, "vertices": self.vertices(), "colours": self.colours(),
@@ -392,6 +403,8 @@ class MorphStage(DrJitStage):
         for k in ("cam_rot", "cam_shift", "log_gain"):
             if k in tree:
                 setattr(self, k, np.asarray(tree[k], np.float64))
+        if "log_focal" in tree:
+            self.log_focal = float(np.asarray(tree["log_focal"]).ravel()[0])
         if self.env_fit and "env" in tree:
             self.env_values = np.asarray(tree["env"], np.float32)
         self._build(tree["vertices"], tree["v_ref"], tree["faces"], tree["colours"])
@@ -561,7 +574,10 @@ class MorphStage(DrJitStage):
         k = self.train_index[int(i)]
         w = pm.pick3(self.popt["cam_rot"], k)
         t = pm.pick3(self.popt["cam_shift"], k) * self.size
-        return pm.view_positions(flat, self.centres[int(i)], w, t)
+        moved = pm.view_positions(flat, self.centres[int(i)], w, t)
+        if self.focal:  # in the imported camera's axes: a correction of its pose's size leaves them to second order
+            moved = pm.focal_positions(moved, self.bench.meta.cameras[int(i)].matrix, self.popt["focal"])
+        return moved
 
     def _exposed(self, img, i: int):
         """The render's RGB times photo ``i``'s gain (its own, differentiable, where fitted)."""
@@ -617,6 +633,8 @@ class MorphStage(DrJitStage):
             r, t = self.popt["cam_rot"], self.popt["cam_shift"]
             extra += s.camera_weight * (dr.sum(r * r) / pm.CAMERA_PRIOR_ROT ** 2 +
                                         dr.sum(t * t) / pm.CAMERA_PRIOR_SHIFT ** 2) / len(self.train_ids)
+            if self.focal:
+                extra += s.camera_weight * dr.sum(self.popt["focal"] ** 2) / pm.CAMERA_PRIOR_FOCAL ** 2
         if not isinstance(extra, int):
             dr.backward(extra)
             total += float(extra.array[0])
@@ -720,7 +738,8 @@ class MorphStage(DrJitStage):
                         camera_movement=pm.camera_movement(self.cam_rot, self.cam_shift, self.size) if self.refine
                         else None, camera_rotation=self.cam_rot.tolist() if self.refine else None,
                         camera_shift=self.cam_shift.tolist() if self.refine else None,
-                        gains=gains if self.exposure else None, environment=env)
+                        gains=gains if self.exposure else None, environment=env,
+                        focal_scale=float(np.exp(self.log_focal)) if self.focal else None)
 
     def close(self) -> None:
         """Free the scene (Mitsuba traces every live plugin instance in every render) and the work file."""

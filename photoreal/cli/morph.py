@@ -183,6 +183,8 @@ def _add_run(mr: argparse.ArgumentParser) -> None:
     opt(mr, MorphSettings, "refine_cameras", choices=["auto", "on", "off"],
         help="refine each training photo's camera pose with the mesh, pulled toward the imported pose; auto: where the "
              "cameras were estimated (captures)")
+    opt(mr, MorphSettings, "refine_focal", help="with refined cameras, also refine one focal length shared by all "
+        "photos (capture cameras)")
     opt(mr, MorphSettings, "lr_camera", help="step of the camera corrections (radians; × scene size for shifts)")
     opt(mr, MorphSettings, "camera_weight", help="weight of the pull toward the imported poses")
     opt(mr, MorphSettings, "exposure", choices=["auto", "on", "off"],

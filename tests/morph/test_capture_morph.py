@@ -55,7 +55,8 @@ def _perturbed(cap: Capture, deg: float, shift: float, seed: int) -> tuple[Captu
 def test_moving_the_mesh_is_moving_the_camera(capture):
     """A render of the mesh moved by G⁻¹ (:func:`view_positions`) through the imported camera equals a render of the
     mesh through the camera moved by G (:func:`moved_cameras`): same seed, within float32 rounding of the vertices
-    (max pixel difference 2 % of the image's range, mean 0.1 %)."""
+    (max pixel difference 2 % of the image's range, mean 0.1 %). The same for a focal length 3 % longer against the
+    mesh scaled about the optical axis (:func:`focal_positions`)."""
     cam = capture.meta.cameras[3]
     rot, shift = np.array([[0.01, -0.02, 0.015]]), np.array([[0.02, 0.01, -0.03]])
     moved = pm.moved_cameras([cam], [0], rot, shift)[0]
@@ -70,6 +71,15 @@ def test_moving_the_mesh_is_moving_the_camera(capture):
     b = np.array(mi.render(scene, sensor=mi.load_dict(sensor_dict(cam, 48, None)), spp=4, seed=1))
     span = float(a.max() - a.min())
     assert span > 0
+    assert np.abs(a - b).max() < 0.02 * span and np.abs(a - b).mean() < 1e-3 * span
+    # a focal length 3 % longer: the mesh scaled about the optical axis in the camera's axes (focal_positions)
+    longer = pm.moved_cameras([cam], [0], np.zeros((1, 3)), np.zeros((1, 3)), focal_scale=1.03)[0]
+    params["m.vertex_positions"] = v
+    params.update()
+    a = np.array(mi.render(scene, sensor=mi.load_dict(sensor_dict(longer, 48, None)), spp=4, seed=1))
+    params["m.vertex_positions"] = pm.focal_positions(v, cam.matrix, mi.Float(np.log(1.03)))
+    params.update()
+    b = np.array(mi.render(scene, sensor=mi.load_dict(sensor_dict(cam, 48, None)), spp=4, seed=1))
     assert np.abs(a - b).max() < 0.02 * span and np.abs(a - b).mean() < 1e-3 * span
 
 
