@@ -133,8 +133,9 @@ class MorphSettings:
     mask_every: int = 1  #: the silhouette L1 every this many steps, at this × the weight
     mask_downsample: int = 1  #: the masks at the photos' resolution // this
     #: refine each training photo's camera pose with the mesh (a rotation and a shift, pulled toward the imported pose by
-    #: ``camera_weight``): "auto" where the cameras were estimated (captures), not a benchmark's exact ones
-    refine_cameras: Literal["auto", "on", "off"] = "auto"
+    #: ``camera_weight``): "auto" where the cameras were estimated (captures), not a benchmark's exact ones. Off by
+    #: default: on both vendored captures the held-out photos came out worse with it (docs/results/capture.md)
+    refine_cameras: Literal["auto", "on", "off"] = "off"
     #: with refined cameras, also one focal length shared by all photos (a capture's pinhole cameras), pulled toward
     #: the imported one (5 % costs as much as 0.5° of rotation)
     refine_focal: bool = False

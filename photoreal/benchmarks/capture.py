@@ -16,8 +16,8 @@ centres within 2 % of the orbit radius on ≥ 3 meshes.
 
 The morph on both (issue "Morphing a real capture"), with the default flags: each real capture's SfM mesh morphed
 against its training photos (the light, exposures and the cameras' last errors fitted), scored on the held-out
-photos against the input mesh under the same fitted light and exposure, with camera refinement on (the default) and
-off; each suite mesh morphed from its SfM mesh and cameras, and again from the same mesh mapped into the truth's frame
+photos against the input mesh under the same fitted light and exposure, with camera refinement off (the default) and
+on; each suite mesh morphed from its SfM mesh and cameras, and again from the same mesh mapped into the truth's frame
 with the exact cameras, both judged by the Chamfer distance to the truth after the cameras' alignment. Targets:
 held-out PSNR ≥ +2 dB and ꟻLIP ≥ 15 % lower than the input, 0 spikes, 0 inverted triangles; on the suite a Chamfer
 ≥ 30 % below the SfM mesh's and within 1.5× of the exact cameras' morph.
@@ -50,8 +50,8 @@ class CaptureBenchSettings:
     min_registered: float = 0.9  #: target: fraction of the photos registered
     max_reprojection_px: float = 1.0  #: target: mean reprojection error
     no_morph: bool = False  #: no morph of the captures and the suite's SfM meshes (SfM and scores only)
-    #: no second morph of the real captures with camera refinement off (its effect)
-    no_refine_off: bool = False
+    #: no second morph of the real captures with camera refinement on (its effect)
+    no_refine_on: bool = False
     #: no second morph of the suite's meshes from the exact cameras (the reference the real path is judged against)
     no_exact: bool = False
     #: the suite's morphs' iteration cap (0: the morph's default; the real captures always run the default)
@@ -133,9 +133,9 @@ def _one(name: str, s: CaptureBenchSettings, work: Path, show_progress: bool) ->
         row["scores"] = r
         if not s.no_morph:
             row["morph"] = _morph_row(_morph(cap, work / name / "morph", show_progress), s)
-            if not s.no_refine_off:
-                row["morph_refine_off"] = _morph_row(_morph(cap, work / name / "morph_refine_off", show_progress,
-                                                            refine_cameras="off"), s)
+            if not s.no_refine_on:
+                row["morph_refine_on"] = _morph_row(_morph(cap, work / name / "morph_refine_on", show_progress,
+                                                           refine_cameras="auto"), s)
     reg = sfm.get("registered", 0) / max(1, sfm.get("photos", 1))
     row["registered_fraction"] = reg
     row["targets"] = {f"registered_at_least_{s.min_registered}": reg >= s.min_registered,
@@ -333,7 +333,7 @@ def summary(result: dict) -> dict:
                                              "chamfer_exact_cameras": m.get("exact_cameras", {}).get("chamfer"),
                                              "targets": m["targets"]}
     for name, r in result["captures"].items():
-        for key in ("morph", "morph_refine_off"):
+        for key in ("morph", "morph_refine_on"):
             if key in r:
                 m = r[key]
                 out[name][key] = {"psnr": [m["input"]["psnr"], m["morphed"]["psnr"]],

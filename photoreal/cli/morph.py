@@ -165,7 +165,8 @@ def _add_run(mr: argparse.ArgumentParser) -> None:
     from inverse.morph import PLANARITY_WHERE, PRIOR_TIES, MorphSettings
 
     mr.add_argument("benchmark", nargs="+", help="benchmark folder(s), or a folder of them, or one capture folder "
-                    "(`photoreal capture import|sfm`: its light, exposures and cameras' last errors are fitted)")
+                    "(`photoreal capture import|sfm`: its light and exposures are fitted, its cameras with "
+                    "--refine-cameras auto)")
     out_opt(mr, "--out", default=None, help="output folder of one benchmark (default BENCHMARK/morph)")
     out_opt(mr, "--out-dir", default=None, help="several benchmarks: DIR/NAME (default: each BENCHMARK/morph)")
     out_opt(mr, "--json", kind="file", default=None, help="metrics JSON")
@@ -182,7 +183,7 @@ def _add_run(mr: argparse.ArgumentParser) -> None:
         "photos are fitted 128 pixels across, their aspect kept)")
     opt(mr, MorphSettings, "refine_cameras", choices=["auto", "on", "off"],
         help="refine each training photo's camera pose with the mesh, pulled toward the imported pose; auto: where the "
-             "cameras were estimated (captures)")
+             "cameras were estimated (captures); off by default (on the vendored captures it lost on held-out photos)")
     opt(mr, MorphSettings, "refine_focal", help="with refined cameras, also refine one focal length shared by all "
         "photos (capture cameras)")
     opt(mr, MorphSettings, "lr_camera", help="step of the camera corrections (radians; × scene size for shifts)")

@@ -15,8 +15,8 @@ from .report import add_section, bench_json, figure, table
 def demo_capture(out_dir: Path, resolution: int = 384, spp: int = 16, seed: int = 0,
                  bench_dir: Path | None = None, morph_iterations: int = 60) -> dict:
     """Ruins (10 real photos): cameras and points from `capture sfm`, the Poisson mesh coloured from the training
-    photos, rendered at a held-out photo; a morph of ``morph_iterations`` (0: none) with the light, exposures and
-    cameras fitted, in 'unlit' mode without the validation photos' choices (a demo-sized run; `photoreal morph run
+    photos, rendered at a held-out photo; a morph of ``morph_iterations`` (0: none) with the light and exposures
+    fitted, in 'unlit' mode without the validation photos' choices (a demo-sized run; `photoreal morph run
     CAPTURE` makes them); the bench's figures of both captures when present."""
     from foundation.mesh import read_ply
     from inverse.capture import SfmSettings, heldout_scores, import_capture, load_capture, run_sfm
@@ -51,9 +51,8 @@ def demo_capture(out_dir: Path, resolution: int = 384, spp: int = 16, seed: int 
             f"<div>{figs}</div>" + table(rows, ["figure", "value"]))
     if morph is not None:
         body += (f"<h3>Morphed ({morph['iterations']} iterations, a demo-sized run)</h3><p>The coarse mesh morphed "
-                 "against the 9 training photos with the environment, a gain per photo and the training cameras "
-                 "fitted beside it; both meshes rendered at the held-out photo under the same fitted environment and "
-                 "exposure. The full run is <code>photoreal morph run CAPTURE</code> (the validation photos choose "
+                 "against the 9 training photos with the environment and a gain per photo fitted beside it; both "
+                 "meshes rendered at the held-out photo under the same fitted environment and exposure. The full run is <code>photoreal morph run CAPTURE</code> (the validation photos choose "
                  "λ, the priors, the step and lit or unlit).</p><div>"
                  + "".join(figure(f"capture/{k}.png", label) for k, label in
                            (("morph_input", "input mesh"), ("morph_morphed", "morphed"),

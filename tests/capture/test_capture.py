@@ -209,7 +209,7 @@ def test_the_capture_commands_end_to_end(bench, tmp_path, capsys):
     run = tmp_path / "morph"
     code, err = _run(["morph", "run", tmp_path / "cap", "--out", run, "--iterations", "3", "--resolution", "24",
                       "--no-early-stop", "--min-vertices", "0", "--lambda-select", "2", "--planarity-select",
-                      "--step-select-quantile", "1", "--json", tmp_path / "m.json"], capsys)
+                      "--step-select-quantile", "1", "--refine-cameras", "auto", "--json", tmp_path / "m.json"], capsys)
     assert code == 0, err
     m = json.loads((tmp_path / "m.json").read_text())
     assert (run / "morphed.ply").is_file() and (run / "environment.exr").is_file()

@@ -134,7 +134,7 @@ def test_perturbed_cameras_and_known_gains_come_back_toward_the_truth(capture, t
                                        for k, c in enumerate(cap.meta.cameras)})
     s = MorphSettings(iterations=100, resolution=64, min_vertices=None, lambda_select=(), planarity_select=(),
                       step_select_quantile=1.0, mode="unlit", early_stop=False, check_every=50, checkpoint_every=100,
-                      validation_views=1, lr_exposure=0.03, env_resolution=32)
+                      validation_views=1, lr_exposure=0.03, env_resolution=32, refine_cameras="auto")
     r = run_morph(CaptureBenchmark(cap, tmp_path / "work"), tmp_path / "run", s, show_progress=False)
     fit = r.photo_fit
     assert fit.refined_cameras and fit.exposure and fit.fitted_light  # "auto": a capture's cameras are estimated
