@@ -143,12 +143,11 @@ def evaluate_capture_morph(stage, v_in, f_in, c_in, v_out, f_out, c_out, start=N
     from foundation import imageio
     from foundation.features import perceptual_distance
     from foundation.mesh import write_ply
-    from foundation.mesh_metrics import spikes
     from foundation.metrics import ImageMetrics, image_metrics
 
     from . import photo_model as pm
     from .cameras import sensor_dict
-    from .evaluate import MorphEvaluation
+    from .evaluate import MorphEvaluation, start_spikes
     from .scene import morph_scene, photo_at
 
     bench, meta, out, res = stage.bench, stage.bench.meta, stage.out, stage.res
@@ -173,10 +172,7 @@ def evaluate_capture_morph(stage, v_in, f_in, c_in, v_out, f_out, c_out, start=N
         ply.unlink(missing_ok=True)
     mean = {n: ImageMetrics.mean(ms) for n, ms in per.items()}
     v0, f0 = start if start is not None else (v_in, f_in)
-    if len(v0) == len(v_out) and np.array_equal(f0, f_out):
-        sp = spikes(v0, v_out, f_out)
-    else:
-        sp = {"spike_vertices": -1, "far_moved_vertices": -1, "inverted_triangles": -1, "spikes": -1}
+    sp = start_spikes(v0, f0, v_out, f_out)
     nan = float("nan")
     return MorphEvaluation(
         chamfer_input=nan, chamfer_morphed=nan, chamfer_reduction=nan, normal_consistency_input=nan,

@@ -53,6 +53,14 @@ class MorphEvaluation:
     perceptual_heldout_morphed: float = float("nan")
 
 
+def start_spikes(v0, f0, v_out, f_out) -> dict:
+    """Spikes and folds of the result against the mesh the optimisation started from (``v0``, ``f0``); −1 each when
+    remeshing during the run broke the per-vertex correspondence."""
+    if len(v0) == len(v_out) and np.array_equal(f0, f_out):
+        return spikes(v0, v_out, f_out)
+    return {"spike_vertices": -1, "far_moved_vertices": -1, "inverted_triangles": -1, "spikes": -1}
+
+
 def evaluate_morph(bench: MorphBenchmark, v_in, f_in, c_in, v_out, f_out, c_out, mode: str, res: int,
                    out: Path, start: tuple[np.ndarray, np.ndarray] | None = None) -> MorphEvaluation:
     """Chamfer / normal consistency to the ground truth, spikes, and held-out image metrics.
@@ -82,10 +90,7 @@ def evaluate_morph(bench: MorphBenchmark, v_in, f_in, c_in, v_out, f_out, c_out,
         ply.unlink(missing_ok=True)
     mean = {n: ImageMetrics.mean(ms) for n, ms in per.items()}
     v0, f0 = start if start is not None else (v_in, f_in)
-    if len(v0) == len(v_out) and np.array_equal(f0, f_out):
-        sp = spikes(v0, v_out, f_out)
-    else:  # remeshed during the run: no per-vertex displacement to judge
-        sp = {"spike_vertices": -1, "far_moved_vertices": -1, "inverted_triangles": -1, "spikes": -1}
+    sp = start_spikes(v0, f0, v_out, f_out)
     truth = truth_surface(gv, gf)
     fa_out, fa_in = facing_against_truth(v_out, f_out, truth), facing_against_truth(v_in, f_in, truth)
     fa_start = fa_in if start is None else facing_against_truth(v0, f0, truth)
