@@ -6,7 +6,7 @@ out unless the capture carries one)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +35,7 @@ class CaptureMorphMeta:
     names: list[str]
     fov: None = None  #: each camera has its own intrinsics
     hdri: None = None  #: the light is not known: it is fitted
-    settings: CaptureBenchSettings = None  # type: ignore[assignment]
+    settings: CaptureBenchSettings = field(default_factory=CaptureBenchSettings)
     #: the cameras came from structure from motion or another tool, not from the renderer: refinement's "auto" is on
     estimated_cameras: bool = True
 
@@ -60,7 +60,7 @@ class CaptureBenchmark:
         size = float(np.ptp(v, axis=0).max())
         width = min(CAPTURE_FIT_WIDTH, max(c.width for c in cm.cameras))
         self.meta = CaptureMorphMeta("capture", width, size, list(cm.cameras), [names.index(n) for n in cm.train],
-                                     [names.index(n) for n in cm.test], names, settings=CaptureBenchSettings(),
+                                     [names.index(n) for n in cm.test], names,
                                      estimated_cameras=not cm.source.get("exact_cameras", False))
         # the input's colours: the training photos projected onto it (the photogrammetry texture), the held-out never
         self.coarse = self.path / "coarse.ply"
@@ -137,40 +137,20 @@ def evaluate_capture_morph(stage, v_in, f_in, c_in, v_out, f_out, c_out, start=N
     a 'lit' result, the light). The input is scored as photogrammetry gives it: its colours from the training photos,
     unlit. Renders: ``path`` at depth 2, 32 spp, seed = view index. Spikes and inverted triangles compare the result
     with the mesh the optimisation started from (``start``), as for a benchmark."""
-    import mi_plugins  # noqa: F401  (the variant)
-    import mitsuba as mi
-
-    from foundation import imageio
     from foundation.features import perceptual_distance
-    from foundation.mesh import write_ply
     from foundation.metrics import ImageMetrics, image_metrics
 
     from . import photo_model as pm
-    from .cameras import sensor_dict
-    from .evaluate import MorphEvaluation, start_spikes
-    from .scene import morph_scene, photo_at
+    from .evaluate import MorphEvaluation, heldout_renders, start_spikes
 
-    bench, meta, out, res = stage.bench, stage.bench.meta, stage.out, stage.res
+    meta = stage.bench.meta
     light = pm.fitted_envmap(stage.env_values) if stage.env_values is not None else meta.hdri
-    per: dict[str, list] = {"input": [], "morphed": []}
-    perceptual: dict[str, list] = {"input": [], "morphed": []}
-    meshes = {"input": (v_in, f_in, c_in, "unlit"), "morphed": (v_out, f_out, c_out, stage.s.mode)}
-    for name, (v, f, c, mode) in meshes.items():
-        ply = out / f".eval_{name}.ply"
-        write_ply(ply, v, f, np.clip(c, 0, None))
-        scene = morph_scene(ply, mode, light, integrator={"type": "path", "max_depth": 2})
-        for i in meta.test:
-            sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, None))
-            img = np.array(mi.render(scene, sensor=sensor, spp=32, seed=int(i)))[..., :3] * stage.gain_of(i)
-            ref = photo_at(bench, i, res)
-            per[name].append(image_metrics(img, ref))
-            perceptual[name].append(float(perceptual_distance(img[None], ref[None])[0]))
-            if i == meta.test[0]:
-                imageio.write_png(out / f"heldout_{name}_view{i:02d}.png", img)
-                imageio.write_png(out / f"heldout_photo_view{i:02d}.png", ref)
-        del scene
-        ply.unlink(missing_ok=True)
-    mean = {n: ImageMetrics.mean(ms) for n, ms in per.items()}
+    meshes = {"input": (v_in, f_in, np.clip(c_in, 0, None), "unlit"),
+              "morphed": (v_out, f_out, np.clip(c_out, 0, None), stage.s.mode)}
+    renders = heldout_renders(stage.bench, meshes, light, stage.res, stage.out, max_depth=2, gain=stage.gain_of)
+    mean = {n: ImageMetrics.mean([image_metrics(img, ref) for img, ref in pairs]) for n, pairs in renders.items()}
+    perceptual = {n: [float(perceptual_distance(img[None], ref[None])[0]) for img, ref in pairs]
+                  for n, pairs in renders.items()}
     v0, f0 = start if start is not None else (v_in, f_in)
     sp = start_spikes(v0, f0, v_out, f_out)
     nan = float("nan")

@@ -53,6 +53,33 @@ class MorphEvaluation:
     perceptual_heldout_morphed: float = float("nan")
 
 
+def heldout_renders(bench, meshes: dict, light, res: int, out: Path, max_depth: int,
+                    gain=None) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """Per mesh (``name: (v, f, colours, mode)``), its render and the photo at every held-out camera: ``path`` at
+    ``max_depth``, 32 spp, seed = view index, under ``light`` (an HDRI or a fitted envmap dict), times ``gain(i)``
+    where given. The first held-out view's renders and photo are written to ``out`` as PNGs."""
+    meta = bench.meta
+    result: dict[str, list] = {}
+    for name, (v, f, c, mode) in meshes.items():
+        ply = out / f".eval_{name}.ply"
+        write_ply(ply, v, f, c)
+        scene = morph_scene(ply, mode, light, integrator={"type": "path", "max_depth": max_depth})
+        result[name] = []
+        for i in meta.test:
+            sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, meta.fov))
+            img = np.array(mi.render(scene, sensor=sensor, spp=32, seed=int(i)))[..., :3]
+            if gain is not None:
+                img = img * gain(i)
+            ref = photo_at(bench, i, res)
+            result[name].append((img, ref))
+            if i == meta.test[0]:
+                imageio.write_png(out / f"heldout_{name}_view{i:02d}.png", img)
+                imageio.write_png(out / f"heldout_photo_view{i:02d}.png", ref)
+        del scene
+        ply.unlink(missing_ok=True)
+    return result
+
+
 def start_spikes(v0, f0, v_out, f_out) -> dict:
     """Spikes and folds of the result against the mesh the optimisation started from (``v0``, ``f0``); −1 each when
     remeshing during the run broke the per-vertex correspondence."""
@@ -73,22 +100,9 @@ def evaluate_morph(bench: MorphBenchmark, v_in, f_in, c_in, v_out, f_out, c_out,
     gv, gf = load_mesh_any(bench.ground_truth)
     ch_in = chamfer(v_in, f_in, gv, gf)
     ch_out = chamfer(v_out, f_out, gv, gf)
-    per: dict[str, list[ImageMetrics]] = {"input": [], "morphed": []}
-    for name, (v, f, c) in {"input": (v_in, f_in, c_in), "morphed": (v_out, f_out, c_out)}.items():
-        ply = out / f".eval_{name}.ply"
-        write_ply(ply, v, f, c)
-        scene = morph_scene(ply, mode, meta.hdri, integrator={"type": "path", "max_depth": 3})
-        for i in meta.test:
-            sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, meta.fov))
-            img = np.array(mi.render(scene, sensor=sensor, spp=32, seed=int(i)))[..., :3]
-            ref = photo_at(bench, i, res)
-            per[name].append(image_metrics(img, ref))
-            if i == meta.test[0]:
-                imageio.write_png(out / f"heldout_{name}_view{i:02d}.png", img)
-                imageio.write_png(out / f"heldout_photo_view{i:02d}.png", ref)
-        del scene
-        ply.unlink(missing_ok=True)
-    mean = {n: ImageMetrics.mean(ms) for n, ms in per.items()}
+    renders = heldout_renders(bench, {"input": (v_in, f_in, c_in, mode), "morphed": (v_out, f_out, c_out, mode)},
+                              meta.hdri, res, out, max_depth=3)
+    mean = {n: ImageMetrics.mean([image_metrics(img, ref) for img, ref in pairs]) for n, pairs in renders.items()}
     v0, f0 = start if start is not None else (v_in, f_in)
     sp = start_spikes(v0, f0, v_out, f_out)
     truth = truth_surface(gv, gf)

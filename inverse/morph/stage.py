@@ -317,7 +317,7 @@ class MorphStage(DrJitStage):
         if not self.exposure:
             return np.ones(3)
         self._sync_extras()
-        k = {v: j for j, v in enumerate(self.train_ids)}
+        k = self.train_index
         ids = [k[int(i)]] if int(i) in k else [k[j] for j in self.gain_from[int(i)]]
         return np.exp(self.log_gain[ids].mean(axis=0))
 
