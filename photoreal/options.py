@@ -71,6 +71,7 @@ def _add(p: argparse.ArgumentParser, source: tuple, name: str, default: Any, fla
         text = help
     else:
         text = f"{help} (default: {shown})" if help else f"default: {shown}"
+    text = text.replace("%", "%%")  # argparse formats help with %: a field's "90 %" would break --help
     act = p.add_argument(*(flags or (f"--{dest.replace('_', '-')}",)), dest=dest, default=default, help=text, **kw)
     act.source = source
     return act
