@@ -6,8 +6,10 @@ module        what
 ``data``      the generative dataset: many fitted neural materials, path-traced swatches, keywords
 ``model``     diffusion over [T_off ‖ T_rgb] (circular, shifted cosine, Min-SNR, cube root, multiscale, CFG)
 ``train``     its training on the shared loop; the run's keyword prior and chosen sampler
-``sample``    materials from prompts (keywords, an exemplar photo); `photoreal btf generate`
+``sample``    materials from prompts (keywords, an exemplar photo)
+``commands``  `photoreal btf train-diffusion` and `generate` (torch loads inside them)
 ``evaluate``  family classifier, feature spaces, baselines, aligned ꟻLIP, seam ratio
+``settings``  the model's and the classifier's settings (no torch: loaded with the package)
 ============  ================================================================================
 
 The materials it makes are those of :mod:`inverse.btf` (the same universal basis) and load in the
@@ -15,13 +17,21 @@ The materials it makes are those of :mod:`inverse.btf` (the same universal basis
 the names below.
 """
 
+from foundation.lazy import lazy_names
+
 from .data import MaterialDataSettings, build_material_dataset, load_material_dataset
-from .evaluate import (ClassifierSettings, aligned_flip, classify, copy_baseline, crop_baseline, decode_all,
-                       denoising_check, family_gaussian_baseline, gaussian_baseline, mean_pairwise, mnv2_features,
-                       nearest_distances, phase_randomised_baseline, random_roll, seam_ratio, train_classifier)
-from .model import MatDiffSettings, from_model_space, to_model_space
-from .sample import MaterialPrompt, generate_material, sample_materials
-from .train import data_digest, load_matdiff, save_keyword_prior, save_sampler, train_matdiff
+from .settings import ClassifierSettings, MatDiffSettings
+
+#: every other name loads its module (and torch) on first use: `photoreal … --help` never does
+__getattr__, __dir__ = lazy_names(__name__, {
+    "evaluate": ("aligned_flip", "classify", "copy_baseline", "crop_baseline", "decode_all", "denoising_check",
+        "family_gaussian_baseline", "gaussian_baseline", "mean_pairwise", "mnv2_features", "nearest_distances",
+        "phase_randomised_baseline", "random_roll", "seam_ratio", "train_classifier",),
+    "model": ("from_model_space", "to_model_space",),
+    "sample": ("MaterialPrompt", "sample_materials",),
+    "commands": ("generate_material", "train_matdiff",),
+    "train": ("data_digest", "load_matdiff", "save_keyword_prior", "save_sampler",),
+})
 
 __all__ = [
     "ClassifierSettings", "MatDiffSettings", "MaterialDataSettings", "MaterialPrompt", "aligned_flip",

@@ -26,11 +26,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from foundation import validate
 from foundation.loop import RunState, Stage, StepResult, TrainingSummary
 
 from generative.diffusion import OptimizerStage, train_stage
 from .data import FAMILIES, decode_swatches
+from .settings import ClassifierSettings
 
 
 def decode_all(basis, features: np.ndarray, channels: int = 8) -> np.ndarray:
@@ -63,30 +63,6 @@ class FamilyClassifier(torch.nn.Module):
 
     def forward(self, f: torch.Tensor) -> torch.Tensor:
         return self.head(self.features(f))
-
-
-@dataclass
-class ClassifierSettings:
-    steps: int = 1500
-    max_seconds: float | None = 120.0
-    batch: int = 64
-    lr: float = 1e-3
-    weight_decay: float = 1e-2
-    width: int = 64
-    rolls: int = 4  #: random circular shifts of every training material (a tileable swatch has no origin)
-    checkpoint_every: int = 500
-    threads: int = 0
-    seed: int = 0
-
-    def __post_init__(self):
-        validate.integer("steps", self.steps, 1)
-        validate.optional(validate.positive, "max_seconds", self.max_seconds)
-        validate.integer("batch", self.batch, 1)
-        validate.positive("lr", self.lr)
-        validate.non_negative("weight_decay", self.weight_decay)
-        validate.integer("width", self.width, 8)
-        validate.integer("rolls", self.rolls, 1)
-        validate.seed("seed", self.seed)
 
 
 @dataclass

@@ -16,7 +16,6 @@ from .data import keyword_onehots
 from .model import (CLIP, EXEMPLAR_TOKENS, FEATURE_DIM, KEYWORD_TOKENS, MatDiffSettings, TOKENS, cross_tokens,
                     exemplar_features, exemplar_local, from_model_space, global_tokens, keyword_vector,
                     make_material_scheduler)
-from .train import load_matdiff, prior_keywords, run_sampler
 
 
 @dataclass
@@ -110,58 +109,3 @@ def read_exemplar(path: str | Path) -> np.ndarray:
     return read_image(path, channels=3, linear=True, what="exemplar")
 
 
-def _shown(path) -> str:
-    """A path as a material's meta records it: relative to the repository when inside it (files are shared)."""
-    from foundation.assets import ROOT
-
-    try:
-        return str(Path(path).resolve().relative_to(ROOT))
-    except ValueError:
-        return str(path)
-
-
-def generate_material(run: str | Path, out: str | Path, keywords: str | None = None, image: str | Path | None = None,
-                      seed: int = 0, size: int = 32, steps: int | None = None, guidance: float | None = None,
-                      from_prior: bool = False) -> dict:
-    """`photoreal btf generate`: one material from a trained model, written as a ``neural_btf`` material .npz
-    (fitted-material layout; meta names the basis it decodes through). Returns its summary. ``steps`` and
-    ``guidance`` left None come from the run's recorded sampler (:func:`run_sampler`)."""
-    from foundation.files import check_output_file
-    from mi_plugins.neural_basis import NeuralMaterial, save_material
-
-    from .data import parse_keywords
-
-    out = check_output_file(out, "--out")
-    if out.suffix != ".npz":
-        raise UsageError(f"--out {out}: a material is an .npz file")
-    validate.seed("seed", seed)
-    validate.integer("size", size, 4, 4096)
-    if size % 4:
-        raise UsageError(f"size must be a multiple of 4 (the model's feature grid; it tiles seamlessly), got {size}")
-    model, s = load_matdiff(run)
-    source = "arguments"
-    if steps is None or guidance is None:  # a malformed record matters only when it is used
-        rec = run_sampler(run)
-        shown = rec["source"] if rec["source"] == "default" else _shown(rec["source"])
-        source = shown if steps is None and guidance is None else f"arguments and {shown}"
-        steps = rec["steps"] if steps is None else steps
-        guidance = rec["guidance"] if guidance is None else guidance
-    validate.integer("steps", steps, 1, 1000)
-    validate.non_negative("guidance", guidance)
-    if from_prior and keywords:
-        raise UsageError("give --keywords or --from-prior, not both")
-    # a keyword triple drawn from the training materials' (the null token alone collapses to few families: docs/results/material-diffusion.md)
-    words = parse_keywords(keywords) if keywords else prior_keywords(run, 1, seed)[0] if from_prior else None
-    ex = None
-    if image is not None:
-        ex = read_exemplar(image)
-        if not np.isfinite(ex).all() or ex.max() <= 0:
-            raise UsageError(f"--image {image}: empty or non-finite pixels")
-    f = sample_materials(model, s, [MaterialPrompt(words, ex)], size, steps, guidance, seed)[0]
-    t_off, t_rgb = split_features(f, s.channels)
-    shown_image = None if not image else _shown(image) if Path(image).exists() else str(image)  # a file, or "brick"
-    meta = {"basis": s.basis_id, "generated": {"run": _shown(run), "keywords": words, "image": shown_image,
-                                               "seed": seed, "size": size, "steps": steps, "guidance": guidance,
-                                               "sampler_from": source, "keywords_from_prior": bool(from_prior)}}
-    save_material(out, NeuralMaterial(t_off, t_rgb, meta))
-    return {"material": str(out), **meta["generated"], "basis": s.basis_id}

@@ -12,10 +12,10 @@ import torch
 from foundation import validate
 from foundation.errors import UsageError
 from foundation.loop import RunState, Stage, StepResult, TrainingSummary
-from generative.diffusion import ConditionalDiffusion, OptimizerStage, load_trained, train_stage
+from generative.diffusion import ConditionalDiffusion, OptimizerStage, load_trained
 
 from .data import MaterialSet, keyword_onehots
-from .model import (EXEMPLAR_TOKENS, KEYWORD_TOKENS, MatDiffSettings, build_model, exemplar_features, exemplar_local,
+from .model import (KEYWORD_TOKENS, MatDiffSettings, build_model, exemplar_local,
                     global_tokens, make_material_scheduler, material_loss, padding_mode, to_model_space)
 
 
@@ -106,10 +106,10 @@ def save_keyword_prior(run: str | Path, data: MaterialSet) -> Path:
         got = read_checkpoint(ckpt).fingerprint.get("data")
         if got != digest:
             raise UsageError(f"{ckpt}: trained on other materials (data digest {got} vs {digest})")
-    return _write_keyword_prior(run, data, digest)
+    return write_keyword_prior(run, data, digest)
 
 
-def _write_keyword_prior(run: str | Path, data: MaterialSet, digest: str) -> Path:
+def write_keyword_prior(run: str | Path, data: MaterialSet, digest: str) -> Path:
     from foundation.files import write_json
 
     triples, counts = np.unique(np.array([[w or "" for w in k] for k in data.keywords], dtype=object).astype(str),
@@ -143,39 +143,6 @@ def prior_keywords(run: str | Path, n: int, seed: int) -> list[list]:
 
 def feature_scale(features: np.ndarray) -> float:
     return float(max(np.percentile(np.abs(features), 99.9), 1e-6))
-
-
-def train_matdiff(data: MaterialSet, out: str | Path, s: MatDiffSettings | None = None, budget_steps: int | None = None,
-                  show_progress: bool = True, device: str = "cpu") -> MatDiffResult | None:
-    """Train on ``data``'s materials (pass only the training split) in folder ``out`` (``checkpoint.npz``,
-    ``metrics.json``); rerun to resume. ``budget_steps`` ends this call early (a later call continues).
-
-    ``device`` (a torch device, e.g. ``cuda``) runs the model there; batches and the random stream stay on the CPU,
-    so a run may resume on another device (the checkpoint is the same either way)."""
-    import dataclasses
-
-    from generative.diffusion import torch_device
-
-    device = torch_device(device)
-    s = s or MatDiffSettings()
-    if len(data.names) < 2:
-        raise UsageError(f"material diffusion needs at least 2 training materials, got {len(data.names)}")
-    res = data.features.shape[-1]
-    if res % s.multiple:
-        raise UsageError(f"feature textures of {res}² do not divide by {s.multiple} (widths {s.widths})")
-    if data.features.shape[1] != 2 * s.channels:
-        s = dataclasses.replace(s, channels=data.features.shape[1] // 2)
-    if not s.feature_scale:
-        s = dataclasses.replace(s, feature_scale=feature_scale(data.features))
-    if not s.basis_id:
-        s = dataclasses.replace(s, basis_id=data.basis_id)
-    if not s.train_res:
-        s = dataclasses.replace(s, train_res=res)
-    n, k = data.swatches.shape[:2]
-    tokens = exemplar_features(data.swatches.reshape(n * k, *data.swatches.shape[2:])).reshape(n, k, EXEMPLAR_TOKENS, -1)
-    stage, result = train_stage(lambda: MatDiffStage(data, s, tokens, device), out, s, budget_steps, show_progress)
-    _write_keyword_prior(out, data, stage.digest)  # the loop checked this digest against the checkpoint's
-    return result
 
 
 def load_matdiff(run: str | Path) -> tuple[ConditionalDiffusion, MatDiffSettings]:

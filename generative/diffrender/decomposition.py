@@ -32,7 +32,6 @@ import torch
 import mi_plugins  # noqa: F401
 import mitsuba as mi
 
-from foundation import validate
 from foundation.assets import bundled_hdris, envmap, pymeshlab_sample
 from foundation.errors import UsageError
 from foundation.files import cached_arrays
@@ -44,36 +43,13 @@ from foundation.threads import torch_threads
 
 from generative.diffusion import OptimizerStage, load_trained, train_stage
 from .renderer import LAYERS, condition_to_layers, intrinsic_layers, local_condition, photo_to_model
+from .settings import DecompDataSettings, DecompSettings
 
 TEXTURES = ("brick", "grass", "gravel", "astronaut", "rocket", "hubble_deep_field", "color", "coffee")
 #: meshes inside pymeshlab's wheel (tests/sample_meshes); bunny is left out: it is the unseen-mesh benchmark
 MESHES = ("cow.obj", "airplane.obj", "colored_airplane.ply", "bone.ply")
 BUILTIN = ("sphere", "cube", "cylinder")
 DECOMP_CHANNELS = 12
-
-
-@dataclass
-class DecompDataSettings:
-    """Procedural training scenes of the decomposition network."""
-
-    count: int = 160  #: scenes rendered (the last ``holdout`` fraction is held out)
-    resolution: int = 128
-    spp: int = 32
-    max_depth: int = 3
-    holdout: float = 0.15
-    seed: int = 0
-
-    def __post_init__(self):
-        validate.integer("count", self.count, 2)
-        validate.integer("resolution", self.resolution, 8, 4096)
-        validate.integer("spp", self.spp, 1)
-        validate.integer("max_depth", self.max_depth, 2)
-        validate.in_range("holdout", self.holdout, 0.0, 0.9)
-        validate.seed("seed", self.seed)
-
-    @property
-    def n_test(self) -> int:
-        return max(1, int(round(self.count * self.holdout)))
 
 
 @functools.lru_cache(maxsize=None)
@@ -198,36 +174,6 @@ def load_decomp_data(path: str | Path, s: DecompDataSettings, show_progress: boo
 
 
 # -- the network -----------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class DecompSettings:
-    steps: int = 3000
-    max_seconds: float | None = 300.0
-    batch: int = 8
-    crop: int = 64
-    lr: float = 3e-4
-    widths: tuple[int, ...] = (32, 64, 96, 128)
-    checkpoint_every: int = 100
-    threads: int = 0
-    seed: int = 0
-
-    def __post_init__(self):
-        self.widths = tuple(int(w) for w in self.widths)
-        validate.integer("steps", self.steps, 1)
-        validate.optional(validate.positive, "max_seconds", self.max_seconds)
-        validate.integer("batch", self.batch, 1, 1024)
-        validate.integer("crop", self.crop, 8)
-        validate.positive("lr", self.lr)
-        if not self.widths or any(w < 8 or w % 8 for w in self.widths):
-            raise UsageError(f"widths must be multiples of 8, got {self.widths}")
-        validate.integer("checkpoint_every", self.checkpoint_every, 1)
-        validate.integer("threads", self.threads, 0)
-        validate.seed("seed", self.seed)
-
-    @property
-    def multiple(self) -> int:
-        return 1 << (len(self.widths) - 1)
 
 
 class Decomposer(torch.nn.Module):

@@ -10,19 +10,27 @@ module            what
 ``superres``       2× super-resolution of the maps (§4)
 ``evaluate``       the optimisation baseline, the learned pipeline stage by stage, map and relighting scores
 ``run``            `photoreal face train-models`: one resumable run folder; the learned stages for from-photo
+``settings``      the learned stages' settings (no torch: loaded with the package; the rest on first use)
 ================  ===========================================================================
 
 They serve :mod:`inverse.face` (the fit and `face from-photo`), whose UV-space shader their losses share.
 `photoreal face train-models|from-photo` and `photoreal bench face-learned` use only the names below.
 """
 
+from foundation.lazy import lazy_names
+
 from .data import FaceDataSettings, load_face_dataset, scan_path
-from .evaluate import LearnedModels, baseline_maps, default_maps, learned_maps, map_scores, relit_scores
-from .completion import CompletionSettings, complete, load_completion
-from .decomposition import DecompSettings, decompose_maps, load_decomposer, train_decomposer
+from .settings import CompletionSettings, DecompSettings, FaceModelsSettings, SuperResSettings
 from .encoding import at_resolution, normalise_albedo
-from .superres import SuperResSettings, load_superres, upscale
-from .run import FaceModelsSettings, completion_albedo, load_face_models, photo_maps_fn, train_face_models
+
+#: every other name loads its module (and torch) on first use: `photoreal … --help` never does
+__getattr__, __dir__ = lazy_names(__name__, {
+    "evaluate": ("LearnedModels", "baseline_maps", "default_maps", "learned_maps", "map_scores", "relit_scores",),
+    "completion": ("complete", "load_completion",),
+    "decomposition": ("decompose_maps", "load_decomposer", "train_decomposer",),
+    "superres": ("load_superres", "upscale",),
+    "run": ("completion_albedo", "load_face_models", "photo_maps_fn", "train_face_models",),
+})
 
 __all__ = [
     "CompletionSettings", "DecompSettings", "FaceDataSettings", "FaceModelsSettings", "LearnedModels",

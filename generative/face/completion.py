@@ -10,8 +10,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from foundation import validate
-from foundation.errors import UsageError
 from foundation.loop import RunState, Stage, TrainingSummary
 
 from generative.diffusion import (ConditionalDiffusion, DiffusionConfig, OptimizerStage, count_parameters, load_trained,
@@ -22,48 +20,10 @@ from .data import FaceSet
 #: lit (3), seen (1), covered (1), the baseline's albedo (3), position (3) and normal (3) in the face frame
 from .encoding import (COND_CHANNELS, RESIDUAL, at_resolution, condition, decode_albedo, encode_albedo, mirror,
                        normalise_albedo)
+from .settings import CompletionSettings
 
 
 # -- 1. completion + light homogenisation: a conditional diffusion model ---------------------------------------------
-
-
-@dataclass
-class CompletionSettings:
-    """The completion/homogenisation diffusion model (the backbone of the decomposition) and its training run."""
-
-    widths: tuple[int, ...] = (32, 64, 128)
-    layers_per_block: int = 1
-    attention_levels: int = 1  #: self-attention at the deepest level only (2 cores: attention at 32² costs ~4×)
-    head_dim: int = 32
-    res: int = 64  #: texels per side the model works at
-    steps: int = 20000
-    max_seconds: float | None = 720.0
-    batch: int = 16
-    lr: float = 3e-4
-    checkpoint_every: int = 200
-    threads: int = 0
-    seed: int = 0
-    sample_steps: int = 10  #: DDIM steps
-    samples: int = 4  #: samples averaged into the returned albedo (the posterior mean: per-texel errors halve)
-
-    def __post_init__(self):
-        self.widths = tuple(int(w) for w in self.widths)
-        if not self.widths or any(w < 8 or w % 8 for w in self.widths):
-            raise UsageError(f"widths must be multiples of 8, got {self.widths}")
-        validate.integer("layers_per_block", self.layers_per_block, 1)
-        validate.integer("attention_levels", self.attention_levels, 1, len(self.widths))
-        validate.integer("res", self.res, 8, 1024)
-        if self.res % (1 << (len(self.widths) - 1)):
-            raise UsageError(f"res {self.res} must divide by {1 << (len(self.widths) - 1)} (widths {self.widths})")
-        validate.integer("steps", self.steps, 1)
-        validate.optional(validate.positive, "max_seconds", self.max_seconds)
-        validate.integer("batch", self.batch, 1, 4096)
-        validate.positive("lr", self.lr)
-        validate.integer("checkpoint_every", self.checkpoint_every, 1)
-        validate.integer("threads", self.threads, 0)
-        validate.seed("seed", self.seed)
-        validate.integer("sample_steps", self.sample_steps, 1, 1000)
-        validate.integer("samples", self.samples, 1, 256)
 
 
 def completion_config(s: CompletionSettings) -> DiffusionConfig:

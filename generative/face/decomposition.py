@@ -3,7 +3,6 @@ cross-intrinsic attention; the *shared* and *independent* ablations."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +10,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from foundation import validate
 from foundation.errors import CheckpointError, ForeignCheckpointError, UsageError
 from foundation.loop import RunState, Stage
 
@@ -20,9 +18,10 @@ from generative.diffusion import ConditionalDiffusion, OptimizerStage, train_sta
 from .data import FaceSet, TARGETS
 
 #: lit (3), seen (1), covered (1), the baseline's albedo (3), position (3) and normal (3) in the face frame
-from .encoding import (BRANCHES, COND_CHANNELS, MAP_CHANNELS, VARIANTS, at_resolution, condition, decode_maps,
+from .encoding import (BRANCHES, COND_CHANNELS, MAP_CHANNELS, at_resolution, condition, decode_maps,
                        encode_albedo, encode_maps, mirror, normalise_albedo)
 from .completion import FaceModelResult, data_digest, load_completion
+from .settings import DecompSettings
 
 
 # -- 2. decomposition: LoRA adapters per intrinsic on the frozen backbone, cross-intrinsic attention --------------
@@ -59,40 +58,6 @@ class CrossIntrinsicAttention:
         if attn.residual_connection:
             out = out + residual
         return out / attn.rescale_output_factor
-
-
-@dataclass
-class DecompSettings:
-    """The decomposition (one variant) and its training run."""
-
-    variant: str = "cross_attention"  #: one of VARIANTS
-    rank: int = 8  #: LoRA rank
-    steps: int = 20000
-    max_seconds: float | None = 360.0
-    batch: int = 2  #: instances per step (× 4 branches through the backbone)
-    lr: float = 1e-3  #: LoRA (the independent models: lr / 5, full fine-tuning)
-    checkpoint_every: int = 100
-    threads: int = 0
-    seed: int = 0
-    weights: tuple[float, ...] = (1.0, 1.0, 4.0, 4.0)  #: loss weight per branch (roughness/specular span less range)
-    #: λ_img of seed 003's shading loss (0.5 there; 0 = off): predicted and true maps shaded by the UV-space GGX
-    #: shader under two random directional lights + ambient, through dr.wrap
-    shading_weight: float = 0.5
-
-    def __post_init__(self):
-        validate.one_of("variant", self.variant, VARIANTS)
-        validate.integer("rank", self.rank, 1, 256)
-        validate.integer("steps", self.steps, 1)
-        validate.optional(validate.positive, "max_seconds", self.max_seconds)
-        validate.integer("batch", self.batch, 1, 4096)
-        validate.positive("lr", self.lr)
-        validate.integer("checkpoint_every", self.checkpoint_every, 1)
-        validate.integer("threads", self.threads, 0)
-        validate.seed("seed", self.seed)
-        validate.non_negative("shading_weight", self.shading_weight)
-        self.weights = tuple(float(w) for w in self.weights)
-        if len(self.weights) != len(BRANCHES) or min(self.weights) < 0:
-            raise UsageError(f"weights: {len(BRANCHES)} non-negative numbers ({', '.join(BRANCHES)}), got {self.weights}")
 
 
 #: the seed injects LoRA "into attention and feedforward projections"; conv_in too, so that each branch reads its input

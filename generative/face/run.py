@@ -18,7 +18,7 @@ checkpoint.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -26,34 +26,14 @@ import numpy as np
 from foundation.errors import UsageError
 from foundation.files import holds_files, read_json, write_json
 
-from .data import FaceDataSettings, build_face_dataset, load_face_dataset
+from .data import build_face_dataset, load_face_dataset
 from .evaluate import LearnedModels
-from .completion import CompletionSettings, complete, load_completion, train_completion
+from .completion import complete, load_completion, train_completion
 from .decomposition import DecompSettings, backbone_id, load_decomposer, train_decomposer
-from .encoding import VARIANTS
-from .superres import SuperResSettings, load_superres, train_superres
+from .superres import load_superres, train_superres
+from .settings import FaceModelsSettings
 
 RUN_FORMAT = "photoreal face models v1"
-
-
-@dataclass
-class FaceModelsSettings:
-    data: FaceDataSettings = field(default_factory=FaceDataSettings)
-    completion: CompletionSettings = field(default_factory=CompletionSettings)
-    decomposition: DecompSettings = field(default_factory=DecompSettings)
-    superres: SuperResSettings = field(default_factory=SuperResSettings)
-    variants: tuple[str, ...] = ("cross_attention",)  #: decomposition variants to train (the first is the one used)
-
-    def __post_init__(self):
-        self.variants = tuple(self.variants)
-        if not self.variants:
-            raise UsageError("variants: at least one decomposition variant")
-        for v in self.variants:
-            if v not in VARIANTS:
-                raise UsageError(f"variants: {v!r} is not one of {', '.join(VARIANTS)}")
-        if self.data.uv_res not in (self.completion.res, 2 * self.completion.res):
-            raise UsageError(f"the data's uv_res ({self.data.uv_res}) must be the models' res ({self.completion.res}) "
-                             "or twice it (super-resolution doubles)")
 
 
 def _claim(out: Path, s: FaceModelsSettings) -> None:

@@ -3,7 +3,6 @@ added to bicubic."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +10,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from foundation import validate
 from foundation.errors import UsageError
 from foundation.loop import RunState, Stage
 
@@ -22,33 +20,10 @@ from .data import FaceSet
 #: lit (3), seen (1), covered (1), the baseline's albedo (3), position (3) and normal (3) in the face frame
 from .encoding import COND_CHANNELS, GEO, MAP_CHANNELS, at_resolution, condition, decode_maps, encode_maps, mirror
 from .completion import FaceModelResult, data_digest
+from .settings import SuperResSettings
 
 
 # -- 3. super-resolution ----------------------------------------------------------------------------------------------
-
-
-@dataclass
-class SuperResSettings:
-    width: int = 48
-    blocks: int = 6
-    steps: int = 20000
-    max_seconds: float | None = 180.0
-    batch: int = 8
-    lr: float = 1e-3
-    checkpoint_every: int = 200
-    threads: int = 0
-    seed: int = 0
-
-    def __post_init__(self):
-        validate.integer("width", self.width, 4, 1024)
-        validate.integer("blocks", self.blocks, 1, 64)
-        validate.integer("steps", self.steps, 1)
-        validate.optional(validate.positive, "max_seconds", self.max_seconds)
-        validate.integer("batch", self.batch, 1, 4096)
-        validate.positive("lr", self.lr)
-        validate.integer("checkpoint_every", self.checkpoint_every, 1)
-        validate.integer("threads", self.threads, 0)
-        validate.seed("seed", self.seed)
 
 
 class UVUpscaler(nn.Module):

@@ -9,14 +9,21 @@ module         what
 ``data``       paired views (photos, coarse renders, morphed renders) of a morph benchmark
 ``train``      two-stage training as a stage of the shared loop, evaluation, model loading
 ``joint``      one loss through G and the Mitsuba renderer into the mesh (``dr.wrap``)
+``settings``   the stages' settings (no torch: loaded with the package; the rest on first use)
 =============  =============================================================================
 """
 
-from .data import GanDataSettings, PairedViews, load_paired_views, random_crops, render_mesh_views, to_nchw
-from .joint import JointResult, JointSettings, train_joint
-from .train import (MODELS, CurvePoint, GanEvaluation, GanTrainResult, GanTrainSettings, build_model,
-                    check_resolution, evaluate_model, load_heldout_predictions, load_trained, mean_metrics, predict,
-                    split_validation, train_gan)
+from foundation.lazy import lazy_names
+
+from .settings import GanDataSettings, GanTrainSettings, JointSettings, MODELS
+
+#: every other name loads its module (and torch) on first use: `photoreal … --help` never does
+__getattr__, __dir__ = lazy_names(__name__, {
+    "data": ("PairedViews", "load_paired_views", "random_crops", "render_mesh_views", "to_nchw",),
+    "joint": ("JointResult", "train_joint",),
+    "train": ("CurvePoint", "GanEvaluation", "GanTrainResult", "build_model", "check_resolution", "evaluate_model",
+        "load_heldout_predictions", "load_trained", "mean_metrics", "predict", "split_validation", "train_gan",),
+})
 
 __all__ = [
     "CurvePoint", "GanDataSettings", "GanEvaluation", "GanTrainResult", "GanTrainSettings", "JointResult",

@@ -26,21 +26,9 @@ import torch
 import mi_plugins  # noqa: F401
 import mitsuba as mi
 
-from foundation import validate
 from foundation.progress import progress_bar
-from inverse.morph import MODES, MorphBenchmark, morph_scene, sensor_dict, morph_views
-
-
-@dataclass
-class GanDataSettings:
-    spp: int = 32
-    max_depth: int = 3
-    mode: str = "lit"  #: appearance mode of inverse.morph's scene
-
-    def __post_init__(self):
-        validate.integer("spp", self.spp, 1)
-        validate.integer("max_depth", self.max_depth, 2)
-        validate.one_of("mode", self.mode, MODES)
+from inverse.morph import MorphBenchmark, morph_scene, sensor_dict, morph_views
+from .settings import GanDataSettings
 
 
 @dataclass

@@ -9,7 +9,7 @@ on the detached G output. A stage of the shared loop: budgets, checkpoints, exac
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +20,6 @@ import drjit as dr
 import mitsuba as mi
 from mi_plugins.arrays import aligned
 
-from foundation import validate
 from foundation.bridge import drjit_images_to_torch, module_device
 from foundation.errors import UsageError
 from foundation.files import file_digest
@@ -34,41 +33,9 @@ from foundation.threads import torch_threads
 from inverse.morph import MorphBenchmark, morph_scene, remesh, sensor_dict
 
 from .data import GanDataSettings, PairedViews, render_mesh_views
-from .train import (GanEvaluation, GanTrainSettings, _optimisers, build_model, check_resolution, initial_state,
+from .train import (GanEvaluation, _optimisers, build_model, check_resolution, initial_state,
                     mean_metrics, predict, save_heldout_predictions, split_validation)
-
-
-@dataclass
-class JointSettings:
-    steps: int = 2000
-    max_seconds: float | None = 180.0
-    gan: GanTrainSettings = None  # type: ignore[assignment]  # Morph-GAN settings of G and D (model forced)
-    morph_weight: float = 1.0  #: weight of the eq. 4.3 term L1(m_j, i_j) in the joint loss
-    lambda_: float = 2.0  #: large-steps λ (inverse.morph's default)
-    lr: float = 0.05  #: × scene size / 10 (positions; uniform Adam on u), as MorphSettings
-    lr_colour: float = 0.01
-    spp: int = 4
-    max_depth: int = 3  #: path length of m_j while training and testing (3 = the paired data's renders);
-    #: 2 = direct light only (``direct_projective``), larger = ``prb_projective``
-    init_from: str | None = None  #: a finished Morph-GAN run folder: G and D start from its selected weights
-    init_mesh: str | None = None  #: a coloured PLY to start from (e.g. a morph run's morphed.ply), not remeshed
-    checkpoint_every: int = 25
-    eval_every: int = 50
-    seed: int = 0
-
-    def __post_init__(self):
-        self.gan = replace(self.gan or GanTrainSettings(), model="morph_gan", seed=self.seed)
-        validate.integer("steps", self.steps, 1)
-        validate.optional(validate.positive, "max_seconds", self.max_seconds)
-        validate.non_negative("morph_weight", self.morph_weight)
-        validate.positive("lambda_", self.lambda_)
-        validate.non_negative("lr", self.lr)  # 0 keeps the mesh fixed (a fine-tune of G alone, through the renderer)
-        validate.non_negative("lr_colour", self.lr_colour)
-        validate.integer("spp", self.spp, 1)
-        validate.integer("max_depth", self.max_depth, 2)
-        validate.integer("checkpoint_every", self.checkpoint_every, 1)
-        validate.integer("eval_every", self.eval_every, 1)
-        validate.seed("seed", self.seed, 200_000)
+from .settings import JointSettings
 
 
 @dataclass

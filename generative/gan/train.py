@@ -16,12 +16,10 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
 
-from foundation import validate
 from foundation.errors import CheckpointError, UsageError
 from foundation.files import atomic_path
 from foundation.loop import (LoopSettings, RunState, Stage, StepResult, TrainingSummary, all_finite, read_checkpoint,
@@ -35,49 +33,7 @@ from .cyclegan import CycleGAN, CycleGANConfig
 from .data import PairedViews, random_crops, to_nchw
 from .morph_gan import MorphGAN
 from .pix2pix import Pix2Pix, Pix2PixConfig
-
-ModelName = Literal["pix2pix", "cyclegan", "morph_gan_partial", "morph_gan"]
-MODELS: tuple[str, ...] = ("pix2pix", "cyclegan", "morph_gan_partial", "morph_gan")
-
-
-@dataclass
-class GanTrainSettings:
-    model: str = "morph_gan"  #: one of MODELS
-    steps: int = 5000  #: upper bound; ``max_seconds`` usually ends the run first
-    max_seconds: float | None = 120.0  #: training wall-time budget (summed over resumes); None = steps only
-    batch: int = 4
-    crop: int = 64  #: random crop side (whole images when ≥ the resolution)
-    lr: float = 2e-4
-    beta1: float = 0.5
-    ngf: int = 16
-    ndf: int = 16
-    levels: int = 5
-    residual: bool = True
-    lambda_l1: float = 100.0
-    checkpoint_every: int = 25
-    eval_every: int = 50  #: steps between held-out MSE curve points
-    threads: int = 1  #: torch intra-op threads while training (see :func:`torch_threads`)
-    val_every: int = 6  #: every k-th train view is a validation view (not trained on); 0 = no selection
-    init_from: str | None = None  #: a finished run folder of the same model: start from its selected G and D
-    seed: int = 0
-
-    def __post_init__(self):
-        validate.one_of("model", self.model, MODELS)
-        validate.integer("steps", self.steps, 1)
-        validate.optional(validate.positive, "max_seconds", self.max_seconds)
-        validate.integer("batch", self.batch, 1, 1024)
-        validate.integer("crop", self.crop, 8)
-        validate.positive("lr", self.lr)
-        validate.in_range("beta1", self.beta1, 0.0, 1.0, hi_open=True)
-        validate.integer("ngf", self.ngf, 1)
-        validate.integer("ndf", self.ndf, 1)
-        validate.integer("levels", self.levels, 1, 8)
-        validate.non_negative("lambda_l1", self.lambda_l1)
-        validate.integer("checkpoint_every", self.checkpoint_every, 1)
-        validate.integer("eval_every", self.eval_every, 1)
-        validate.integer("threads", self.threads, 0)
-        validate.integer("val_every", self.val_every, 0)
-        validate.seed("seed", self.seed)
+from .settings import GanTrainSettings
 
 
 def check_resolution(res: int, s: GanTrainSettings) -> None:

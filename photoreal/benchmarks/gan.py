@@ -30,8 +30,7 @@ from foundation.errors import UsageError
 from foundation.files import read_json
 from foundation.metrics import ImageMetrics, region_metrics
 from foundation.progress import progress_bar
-from generative.gan import (MODELS, GanTrainSettings, JointSettings, load_heldout_predictions, load_paired_views,
-                            mean_metrics, train_gan, train_joint)
+from generative.gan import MODELS, GanTrainSettings, JointSettings
 from inverse.morph import (ARTIFACT_REGIONS, MorphBenchmarkSettings, MorphSettings, artifact_masks,
                            load_morph_benchmark, make_morph_benchmark, run_morph)
 
@@ -91,6 +90,8 @@ def prepare_case(case: str, work: Path, s: GanBenchSettings, show_progress: bool
 
 
 def bench_case(case: str, work: Path, s: GanBenchSettings, bar, show_progress: bool = False) -> dict:
+    from generative.gan import load_paired_views, mean_metrics, train_gan, train_joint  # torch: when it runs
+
     bench, mdir, morph = prepare_case(case, work, s, show_progress)
     data = load_paired_views(bench, mdir, show_progress=show_progress)
     t = data.test
@@ -146,6 +147,7 @@ def _metrics(m: ImageMetrics) -> dict:
 
 def region_table(bench, data, case_dir: Path, morph_dir: Path) -> dict:
     """{region: {row: {mse, me, one_minus_ssim, flip, pixels}}} over the held-out views (pixel-weighted means)."""
+    from generative.gan import load_heldout_predictions
     t = data.test
     masks = artifact_masks(bench, t)
     images = {"input": data.rendered[t], "morphed": data.morphed[t]}

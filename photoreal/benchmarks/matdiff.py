@@ -33,7 +33,6 @@ import numpy as np
 
 from foundation import validate
 from foundation.errors import UsageError
-from foundation.features import fid, kid
 from foundation.threads import torch_threads
 
 ABLATIONS = {  # name → the MatDiffSettings fields that switch one choice off
@@ -126,6 +125,7 @@ class _Judge:
         return decode_all(self.basis, features, self.channels)
 
     def score(self, decoded: np.ndarray) -> dict:
+        from foundation.features import fid, kid
         from generative.btf import classify, mnv2_features
 
         fm = mnv2_features(decoded)

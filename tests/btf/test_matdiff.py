@@ -16,6 +16,7 @@ import mitsuba as mi
 from foundation.assets import bundled_basis
 from foundation.errors import UsageError
 from generative.btf import data as md
+from generative.btf import train_matdiff
 from generative.btf import evaluate as me
 from generative.btf import model as mm
 from generative.btf import sample as ms
@@ -149,10 +150,10 @@ def _toy_set(n: int = 8, res: int = 8, seed: int = 0) -> md.MaterialSet:
 def test_training_resumes_exactly_and_generates_into_a_neural_btf_scene(tmp_path, capsys):
     data = _toy_set()
     s = mm.MatDiffSettings(**TINY, steps=6)
-    whole = mt.train_matdiff(data, tmp_path / "a", s, show_progress=False)
+    whole = train_matdiff(data, tmp_path / "a", s, show_progress=False)
     assert whole.training.steps == 6 and np.isfinite(whole.training.loss_last)
-    assert mt.train_matdiff(data, tmp_path / "b", s, budget_steps=3, show_progress=False) is None
-    mt.train_matdiff(data, tmp_path / "b", s, show_progress=False)
+    assert train_matdiff(data, tmp_path / "b", s, budget_steps=3, show_progress=False) is None
+    train_matdiff(data, tmp_path / "b", s, show_progress=False)
     (ma, _), (mb, _) = mt.load_matdiff(tmp_path / "a"), mt.load_matdiff(tmp_path / "b")
     for (k, a), b in zip(ma.state_dict().items(), mb.state_dict().values()):
         assert torch.equal(a, b), k  # one thread: a resumed run is the uninterrupted run, bit for bit
@@ -233,9 +234,9 @@ def test_bad_input_names_the_thing(tmp_path, capsys):
     assert main(["btf", "generate", "--run", str(tmp_path), "--keywords", "wood", "--out", str(tmp_path / "x.png")]) == 2
     assert ".npz" in capsys.readouterr().err
     with pytest.raises(UsageError, match="at least 2"):
-        mt.train_matdiff(_toy_set(1), tmp_path / "r", mm.MatDiffSettings(**TINY))
+        train_matdiff(_toy_set(1), tmp_path / "r", mm.MatDiffSettings(**TINY))
     with pytest.raises(UsageError, match="divide by"):
-        mt.train_matdiff(_toy_set(4, res=7), tmp_path / "r", mm.MatDiffSettings(**TINY))
+        train_matdiff(_toy_set(4, res=7), tmp_path / "r", mm.MatDiffSettings(**TINY))
     with pytest.raises(UsageError, match="index.json"):
         md.load_material_dataset(tmp_path)
 
@@ -354,7 +355,7 @@ def test_ema_weights_are_the_running_average_that_sampling_loads(tmp_path):
     s = mm.MatDiffSettings(**TINY, steps=3, ema=0.5)
     raws = [mm.build_model(s).state_dict()]
     for n in (1, 2, 3):
-        mt.train_matdiff(data, tmp_path / f"r{n}", mm.MatDiffSettings(**TINY, steps=n, ema=0.5), show_progress=False)
+        train_matdiff(data, tmp_path / f"r{n}", mm.MatDiffSettings(**TINY, steps=n, ema=0.5), show_progress=False)
         from foundation.loop import read_checkpoint
 
         raws.append({k: torch.as_tensor(v) for k, v in read_checkpoint(tmp_path / f"r{n}" / "checkpoint.npz").stage["model"].items()})
@@ -379,7 +380,7 @@ def test_crop_training_sees_wrapped_crops_with_zero_padding_and_samples_stay_cir
     r = stage.step(0)
     assert np.isfinite(r.loss) and seen == [((8, 8), "zeros")]  # a crop is not periodic: no wrap-around in training
     assert conv.padding_mode == "circular"  # restored: sampling at any size still tiles
-    whole = mt.train_matdiff(data, tmp_path / "c", s, show_progress=False)
+    whole = train_matdiff(data, tmp_path / "c", s, show_progress=False)
     assert whole.training.steps == 2 and np.isfinite(whole.training.loss_last)
     with pytest.raises(UsageError, match="train_crop"):
         mm.MatDiffSettings(**TINY, train_crop=3)  # the UNet halves the size once
@@ -396,14 +397,14 @@ def test_device_names_weights_only_runs_and_the_bench_main_run_check(tmp_path):
         assert torch_device("cuda").startswith("cuda")
     else:  # the CPU machines this suite runs on: asking for a GPU is refused by name, before any training
         with pytest.raises(UsageError, match="--device cuda: torch sees no CUDA device"):
-            mt.train_matdiff(_toy_set(), tmp_path / "g", mm.MatDiffSettings(**TINY, steps=2), device="cuda")
+            train_matdiff(_toy_set(), tmp_path / "g", mm.MatDiffSettings(**TINY, steps=2), device="cuda")
         assert not (tmp_path / "g").exists()
     with pytest.raises(UsageError, match="not a torch device"):
         torch_device("gpu0")
 
     data = _toy_set()
     s = mm.MatDiffSettings(**TINY, steps=3, ema=0.5)
-    mt.train_matdiff(data, tmp_path / "full", s, show_progress=False)
+    train_matdiff(data, tmp_path / "full", s, show_progress=False)
     slim = tmp_path / "slim"
     slim.mkdir()
     weights_only(tmp_path / "full" / "checkpoint.npz", slim / "checkpoint.npz", keep=("ema",))
@@ -413,7 +414,7 @@ def test_device_names_weights_only_runs_and_the_bench_main_run_check(tmp_path):
     (a, _), (b, _) = mt.load_matdiff(tmp_path / "full"), mt.load_matdiff(slim)  # sampling loads the same EMA weights
     assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
     with pytest.raises(CheckpointError, match="weights-only"):
-        mt.train_matdiff(data, slim, s, show_progress=False)
+        train_matdiff(data, slim, s, show_progress=False)
     # float16 weights: half the size again, each weight within float16's rounding (relative 2⁻¹¹) of its float32
     f16 = tmp_path / "f16"
     f16.mkdir()
@@ -424,7 +425,7 @@ def test_device_names_weights_only_runs_and_the_bench_main_run_check(tmp_path):
         assert y.dtype == x.dtype, k  # the model stays float32
         if x.is_floating_point():
             assert torch.allclose(x, y, rtol=2.0 ** -11, atol=6e-8), k
-    mt.train_matdiff(data, tmp_path / "half", s, budget_steps=1, show_progress=False)
+    train_matdiff(data, tmp_path / "half", s, budget_steps=1, show_progress=False)
     with pytest.raises(CheckpointError, match="not finished"):
         weights_only(tmp_path / "half" / "checkpoint.npz", tmp_path / "x.npz")
 

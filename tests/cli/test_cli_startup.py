@@ -47,3 +47,35 @@ def test_render_morph_capture_and_demo_help_and_errors_never_import_torch(argv):
     r = _loaded(*argv)
     assert r["code"] == (0 if argv[-1] == "--help" else 2) and "torch" not in r["loaded"], r
     assert "diffusers" not in r["loaded"], r
+
+
+EVERY_HELP = """
+import contextlib, io, json, sys
+from photoreal.benchmarks.startup import commands
+from photoreal.cli import main
+heavy = ("torch", "diffusers")
+out = {"codes": {}, "first_heavy": None}
+for name, argv in commands().items():
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        try:
+            out["codes"][name] = main(argv)
+        except SystemExit as exc:
+            out["codes"][name] = exc.code
+    loaded = [m for m in heavy if m in sys.modules]
+    if loaded and out["first_heavy"] is None:
+        out["first_heavy"] = [name, loaded]
+print(json.dumps(out))
+"""
+
+
+def test_every_help_and_usage_error_answers_without_torch():
+    """Every command line `photoreal bench startup` times (each group's and each subcommand's help, the usage
+    errors), one after the other in one interpreter: all answer (exit 0, 2 for the errors) and none loads torch or
+    diffusers, so none waits for them (the settings of torch models live in torch-free modules,
+    :mod:`foundation.lazy`)."""
+    r = subprocess.run([sys.executable, "-c", EVERY_HELP], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    bad = {n: c for n, c in out["codes"].items() if c != (2 if "usage error" in n else 0)}
+    assert not bad, bad
+    assert len(out["codes"]) >= 40 and out["first_heavy"] is None, out["first_heavy"]

@@ -45,6 +45,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -52,23 +53,19 @@ import mi_plugins  # noqa: F401
 
 from foundation import validate
 from foundation.errors import UsageError
-from foundation.features import perceptual_distance
 from foundation.files import read_json
 from foundation.pool import Item, PoolSettings, run_items
 from foundation.records import json_digest
 from foundation.threads import torch_threads
-from generative.diffrender import (DecompDataSettings, decompose, DECOMPOSED, DecompSettings, DiffRenderSettings,
-                                   GBufferSettings, heldout_psnr, IntrinsicViews, load_decomp_data, load_decomposer,
-                                   load_diffrender, load_intrinsic_views, photographs, train_decomposer, train_diffrender)
-from generative.diffusion import count_parameters
-from generative.gan import GanDataSettings, GanTrainSettings, load_heldout_predictions, load_paired_views, train_gan
+from generative.diffrender import DECOMPOSED, DecompDataSettings, DecompSettings, DiffRenderSettings, GBufferSettings
+from generative.gan import GanDataSettings, GanTrainSettings
 
 from ..gan import GanBenchSettings, prepare_case
 
-from .measure import PAIRED, heldout_layers, paired_metrics, sample_views, throughput
-from .references import cached_references, distribution, set_features
-from .charts import sweep_chart
+if TYPE_CHECKING:
+    from generative.diffrender import IntrinsicViews
 
+# the models, their measurements and torch load inside the functions that use them: `bench diffrender --help` is quick
 
 
 @dataclass
@@ -172,6 +169,9 @@ def _decomposition(s: DiffRenderBenchSettings, work: Path, views: dict[str, Intr
                    show_progress: bool) -> tuple[dict, list[IntrinsicViews]]:
     """Train/evaluate the decomposition network; the (decomposed layers → photo) pairs it makes from the train
     photos of every case and from scikit-image photographs."""
+    from generative.diffrender import (IntrinsicViews, decompose, heldout_psnr, load_decomp_data, load_decomposer,
+                                       photographs, train_decomposer)
+
     dds, dset = _decomp_settings(s)
     data = load_decomp_data(work / "decomp_data.npz", dds, show_progress)
     train_decomposer(data, dds, work / "decomposer", dset, show_progress=show_progress)
@@ -220,6 +220,8 @@ def _choose(sweep: list[dict], tol_rel: float) -> dict:
 
 def _case_views(work: str, gb: GanBenchSettings, cases: tuple[str, ...], input_spp: int) -> list[IntrinsicViews]:
     """The cases' views (G-buffers cached by :func:`item_prepare`)."""
+    from generative.diffrender import load_intrinsic_views
+
     out = []
     for c in cases:
         bench, mdir, _ = prepare_case(c, Path(work), gb, False)
@@ -229,6 +231,9 @@ def _case_views(work: str, gb: GanBenchSettings, cases: tuple[str, ...], input_s
 
 def item_prepare(case: str, work: str, gb: GanBenchSettings, input_spp: int, gan_renders: bool) -> str:
     """A case's benchmark and morph, and the input renders the methods read (G-buffers; the GANs' renders)."""
+    from generative.diffrender import load_intrinsic_views
+    from generative.gan import load_paired_views
+
     bench, mdir, _ = prepare_case(case, Path(work), gb, False)
     load_intrinsic_views(bench, mdir, GBufferSettings(spp=input_spp), show_progress=False)
     if gan_renders:
@@ -238,6 +243,8 @@ def item_prepare(case: str, work: str, gb: GanBenchSettings, input_spp: int, gan
 
 def item_decomposer(work: str, dds: DecompDataSettings, ds: DecompSettings) -> int:
     """The decomposition network's procedural data and its training run; returns its steps."""
+    from generative.diffrender import load_decomp_data, train_decomposer
+
     data = load_decomp_data(Path(work) / "decomp_data.npz", dds, False)
     train_decomposer(data, dds, Path(work) / "decomposer", ds, show_progress=False)
     return int(read_json(Path(work) / "decomposer" / "metrics.json", "decomposition metrics")["training"]["steps"])
@@ -246,12 +253,16 @@ def item_decomposer(work: str, dds: DecompDataSettings, ds: DecompSettings) -> i
 def item_diffrender(work: str, gb: GanBenchSettings, cases: tuple[str, ...], input_spp: int, out: str,
                     ds: DiffRenderSettings, extra: list[IntrinsicViews]) -> int:
     """One diffusion-renderer training run on the cases' train views (+ ``extra`` pairs); returns its steps."""
+    from generative.diffrender import train_diffrender
+
     train_diffrender(_case_views(work, gb, cases, input_spp) + list(extra), out, ds, show_progress=False)
     return int(read_json(Path(out) / "metrics.json", "diffusion metrics")["training"]["steps"])
 
 
 def item_gan(case: str, work: str, gb: GanBenchSettings, input_spp: int, gs: GanTrainSettings) -> str:
     """One GAN baseline on one case (its held-out predictions are saved with the run)."""
+    from generative.gan import load_paired_views, train_gan
+
     bench, mdir, _ = prepare_case(case, Path(work), gb, False)
     data = load_paired_views(bench, mdir, GanDataSettings(spp=input_spp), show_progress=False)
     train_gan(data, Path(work) / case / gs.model, gs, show_progress=False)
@@ -260,6 +271,8 @@ def item_gan(case: str, work: str, gb: GanBenchSettings, input_spp: int, gs: Gan
 
 def item_references(case: str, work: str, gb: GanBenchSettings, ids: list[int], spp: int, photos_clean: bool) -> str:
     """A case's references at held-out views ``ids`` (:func:`cached_references`), rendered into its cache."""
+    from .references import cached_references
+
     bench, mdir, _ = prepare_case(case, Path(work), gb, False)
     cached_references(bench, mdir, ids, spp, photos_clean)
     return case
@@ -283,6 +296,13 @@ def _gan_settings(s: DiffRenderBenchSettings, name: str) -> GanTrainSettings:
 
 def bench_diffrender(s: DiffRenderBenchSettings, work: Path, show_progress: bool = True) -> dict:
     """The bench in ``work``: everything trained is kept there and reused by later runs."""
+    from foundation.features import perceptual_distance
+    from generative.diffrender import load_diffrender, load_intrinsic_views
+    from generative.diffusion import count_parameters
+    from generative.gan import load_heldout_predictions
+    from .measure import PAIRED, heldout_layers, paired_metrics, sample_views, throughput
+    from .references import cached_references, distribution, set_features
+
     work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -528,6 +548,10 @@ def views_figure(result: dict, work: str | Path, path: Path, per_case: int = 1, 
     """Side by side for the first held-out view(s) of every case: the coarse G-buffer layers (A, I, S, N), PBR
     of the coarse and morphed meshes, CycleGAN, Morph-GAN, the diffusion render (sampling seed 0, as the bench)
     and the photo. Reads the trained runs of the bench's work folder; trains nothing."""
+    from generative.diffrender import load_diffrender, load_intrinsic_views
+    from generative.gan import load_heldout_predictions
+    from .measure import heldout_layers, sample_views
+
     import matplotlib
 
     matplotlib.use("Agg")
@@ -589,6 +613,8 @@ def run(s: DiffRenderBenchSettings, work: Path, pool, show_progress: bool) -> di
 
 
 def charts(result: dict, json_path: Path, work: Path | None) -> dict:
+    from .charts import sweep_chart
+
     out = Path(json_path)
     return {"chart": str(sweep_chart(result, out.with_name(out.stem + "_sweep.png"))),
             "views_figure": str(views_figure(result, work, out.with_name(out.stem + "_views.png")))}
