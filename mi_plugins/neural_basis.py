@@ -42,7 +42,7 @@ from mi_plugins.arrays import aligned
 
 __all__ = [
     "BasisConfig", "Basis", "NeuralMaterial", "NeuralBTFError", "bilinear", "mlp_tensor", "rows",
-    "evaluate_tensor", "CoopNet", "save_basis", "load_basis", "save_material", "load_material",
+    "evaluate_tensor", "ConstantNet", "CoopNet", "render_net", "save_basis", "load_basis", "save_material", "load_material",
 ]
 
 
@@ -221,6 +221,42 @@ def evaluate_tensor(cfg: BasisConfig, m_off, m_rgb, t_off, t_rgb, res: int, u, v
     du, dv = offset(cfg, bilinear(t_off, res, cfg.channels, u, v, base), wo, m_off)
     f = bilinear(t_rgb, res, cfg.channels, u + du, v + dv, base)
     return rows(mlp_tensor(m_rgb, dr.stack(f + list(wi) + list(wo))))
+
+
+class ConstantNet:
+    """An MLP of the basis with its weights written into the kernel as constants: one fused multiply-add per weight.
+
+    On LLVM this is the fast form inside Mitsuba's symbolic megakernel: a cooperative-vector matrix read inside a
+    symbolic call (every BSDF method is one) runs ~9× slower than in a kernel of its own, while constants run at the
+    same speed in both modes (measured at width 64: `photoreal bench plugins`). The kernel grows by one instruction
+    per weight (~18 k at width 64, compiled once and cached by Dr.Jit); gradients flow into the inputs (the feature
+    textures), not into the weights.
+    """
+
+    def __init__(self, layers: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        self.layers = [(np.asarray(w, np.float32).tolist(), np.asarray(b, np.float32).tolist()) for w, b in layers]
+        self.n_out = len(self.layers[-1][1])
+
+    def __call__(self, inputs: list) -> list:
+        h = list(inputs)
+        last = len(self.layers) - 1
+        for k, (w, b) in enumerate(self.layers):
+            out = []
+            for row, bias in zip(w, b):
+                acc = mi.Float(bias)
+                for wij, x in zip(row, h):
+                    acc = dr.fma(wij, x, acc)
+                out.append(acc if k == last else dr.maximum(acc, 0.0))
+            h = out
+        return h
+
+
+def render_net(layers: list[tuple[np.ndarray, np.ndarray]]):
+    """The network form a render uses: constants on LLVM (:class:`ConstantNet`), cooperative vectors on CUDA
+    (:class:`CoopNet`, half precision on the tensor cores)."""
+    if dr.backend_v(mi.Float) == dr.JitBackend.CUDA:
+        return CoopNet(layers, training=True)
+    return ConstantNet(layers)
 
 
 class CoopNet:

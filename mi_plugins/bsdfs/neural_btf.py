@@ -44,15 +44,18 @@ traced from the camera (``path``, ``prb``; not light tracing).
 
 Sampling is cosine-weighted on the upper hemisphere, ``pdf`` = cosθ/π, reflection only, front side
 only. Gradients flow into ``t_off`` and ``t_rgb`` (fit a material through full renders); the MLP
-weights are constants of the kernel (cooperative vectors, the only network form that traces inside
-a symbolic render on Dr.Jit 1.5). Under ``cuda_ad_*`` variants they run in float16 (Dr.Jit packs
-CUDA/OptiX cooperative vectors for half precision only): values within 1 % (+0.5 % of the largest) of
-the float32 training path, texture gradients within 5 % of central differences (tests, H100).
+weights are constants of the kernel. On LLVM they are written into it one fused multiply-add per
+weight (:class:`~mi_plugins.neural_basis.ConstantNet`): inside the symbolic megakernel of a plain
+``mi.render``, cooperative vectors read inside a BSDF call ran ~9× slower than in a kernel of their
+own, constants run at one speed in both modes. Under ``cuda_ad_*`` variants the MLPs are cooperative
+vectors in float16 (Dr.Jit packs CUDA/OptiX cooperative vectors for half precision only): values
+within 1 % (+0.5 % of the largest) of the float32 training path, texture gradients within 5 % of
+central differences (tests, H100).
 
-Speed (LLVM, measured by ``photoreal bench btf``): traced symbolically inside Mitsuba's megakernel,
-the MLPs run ~15× slower than in a kernel of their own. Render scenes holding ``neural_btf`` in
-Dr.Jit's *evaluated* (wavefront) mode — ``with neural_btf.evaluated_mode(): mi.render(...)`` —
-which ``photoreal render``, the demo and the bench do automatically (:func:`uses_neural_btf`).
+Speed: ``photoreal bench plugins`` times it against ``principled`` on one scene in both Dr.Jit modes
+(symbolic, what ``mi.render`` runs, and evaluated: ``with neural_btf.evaluated_mode(): mi.render(...)``);
+the cost grows with the basis width (``photoreal bench btf`` charts width against PSNR). The first
+render of a scene compiles the network into the kernel (seconds at width 64; kept in Dr.Jit's cache).
 
 XML::
 
@@ -98,9 +101,9 @@ class NeuralBTF(mi.BSDF):
         self.res = mat.res
         self.t_off = mi.TensorXf(aligned(mat.t_off))
         self.t_rgb = mi.TensorXf(aligned(mat.t_rgb))
-        # The training layout is what Dr.Jit needs to backpropagate through matvec (into the textures).
-        self.m_off = nb.CoopNet(basis.m_off, training=True)
-        self.m_rgb = nb.CoopNet(basis.m_rgb, training=True)
+        # constants in the kernel on LLVM, cooperative vectors on CUDA (render_net); both backpropagate into the textures
+        self.m_off = nb.render_net(basis.m_off)
+        self.m_rgb = nb.render_net(basis.m_rgb)
         flags = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide | mi.BSDFFlags.SpatiallyVarying
         self.m_components = [int(flags)]
         self.m_flags = int(flags)
