@@ -269,7 +269,8 @@ def bench_btf(s: BTFBenchSettings, work: Path, show_progress: bool = True, pool:
         ms_sym = time_render(nbsdf, s, evaluated=False)
         sweep.append({"width": w, "tex_res": r, "psnr": float(np.mean([f["psnr"] for f in fits[(w, r)]])),
                       "psnr_hdr": float(np.mean([f["psnr_hdr"] for f in fits[(w, r)]])), "ms": ms,
-                      "vs_principled": ms / ms_principled, "ms_symbolic": ms_sym})
+                      "vs_principled": ms / ms_principled, "ms_symbolic": ms_sym,
+                      "vs_principled_symbolic": ms_sym / ms_principled_modes["symbolic"]})
     best = max(x["psnr"] for x in sweep)
     # "Model no more than a scene needs": the cheapest configuration within 0.5 dB of the best.
     ok = [x for x in sweep if x["psnr"] >= best - 0.5]

@@ -133,6 +133,18 @@ def test_bench_plugins_writes_json(tmp_path, capsys):
         assert len(times) == 4 and all(t > 0 for t in times)  # repetitions × rounds, the warm-up excluded
         assert data[f"{name}_ms"] == pytest.approx(float(np.median(times)))
     assert data["ggx_uv_vs_principled"] == pytest.approx(data["ggx_uv_ms"] / data["principled_ms"])
+    # neural_btf and both modes: each ratio is of timings the same run recorded
+    for mode, key in (("symbolic", "all_ms"), ("evaluated", "all_ms_evaluated")):
+        for name in ("ggx_uv", "principled", "neural_btf"):
+            assert len(data[key][name]) == 4 and data["modes_ms"][mode][name] == pytest.approx(
+                float(np.median(data[key][name])))
+        assert data["neural_btf"]["vs_principled"][mode] == pytest.approx(
+            data["modes_ms"][mode]["neural_btf"] / data["modes_ms"][mode]["principled"])
+    assert data["neural_btf_vs_principled"] == data["neural_btf"]["vs_principled"]["symbolic"]
+    assert data["mean_value"]["neural_btf"] > 0.01
+    # the same scene renders the same image in both modes (independent sampler, same seeds): equal means
+    for name in ("ggx_uv", "principled", "neural_btf"):
+        assert data["mean_value_evaluated"][name] == pytest.approx(data["mean_value"][name], rel=1e-3)
     # Same scene, matching parameters (base colour, α = roughness², specular): the two renders agree in
     # brightness. Measured 0.9–1.1× here; 25 % allows the models' differing Fresnel and diffuse terms.
     a, b = data["mean_value"]["ggx_uv"], data["mean_value"]["principled"]
@@ -164,6 +176,13 @@ def test_demo_writes_report(tmp_path, capsys):
     assert np.isfinite(summary["capture"]["heldout"]["psnr"])
     img = imageio.read_exr(out / "neural_materials.exr")
     assert np.isfinite(imageio.exr_layer(img, "")).all() and imageio.exr_layer(img, "").mean() > 0.01
+    # the time table: every part that ran, its seconds and the command that runs it in full
+    assert {"scenes", "face", "photo", "capture", "btf", "matdiff"} <= set(summary["seconds"])
+    assert "morph" not in summary["seconds"] and all(v >= 0 for v in summary["seconds"].values())
+    table = (out / "sections" / "99_time.html").read_text()
+    assert all(f"<th style='text-align:left'>{k}</th>" in table for k in summary["seconds"])
+    assert table.count("<td style='text-align:left'><code>photoreal ") + \
+        table.count("<td style='text-align:left'><code>make bench") == len(summary["seconds"])
 
 
 def test_face_from_photo_cli(tmp_path, capsys):
