@@ -41,6 +41,7 @@ def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
     opt(d, DemoSettings, "face", "--no-face", help="skip the face sections")
     opt(d, DemoSettings, "face_uv_res")
     opt(d, DemoSettings, "morph_iterations", help="0 skips the morphing section")
+    opt(d, DemoSettings, "refiner_seconds")
     opt(d, DemoSettings, "btf", "--no-btf", help="skip the neural materials section")
     opt(d, DemoSettings, "capture", "--no-capture", help="skip the real capture section")
     d.set_defaults(func=_cmd_demo)

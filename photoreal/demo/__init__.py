@@ -19,6 +19,8 @@ module         what
 
 from __future__ import annotations
 
+import sys
+import time
 from pathlib import Path
 
 from foundation.files import check_output_dir, write_json
@@ -26,13 +28,14 @@ from foundation.files import check_output_dir, write_json
 from .capture import demo_capture
 from .face import demo_face, demo_face_learned, demo_photo
 from .materials import demo_btf, demo_matdiff
-from .morph import demo_diffrender, demo_gan, demo_morph
-from .report import DemoSettings, bench_section, write_index
+from .morph import demo_diffrender, demo_gan, demo_morph, demo_refiners
+from .report import DemoSettings, bench_section, time_section, write_index
 from .scenes import demo_scenes
 from .tables import demo_benchmarks, demo_scale
 
 __all__ = ["DemoSettings", "demo_benchmarks", "demo_capture", "demo_btf", "demo_diffrender", "demo_face", "demo_face_learned",
-           "demo_gan", "demo_matdiff", "demo_morph", "demo_photo", "demo_scale", "demo_scenes", "run_demo"]
+           "demo_gan", "demo_matdiff", "demo_morph", "demo_photo", "demo_refiners", "demo_scale", "demo_scenes",
+           "run_demo"]
 
 
 def run_demo(out_dir: str | Path = "out/demo", s: DemoSettings | None = None,
@@ -44,30 +47,67 @@ def run_demo(out_dir: str | Path = "out/demo", s: DemoSettings | None = None,
     out_dir = check_output_dir(out_dir, "index.html", "--out")
     bench_dir = Path(bench_dir) if bench_dir is not None else None
     out_dir.mkdir(parents=True, exist_ok=True)
-    results = {"scenes": demo_scenes(out_dir, s)}
+    seconds: dict[str, float] = {}
+    results: dict = {}
+
+    def step(key: str, fn, *args, **kw):
+        """Run one section, say so on stderr and keep its wall seconds (the report's time table)."""
+        print(f"demo: {key} …", file=sys.stderr, flush=True)
+        t = time.perf_counter()
+        results[key] = fn(*args, **kw)
+        seconds[key] = time.perf_counter() - t
+        print(f"demo: {key} {seconds[key]:.1f} s", file=sys.stderr, flush=True)
+
+    step("scenes", demo_scenes, out_dir, s)
     if s.face:
         # the camera renders follow --resolution/--spp, capped at the face benchmark's own defaults
-        results["face"] = demo_face(out_dir, uv_res=s.face_uv_res, seed=s.seed, bench_dir=bench_dir,
-                                    render_res=min(s.resolution, 192), render_spp=min(s.spp, 64))
-        results["photo"] = demo_photo(out_dir, uv_res=s.face_uv_res, seed=s.seed,  # relit like the other renders
-                                      relight_res=min(s.resolution, 256), relight_spp=min(s.spp, 64))
+        step("face", demo_face, out_dir, uv_res=s.face_uv_res, seed=s.seed, bench_dir=bench_dir,
+             render_res=min(s.resolution, 192), render_spp=min(s.spp, 64))
+        step("photo", demo_photo, out_dir, uv_res=s.face_uv_res, seed=s.seed,  # relit like the other renders
+             relight_res=min(s.resolution, 256), relight_spp=min(s.spp, 64))
     if s.capture:
-        results["capture"] = demo_capture(out_dir, resolution=min(s.resolution, 384), spp=min(s.spp, 16), seed=s.seed,
-                                          bench_dir=bench_dir, morph_iterations=min(s.morph_iterations, 60))
+        step("capture", demo_capture, out_dir, resolution=min(s.resolution, 384), spp=min(s.spp, 16), seed=s.seed,
+             bench_dir=bench_dir, morph_iterations=min(s.morph_iterations, 60))
     if s.morph_iterations > 0:
-        results["morph"] = demo_morph(out_dir, iterations=s.morph_iterations, seed=s.seed, bench_dir=bench_dir)
+        step("morph", demo_morph, out_dir, iterations=s.morph_iterations, seed=s.seed, bench_dir=bench_dir)
+        if s.refiner_seconds > 0:
+            step("refiners", demo_refiners, out_dir, s.refiner_seconds, s.seed)
     if s.btf:
-        results["btf"] = demo_btf(out_dir, s, bench_dir=bench_dir)
-        results["matdiff"] = demo_matdiff(out_dir, s, bench_dir=bench_dir)
-    results["gan"] = demo_gan(out_dir, bench_dir)  # reads the bench's gan.json when present; trains nothing
-    results["scale"] = demo_scale(out_dir, bench_dir)
-    results["diffrender"] = demo_diffrender(out_dir, bench_dir)
-    results["face_learned"] = demo_face_learned(out_dir, bench_dir)
-    results["benchmarks"] = demo_benchmarks(out_dir, bench_dir)
+        step("btf", demo_btf, out_dir, s, bench_dir=bench_dir)
+        step("matdiff", demo_matdiff, out_dir, s, bench_dir=bench_dir)
+    step("gan", demo_gan, out_dir, bench_dir)  # reads the bench's gan.json when present; trains nothing
+    step("scale", demo_scale, out_dir, bench_dir)
+    step("diffrender", demo_diffrender, out_dir, bench_dir)
+    step("face_learned", demo_face_learned, out_dir, bench_dir)
+    step("benchmarks", demo_benchmarks, out_dir, bench_dir)
     if s.plugin_bench:
-        bench = bench_plugins(PluginBenchSettings(resolution=128, spp=32, repetitions=3, rounds=2))
-        write_json(out_dir / "bench_plugins.json", bench)
-        bench_section(out_dir, bench)
-        results["bench_plugins"] = {k: bench[k] for k in ("ggx_uv_ms", "principled_ms", "ggx_uv_vs_principled")}
+        def plugin_speed():
+            bench = bench_plugins(PluginBenchSettings(resolution=128, spp=32, repetitions=3, rounds=2))
+            write_json(out_dir / "bench_plugins.json", bench)
+            bench_section(out_dir, bench)
+            return {k: bench[k] for k in ("ggx_uv_ms", "principled_ms", "ggx_uv_vs_principled", "neural_btf_ms",
+                                          "neural_btf_vs_principled", "neural_btf_vs_principled_evaluated")}
+        step("bench_plugins", plugin_speed)
+    results["seconds"] = seconds
+    time_section(out_dir, seconds, _what_ran(s, results))
     write_json(out_dir / "demo.json", results)
     return write_index(out_dir)
+
+
+def _what_ran(s: DemoSettings, results: dict) -> dict[str, str]:
+    """What each part of the report did in this run, in a few words (the time table's middle column)."""
+    side = min(s.resolution, 384)
+    out = {"scenes": f"3 scenes and their intrinsic layers, {s.resolution}², {s.spp} spp",
+           "face": f"a benchmark of the bundled scan and its fit at {s.face_uv_res}² texels",
+           "photo": "landmarks, unwrap, delighting and relighting of one photo" if results.get("photo") else
+                    "skipped: MediaPipe is not installed",
+           "capture": f"structure from motion of 10 photos at {side} px, a {min(s.morph_iterations, 60)}-iteration "
+                      "morph of its coarse mesh",
+           "morph": f"a {s.morph_iterations}-iteration morph with its choices given",
+           "refiners": f"Morph-GAN and the diffusion renderer, {s.refiner_seconds:g} s of training each",
+           "btf": "the neural materials scene with the bundled basis",
+           "matdiff": "materials the bundled model generated",
+           "bench_plugins": "a short run of the plugin benchmark"}
+    for k in ("gan", "scale", "diffrender", "face_learned", "benchmarks"):
+        out[k] = "tables of the bench folder's JSON" if results.get(k) else "nothing: no such JSON in the bench folder"
+    return out

@@ -55,6 +55,15 @@ def _step_why(mr) -> str:
             f"{c.validation_l1_uniform:.4f} with uniform Adam (kept only {c.margin:.1%} or more below)")
 
 
+def demo_sized(s):
+    """A morph's settings with each choice given instead of asked of the validation photos: the first λ candidate,
+    no planarity or colour prior candidates, uniform Adam, no light estimate (one run, not a run per candidate)."""
+    from dataclasses import replace
+
+    return replace(s, lambda_select=s.lambda_select[:1], planarity_select=(), colour_prior_weight=0.0,
+                   step_select_quantile=1.0, light_select_every=0)
+
+
 def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: Path | None = None) -> dict:
     """Armadillo morph benchmark: degraded input vs morphed vs photo, metrics; bench tables if present."""
     import shutil
@@ -65,7 +74,7 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
     mdir = Path(out_dir) / "morph"
     bench = load_morph_benchmark(make_morph_benchmark(ARMADILLO, mdir / "benchmark", MorphBenchmarkSettings(seed=seed)))
     shutil.rmtree(mdir / "run", ignore_errors=True)
-    mr = run_morph(bench, mdir / "run", MorphSettings(iterations=iterations, seed=seed))
+    mr = run_morph(bench, mdir / "run", demo_sized(MorphSettings(iterations=iterations, seed=seed)))
     m = to_json(mr)
     m.update(inverted_before_repair=mr.repair.inverted_before_repair if mr.repair else None,
              repaired_vertices=mr.repair.repaired_vertices if mr.repair else None,
@@ -85,7 +94,9 @@ def demo_morph(out_dir: Path, iterations: int = 100, seed: int = 0, bench_dir: P
              {"metric": "new error (rms)", "value": err["morphed"].new_error_rms}]
     body = (f"<p>Stanford Armadillo, {len(bench.meta.cameras)} drone-orbit photos path traced under the "
             f"{bench.meta.hdri} HDRI; degraded input: {bench.meta.degradation.coarse_vertices} vertices "
-            f"with bumps, wobble and misregistered colours. Morph: {iterations} iterations, large steps, lit mode, "
+            f"with bumps, wobble and misregistered colours. Morph (demo-sized: each choice given, one run; "
+            f"<code>photoreal morph run BENCHMARK</code> asks the validation photos for λ, planarity, colour prior, "
+            f"step and light, a trial run each): {iterations} iterations, large steps, lit mode, "
             f"3 views per step, input remeshed to {m['vertices']} vertices; folds left at the end are unfolded "
             f"locally and counted (inverted_before_repair), and so are curls of an open border (its triangles turned "
             f"more than {mr.settings.border_turn_deg:g}° from the start, border_turned_before / after). Planarity prior weight {mr.planarity.weight:g}"
@@ -217,3 +228,50 @@ def demo_diffrender(out_dir: Path, bench_dir: Path | None = None) -> dict | None
             body += f"<img src='{name}' style='max-width:100%'>"
     add_section(out_dir, "48_diffrender", "Intrinsic-conditioned diffusion renderer (seed 000)", body)
     return {k: v.get("flip") for k, v in b["heldout"].items()}
+
+
+def demo_refiners(out_dir: Path, seconds: float = 15.0, seed: int = 0) -> dict:
+    """Morph-GAN and the diffusion renderer trained demo-sized (``seconds`` each, from scratch, all cores) on the
+    demo morph's training views (``OUT/morph``, made by :func:`demo_morph`), beside the morphed mesh's renders at the
+    held-out views. `photoreal bench gan` and `photoreal bench diffrender` train them in full."""
+    import numpy as np
+
+    from foundation import imageio
+    from foundation.metrics import ImageMetrics, image_metrics
+    from generative.diffrender import (DiffRenderSettings, SampleSettings, load_diffrender, load_intrinsic_views,
+                                       render_views, train_diffrender)
+    from generative.gan import GanTrainSettings, load_heldout_predictions, load_paired_views, train_gan
+    from inverse.morph import load_morph_benchmark
+
+    mdir = Path(out_dir) / "morph"
+    bench = load_morph_benchmark(mdir / "benchmark")
+    run, work = mdir / "run", mdir / "refiners"
+    pairs = load_paired_views(bench, run, show_progress=False)
+    ids = list(pairs.test)
+    gan = train_gan(pairs, work / "morph_gan", GanTrainSettings(max_seconds=seconds, threads=0, seed=seed),
+                    show_progress=False)
+    views = load_intrinsic_views(bench, run, show_progress=False)
+    ds = DiffRenderSettings(max_seconds=seconds, widths=(16, 32, 48, 64), seed=seed)  # a smaller UNet: more steps
+    dr_result = train_diffrender([views], work / "diffrender", ds, show_progress=False)
+    model, s = load_diffrender(work / "diffrender")
+    diffusion, _ = render_views(model, s, {k: a[ids] for k, a in views.layers["morphed"].items()},
+                                SampleSettings(draws=2, seed=seed), show_progress=False)
+    images = {"coarse input": pairs.rendered[ids], "morphed (path traced)": pairs.morphed[ids],
+              "morphed, PBR recomposition": views.recomposed("morphed")[ids],
+              f"Morph-GAN ({gan.training.steps} steps)": load_heldout_predictions(work / "morph_gan", ids),
+              f"diffusion renderer ({dr_result.training.steps} steps)": diffusion}
+    rows, figs = [], []
+    for k, (name, im) in enumerate(images.items()):
+        m = ImageMetrics.mean([image_metrics(p, r) for p, r in zip(im, pairs.photos[ids])])
+        rows.append({"render": name, "psnr": m.psnr, "flip": m.flip, "one_minus_ssim": m.one_minus_ssim})
+        imageio.write_png(work / f"view_{k}.png", np.clip(im[0], 0, 1))
+        figs.append(figure(f"morph/refiners/view_{k}.png", name))
+    imageio.write_png(work / "photo.png", pairs.photos[ids[0]])
+    figs.append(figure("morph/refiners/photo.png", "photo"))
+    body = (f"<p>Demo-sized: Morph-GAN and the diffusion renderer each trained <b>{seconds:g} s</b> from scratch on "
+            f"the morph's {len(pairs.train)} training views (the full runs: <code>photoreal bench gan</code>, "
+            "<code>photoreal bench diffrender</code>; their tables follow where the bench folder has them). Held-out "
+            f"view {ids[0]} and the mean over the {len(ids)} held-out views; lower is better except PSNR.</p>"
+            f"<div>{''.join(figs)}</div>" + table(rows, ["render", "psnr", "flip", "one_minus_ssim"]))
+    add_section(out_dir, "44_refiners", "Learned refinement of the morphed mesh's renders, demo-sized", body)
+    return {r["render"]: {"psnr": r["psnr"], "flip": r["flip"]} for r in rows}

@@ -21,6 +21,8 @@ class DemoSettings:
     face: bool = True
     face_uv_res: int = 256
     morph_iterations: int = 100  #: 0 skips the morphing section
+    #: training budget of each demo-sized learned refiner (Morph-GAN, diffusion renderer) on the morph; 0 skips them
+    refiner_seconds: float = 10.0
     btf: bool = True  #: neural materials scene (+ `photoreal bench btf` tables when present)
     plugin_bench: bool = True  #: time ggx_uv against principled (a short run of `photoreal bench plugins`)
     capture: bool = True  #: a real capture (the vendored ruins) through structure from motion
@@ -31,6 +33,7 @@ class DemoSettings:
         validate.seed("seed", self.seed)
         validate.integer("face_uv_res", self.face_uv_res, 16, 4096)
         validate.integer("morph_iterations", self.morph_iterations, 0)
+        validate.non_negative("refiner_seconds", self.refiner_seconds)
 
 
 def add_section(out_dir: Path, key: str, title: str, body_html: str) -> Path:
@@ -99,11 +102,50 @@ def copy_chart(result: dict, bench_dir: Path | None, dest: Path) -> bool:
 
 
 def bench_section(out_dir: Path, bench: dict) -> None:
+    modes = bench["modes_ms"]
+    rows = "".join(f"<tr><th>{name}</th>" + "".join(f"<td>{modes[m][name]:.1f}</td>" for m in modes)
+                   + "".join(f"<td>{modes[m][name] / modes[m]['principled']:.2f}</td>" for m in modes) + "</tr>"
+                   for name in modes["symbolic"])
+    nb = bench["neural_btf"]
+    psnr = f"{nb['heldout_psnr']:.1f} dB" if nb.get("heldout_psnr") is not None else "not recorded"
+    add_section(out_dir, "20_bench_plugins", "Plugin speed: ggx_uv and neural_btf vs builtin principled",
+                "<table><tr><th>plugin</th>" + "".join(f"<th>{m} ms</th>" for m in modes)
+                + "".join(f"<th>× principled, {m}</th>" for m in modes) + f"</tr>{rows}</table>"
+                f"<p>{html.escape(bench.get('scene', ''))}; {bench['settings']['resolution']}², "
+                f"{bench['settings']['spp']} spp, median of "
+                f"{bench['settings']['repetitions'] * bench['settings']['rounds']} renders after warm-up. symbolic: "
+                f"what a plain <code>mi.render</code> runs (one megakernel); evaluated: wavefront. neural_btf: basis width {nb['basis_width']}, {html.escape(nb['material'])} (held-out "
+                f"PSNR {psnr}); first ggx_uv render's compile {bench['compile_s']:.2f} s.</p>")
+
+
+#: what each part of the demo runs in full (the demo runs demo-sized versions, or reads the bench's JSON)
+FULL_COMMANDS = {
+    "scenes": "photoreal render scenes/SCENE.xml -o out.exr --aovs",
+    "face": "photoreal face make-benchmark --scan SCAN.obj --out B && photoreal face fit B; photoreal bench face",
+    "photo": "photoreal face from-photo PHOTO --out DIR",
+    "capture": "photoreal capture sfm IMAGES --out CAPTURE && photoreal morph run CAPTURE; photoreal bench capture",
+    "morph": "photoreal morph make-benchmark --mesh MESH --out B && photoreal morph run B; photoreal bench morph",
+    "btf": "photoreal bench btf (renders BTFs, trains the universal basis, fits the materials)",
+    "matdiff": "photoreal btf generate --keywords 'rough red leather' --out M.npz; photoreal bench matdiff",
+    "refiners": "photoreal gan train B --out RUN; photoreal diffrender train B --out RUN; photoreal bench gan; "
+                "photoreal bench diffrender",
+    "gan": "photoreal bench gan",
+    "scale": "photoreal bench scale",
+    "diffrender": "photoreal bench diffrender",
+    "face_learned": "photoreal face train-models --out RUN; photoreal bench face-learned",
+    "benchmarks": "make bench (photoreal bench all)",
+    "bench_plugins": "photoreal bench plugins",
+}
+
+
+def time_section(out_dir: Path, seconds: dict[str, float], ran: dict[str, str]) -> None:
+    """The report's last section: each part's wall seconds in this run, what it did, and its full command."""
     rows = "".join(
-        f"<tr><th>{k}</th><td>{bench[k]:.3f}</td></tr>"
-        for k in ("ggx_uv_ms", "principled_ms", "ggx_uv_vs_principled", "compile_s")
-    )
-    add_section(out_dir, "20_bench_plugins", "Plugin speed: ggx_uv vs builtin principled",
-                f"<table>{rows}</table><p>{html.escape(bench.get('scene', ''))}; "
-                f"{bench['settings']['resolution']}², {bench['settings']['spp']} spp, median of "
-                f"{bench['settings']['repetitions'] * bench['settings']['rounds']} renders after warm-up.</p>")
+        f"<tr><th style='text-align:left'>{html.escape(k)}</th><td>{v:.1f}</td>"
+        f"<td style='text-align:left'>{html.escape(ran.get(k, ''))}</td>"
+        f"<td style='text-align:left'><code>{html.escape(FULL_COMMANDS.get(k, ''))}</code></td></tr>"
+        for k, v in seconds.items())
+    add_section(out_dir, "99_time", "How long each part took, and the command that runs it in full",
+                f"<p>Wall seconds of this run ({sum(seconds.values()):.0f} s in all). The demo runs each stage "
+                "demo-sized, or shows what <code>photoreal bench …</code> wrote into the bench folder.</p>"
+                "<table><tr><th>part</th><th>seconds</th><th>here</th><th>in full</th></tr>" + rows + "</table>")
