@@ -251,10 +251,20 @@ class ConstantNet:
         return h
 
 
-def render_net(layers: list[tuple[np.ndarray, np.ndarray]]):
-    """The network form a render uses: constants on LLVM (:class:`ConstantNet`), cooperative vectors on CUDA
-    (:class:`CoopNet`, half precision on the tensor cores)."""
-    if dr.backend_v(mi.Float) == dr.JitBackend.CUDA:
+NET_FORMS = ("auto", "constants", "coop")
+#: ``auto`` writes an MLP into the kernel up to this many weights (a width-32 basis); the bundled width-64
+#: basis as constants took ~50 s to compile for the demo's renders on an empty kernel cache (2 cores)
+CONSTANT_WEIGHTS = 4096
+
+
+def render_net(layers: list[tuple[np.ndarray, np.ndarray]], form: str = "auto"):
+    """The network form a render uses: constants (:class:`ConstantNet`) or cooperative vectors (:class:`CoopNet`,
+    half precision on CUDA's tensor cores). CUDA always takes cooperative vectors; on LLVM ``auto`` takes constants
+    for an MLP of at most :data:`CONSTANT_WEIGHTS` weights."""
+    if form not in NET_FORMS:
+        raise ValueError(f"network form {form!r}: expected one of {', '.join(NET_FORMS)}")
+    if dr.backend_v(mi.Float) == dr.JitBackend.CUDA or form == "coop" or (
+            form == "auto" and sum(w.size for w, _ in layers) > CONSTANT_WEIGHTS):
         return CoopNet(layers, training=True)
     return ConstantNet(layers)
 

@@ -34,6 +34,14 @@
      - multiplies the BTF value (exposure of a captured material)
      - 1.0
      - no
+   * - network
+     - string
+     - how the MLPs run on LLVM: ``constants`` (weights written into the kernel, one speed in
+       both Dr.Jit modes, a compile that grows with the weights), ``coop`` (cooperative
+       vectors: quick to compile, fast in evaluated mode only) or ``auto`` (``constants`` up to
+       4096 weights per MLP, a basis of width ≤ 32; ``coop`` above). CUDA always uses ``coop``
+     - auto
+     - no
 
 Cosine convention: the network is trained on f(u, ω_i, ω_o)·cosθ_i — radiance towards ω_o under a
 distant light of unit perpendicular irradiance from ω_i (``inverse/btf/data.py``). Mitsuba's
@@ -44,10 +52,13 @@ traced from the camera (``path``, ``prb``; not light tracing).
 
 Sampling is cosine-weighted on the upper hemisphere, ``pdf`` = cosθ/π, reflection only, front side
 only. Gradients flow into ``t_off`` and ``t_rgb`` (fit a material through full renders); the MLP
-weights are constants of the kernel. On LLVM they are written into it one fused multiply-add per
-weight (:class:`~mi_plugins.neural_basis.ConstantNet`): inside the symbolic megakernel of a plain
+weights are constants of the kernel. On LLVM a narrow basis (``network`` = ``auto``, ≤ 4096 weights
+per MLP) is written into it one fused multiply-add per weight
+(:class:`~mi_plugins.neural_basis.ConstantNet`): inside the symbolic megakernel of a plain
 ``mi.render``, cooperative vectors read inside a BSDF call ran ~9× slower than in a kernel of their
-own, constants run at one speed in both modes. Under ``cuda_ad_*`` variants the MLPs are cooperative
+own, constants run at one speed in both modes. A wider basis (the bundled one, width 64) stays in
+cooperative vectors, since its constants take tens of seconds to compile on a fresh kernel cache:
+render it in evaluated mode (below). Under ``cuda_ad_*`` variants the MLPs are cooperative
 vectors in float16 (Dr.Jit packs CUDA/OptiX cooperative vectors for half precision only): values
 within 1 % (+0.5 % of the largest) of the float32 training path, texture gradients within 5 % of
 central differences (tests, H100).
@@ -101,9 +112,12 @@ class NeuralBTF(mi.BSDF):
         self.res = mat.res
         self.t_off = mi.TensorXf(aligned(mat.t_off))
         self.t_rgb = mi.TensorXf(aligned(mat.t_rgb))
-        # constants in the kernel on LLVM, cooperative vectors on CUDA (render_net); both backpropagate into the textures
-        self.m_off = nb.render_net(basis.m_off)
-        self.m_rgb = nb.render_net(basis.m_rgb)
+        # constants in the kernel or cooperative vectors (render_net); both backpropagate into the textures
+        form = str(props.get("network", "auto"))
+        if form not in nb.NET_FORMS:
+            raise ValueError(f"neural_btf: parameter 'network' = {form!r} must be one of {', '.join(nb.NET_FORMS)}")
+        self.m_off = nb.render_net(basis.m_off, form)
+        self.m_rgb = nb.render_net(basis.m_rgb, form)
         flags = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide | mi.BSDFFlags.SpatiallyVarying
         self.m_components = [int(flags)]
         self.m_flags = int(flags)

@@ -75,6 +75,13 @@ MODES = ("symbolic", "evaluated")  #: a plain mi.render's megakernel; wavefront 
 NEURAL_TARGET = {"max_vs_principled": 2.0, "min_heldout_psnr": 32.0}
 
 
+def _network_form(desc: dict) -> str:
+    """The MLP form the plugin picks for this basis (`network` = auto): constants or cooperative vectors."""
+    from mi_plugins.neural_basis import ConstantNet
+
+    return "constants" if isinstance(mi.load_dict(desc).m_rgb, ConstantNet) else "coop"
+
+
 def _material_psnr(path: str) -> float | None:
     """The held-out slice PSNR ``bench btf`` recorded in a fitted material's meta (None if it did not)."""
     from mi_plugins.neural_basis import load_material
@@ -152,7 +159,8 @@ def bench_plugins(s: PluginBenchSettings, show_progress: bool = True) -> dict:
     neural = {
         "ms": {m: modes[m]["neural_btf"] for m in MODES}, "vs_principled": vs,
         "vs_fastest_principled": {m: modes[m]["neural_btf"] / fastest for m in MODES},
-        "basis_width": load_basis(nb["basis"]).config.width, "material": nb["material"].rsplit("/", 1)[-1],
+        "basis_width": load_basis(nb["basis"]).config.width, "network": _network_form(nb),
+        "material": nb["material"].rsplit("/", 1)[-1],
         "heldout_psnr": psnr, "target": NEURAL_TARGET,
         "met": bool(max(vs.values()) <= NEURAL_TARGET["max_vs_principled"]
                     and psnr is not None and psnr >= NEURAL_TARGET["min_heldout_psnr"]),

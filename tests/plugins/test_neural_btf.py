@@ -35,10 +35,18 @@ def _hemi(rng, n):
     return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
 
 
-def test_plugin_eval_equals_training_code_path(tmp_path, ctx):
-    """CoopVec (plugin) and tensor mode (training) evaluate the same eqs. 2–3; wrap included."""
-    basis, mat, b, m = _files(tmp_path)
-    bsdf = mi.load_dict({"type": "neural_btf", "basis": b, "material": m})
+# each network form of the plugin; constants with a narrow basis (their compile grows with the weights)
+FORMS = [("coop", nb.BasisConfig(width=32)), ("constants", nb.BasisConfig(width=32)), ("auto", nb.BasisConfig(width=32))]
+
+
+@pytest.mark.parametrize("form,config", FORMS, ids=[f for f, _ in FORMS])
+def test_plugin_eval_equals_training_code_path(tmp_path, ctx, form, config):
+    """The plugin's network (constants or CoopVec) and tensor mode (training) evaluate the same eqs. 2–3; wrap
+    included."""
+    basis, mat, b, m = _files(tmp_path, config=config)
+    bsdf = mi.load_dict({"type": "neural_btf", "basis": b, "material": m, "network": form})
+    if not CUDA:  # auto: a width-32 basis is written as constants, the default width-64 one stays CoopVec
+        assert isinstance(bsdf.m_rgb, nb.ConstantNet if form != "coop" else nb.CoopNet)
     rng = np.random.default_rng(1)
     n = 4000
     wi, wo = _hemi(rng, n), _hemi(rng, n)
@@ -119,10 +127,11 @@ def test_sample_weight_equals_eval_over_pdf(tmp_path, ctx):
     np.testing.assert_allclose(w.numpy()[:, ok], (value.numpy() / pdf.numpy())[:, ok], rtol=1e-4, atol=1e-6)
 
 
-def test_gradients_wrt_feature_textures_match_finite_differences(tmp_path, ctx):
-    """d(sum of eval)/d texel through the plugin (CoopVec backward) vs central differences."""
-    _, mat, b, m = _files(tmp_path, res=8)
-    bsdf = mi.load_dict({"type": "neural_btf", "basis": b, "material": m})
+@pytest.mark.parametrize("form,config", FORMS[:2], ids=[f for f, _ in FORMS[:2]])
+def test_gradients_wrt_feature_textures_match_finite_differences(tmp_path, ctx, form, config):
+    """d(sum of eval)/d texel through the plugin (constants or CoopVec backward) vs central differences."""
+    _, mat, b, m = _files(tmp_path, res=8, config=config)
+    bsdf = mi.load_dict({"type": "neural_btf", "basis": b, "material": m, "network": form})
     params = mi.traverse(bsdf)
     n = 2000
     rng = np.random.default_rng(6)
@@ -242,6 +251,10 @@ def test_bad_files_and_parameters_are_named(tmp_path):
         nb.load_basis(bad)
     with pytest.raises(RuntimeError, match="tiling"):
         mi.load_dict({"type": "neural_btf", "basis": b, "material": m, "tiling": -1.0})
+    with pytest.raises(RuntimeError, match="'network' = 'gpu'"):
+        mi.load_dict({"type": "neural_btf", "basis": b, "material": m, "network": "gpu"})
+    assert isinstance(mi.load_dict({"type": "neural_btf", "basis": b, "material": m}).m_rgb,
+                      nb.CoopNet)  # auto: the default width-64 basis (> 4096 weights) stays CoopVec
     t = np.zeros((8, 8, 4), np.float32)
     nb.save_material(tmp_path / "four.npz", nb.NeuralMaterial(t, t))
     with pytest.raises(nb.NeuralBTFError, match="4 channels"):
