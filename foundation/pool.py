@@ -461,7 +461,10 @@ def _stop_workers(ex: cf.ProcessPoolExecutor) -> None:
         if p.is_alive():
             p.terminate()
     for p in procs:
-        p.join(timeout=5)
+        p.join(timeout=3)
+        if p.is_alive():  # SIGTERM not acted on in time (e.g. inside a long native call): SIGKILL
+            p.kill()
+            p.join(timeout=3)
     ex.shutdown(wait=True, cancel_futures=True)  # the pool sees its workers gone and closes its queues
 
 

@@ -252,20 +252,33 @@ class ConstantNet:
 
 
 NET_FORMS = ("auto", "constants", "coop")
-#: ``auto`` writes an MLP into the kernel up to this many weights (a width-32 basis); the bundled width-64
-#: basis as constants took ~50 s to compile for the demo's renders on an empty kernel cache (2 cores)
+#: ``auto`` writes an MLP of at most this many weights (a width-32 basis) into every kernel; a wider one only into
+#: symbolic kernels: the bundled width-64 basis as constants compiled for ~50 s in the demo's evaluated-mode renders
+#: on an empty kernel cache (2 cores), in cooperative vectors for ~1 s
 CONSTANT_WEIGHTS = 4096
 
 
+class ModeNet:
+    """Constants inside Dr.Jit's symbolic calls (a plain ``mi.render``), cooperative vectors in evaluated mode, where
+    they run at full speed and compile in a fraction of the time."""
+
+    def __init__(self, layers: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        self.constants, self.coop = ConstantNet(layers), CoopNet(layers, training=True)
+
+    def __call__(self, inputs: list) -> list:
+        return (self.constants if dr.flag(dr.JitFlag.SymbolicCalls) else self.coop)(inputs)
+
+
 def render_net(layers: list[tuple[np.ndarray, np.ndarray]], form: str = "auto"):
-    """The network form a render uses: constants (:class:`ConstantNet`) or cooperative vectors (:class:`CoopNet`,
-    half precision on CUDA's tensor cores). CUDA always takes cooperative vectors; on LLVM ``auto`` takes constants
-    for an MLP of at most :data:`CONSTANT_WEIGHTS` weights."""
+    """The network form a render uses: constants (:class:`ConstantNet`), cooperative vectors (:class:`CoopNet`, half
+    precision on CUDA's tensor cores) or, on LLVM for ``auto`` above :data:`CONSTANT_WEIGHTS` weights, the one that
+    suits the Dr.Jit mode (:class:`ModeNet`). CUDA always takes cooperative vectors."""
     if form not in NET_FORMS:
         raise ValueError(f"network form {form!r}: expected one of {', '.join(NET_FORMS)}")
-    if dr.backend_v(mi.Float) == dr.JitBackend.CUDA or form == "coop" or (
-            form == "auto" and sum(w.size for w, _ in layers) > CONSTANT_WEIGHTS):
+    if dr.backend_v(mi.Float) == dr.JitBackend.CUDA or form == "coop":
         return CoopNet(layers, training=True)
+    if form == "auto" and sum(w.size for w, _ in layers) > CONSTANT_WEIGHTS:
+        return ModeNet(layers)
     return ConstantNet(layers)
 
 

@@ -39,7 +39,8 @@
      - how the MLPs run on LLVM: ``constants`` (weights written into the kernel, one speed in
        both Dr.Jit modes, a compile that grows with the weights), ``coop`` (cooperative
        vectors: quick to compile, fast in evaluated mode only) or ``auto`` (``constants`` up to
-       4096 weights per MLP, a basis of width ≤ 32; ``coop`` above). CUDA always uses ``coop``
+       4096 weights per MLP, a basis of width ≤ 32; above, ``constants`` in symbolic mode and
+       ``coop`` in evaluated mode). CUDA always uses ``coop``
      - auto
      - no
 
@@ -56,9 +57,9 @@ weights are constants of the kernel. On LLVM a narrow basis (``network`` = ``aut
 per MLP) is written into it one fused multiply-add per weight
 (:class:`~mi_plugins.neural_basis.ConstantNet`): inside the symbolic megakernel of a plain
 ``mi.render``, cooperative vectors read inside a BSDF call ran ~9× slower than in a kernel of their
-own, constants run at one speed in both modes. A wider basis (the bundled one, width 64) stays in
-cooperative vectors, since its constants take tens of seconds to compile on a fresh kernel cache:
-render it in evaluated mode (below). Under ``cuda_ad_*`` variants the MLPs are cooperative
+own, constants run at one speed in both modes. A wider basis (the bundled one, width 64) is written
+as constants into symbolic kernels only: in evaluated mode (below) cooperative vectors run as fast
+and compile in a second where its constants take tens of seconds on an empty kernel cache. Under ``cuda_ad_*`` variants the MLPs are cooperative
 vectors in float16 (Dr.Jit packs CUDA/OptiX cooperative vectors for half precision only): values
 within 1 % (+0.5 % of the largest) of the float32 training path, texture gradients within 5 % of
 central differences (tests, H100).

@@ -76,10 +76,12 @@ NEURAL_TARGET = {"max_vs_principled": 2.0, "min_heldout_psnr": 32.0}
 
 
 def _network_form(desc: dict) -> str:
-    """The MLP form the plugin picks for this basis (`network` = auto): constants or cooperative vectors."""
-    from mi_plugins.neural_basis import ConstantNet
+    """The MLP form the plugin picks for this basis (`network` = auto): constants, cooperative vectors or, for a wide
+    basis, constants in symbolic mode and cooperative vectors in evaluated mode."""
+    from mi_plugins.neural_basis import ConstantNet, ModeNet
 
-    return "constants" if isinstance(mi.load_dict(desc).m_rgb, ConstantNet) else "coop"
+    net = mi.load_dict(desc).m_rgb
+    return "constants" if isinstance(net, ConstantNet) else "by mode" if isinstance(net, ModeNet) else "coop"
 
 
 def _material_psnr(path: str) -> float | None:

@@ -45,7 +45,7 @@ def test_plugin_eval_equals_training_code_path(tmp_path, ctx, form, config):
     included."""
     basis, mat, b, m = _files(tmp_path, config=config)
     bsdf = mi.load_dict({"type": "neural_btf", "basis": b, "material": m, "network": form})
-    if not CUDA:  # auto: a width-32 basis is written as constants, the default width-64 one stays CoopVec
+    if not CUDA:  # auto: a width-32 basis is written as constants
         assert isinstance(bsdf.m_rgb, nb.ConstantNet if form != "coop" else nb.CoopNet)
     rng = np.random.default_rng(1)
     n = 4000
@@ -62,6 +62,24 @@ def test_plugin_eval_equals_training_code_path(tmp_path, ctx, form, config):
         np.testing.assert_allclose(got, want, rtol=1e-2, atol=5e-3 * want.max())
     else:  # f32 matvec vs f32 matmul: same maths, different summation order at worst
         np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+
+
+def test_a_wide_basis_gives_the_same_values_in_both_dr_jit_modes(tmp_path, ctx):
+    """auto with the default width-64 basis (ModeNet on LLVM): constants inside symbolic calls, CoopVec in evaluated
+    mode; the two are the same f32 maths (summation order aside)."""
+    from mi_plugins.bsdfs.neural_btf import evaluated_mode
+
+    _, _, b, m = _files(tmp_path)
+    bsdf = mi.load_dict({"type": "neural_btf", "basis": b, "material": m})
+    rng = np.random.default_rng(2)
+    wi, wo = _hemi(rng, 500), _hemi(rng, 500)
+    si = local_si(mi.Vector3f(wo.T))
+    si.uv = mi.Point2f(*rng.random((2, 500)).astype(np.float32))
+    symbolic = bsdf.eval(ctx, si, mi.Vector3f(wi.T)).numpy()
+    with evaluated_mode():
+        evaluated = bsdf.eval(ctx, si, mi.Vector3f(wi.T)).numpy()
+    assert symbolic.max() > 0.05
+    np.testing.assert_allclose(evaluated, symbolic, rtol=1e-2 if CUDA else 1e-4, atol=1e-5)
 
 
 def test_half_precision_cooperative_vectors_stay_within_float16_rounding():
@@ -253,8 +271,8 @@ def test_bad_files_and_parameters_are_named(tmp_path):
         mi.load_dict({"type": "neural_btf", "basis": b, "material": m, "tiling": -1.0})
     with pytest.raises(RuntimeError, match="'network' = 'gpu'"):
         mi.load_dict({"type": "neural_btf", "basis": b, "material": m, "network": "gpu"})
-    assert isinstance(mi.load_dict({"type": "neural_btf", "basis": b, "material": m}).m_rgb,
-                      nb.CoopNet)  # auto: the default width-64 basis (> 4096 weights) stays CoopVec
+    if not CUDA:  # auto, the default width-64 basis (> 4096 weights): constants if symbolic, CoopVec if evaluated
+        assert isinstance(mi.load_dict({"type": "neural_btf", "basis": b, "material": m}).m_rgb, nb.ModeNet)
     t = np.zeros((8, 8, 4), np.float32)
     nb.save_material(tmp_path / "four.npz", nb.NeuralMaterial(t, t))
     with pytest.raises(nb.NeuralBTFError, match="4 channels"):
