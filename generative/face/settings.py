@@ -11,6 +11,17 @@ from .data import FaceDataSettings
 from .encoding import BRANCHES, VARIANTS
 
 
+def _check_training(s) -> None:
+    """The training fields every face model's settings share."""
+    validate.integer("steps", s.steps, 1)
+    validate.optional(validate.positive, "max_seconds", s.max_seconds)
+    validate.integer("batch", s.batch, 1, 4096)
+    validate.positive("lr", s.lr)
+    validate.integer("checkpoint_every", s.checkpoint_every, 1)
+    validate.integer("threads", s.threads, 0)
+    validate.seed("seed", s.seed)
+
+
 @dataclass
 class CompletionSettings:
     """The completion/homogenisation diffusion model (the backbone of the decomposition) and its training run."""
@@ -39,13 +50,7 @@ class CompletionSettings:
         validate.integer("res", self.res, 8, 1024)
         if self.res % (1 << (len(self.widths) - 1)):
             raise UsageError(f"res {self.res} must divide by {1 << (len(self.widths) - 1)} (widths {self.widths})")
-        validate.integer("steps", self.steps, 1)
-        validate.optional(validate.positive, "max_seconds", self.max_seconds)
-        validate.integer("batch", self.batch, 1, 4096)
-        validate.positive("lr", self.lr)
-        validate.integer("checkpoint_every", self.checkpoint_every, 1)
-        validate.integer("threads", self.threads, 0)
-        validate.seed("seed", self.seed)
+        _check_training(self)
         validate.integer("sample_steps", self.sample_steps, 1, 1000)
         validate.integer("samples", self.samples, 1, 256)
 
@@ -71,13 +76,7 @@ class DecompSettings:
     def __post_init__(self):
         validate.one_of("variant", self.variant, VARIANTS)
         validate.integer("rank", self.rank, 1, 256)
-        validate.integer("steps", self.steps, 1)
-        validate.optional(validate.positive, "max_seconds", self.max_seconds)
-        validate.integer("batch", self.batch, 1, 4096)
-        validate.positive("lr", self.lr)
-        validate.integer("checkpoint_every", self.checkpoint_every, 1)
-        validate.integer("threads", self.threads, 0)
-        validate.seed("seed", self.seed)
+        _check_training(self)
         validate.non_negative("shading_weight", self.shading_weight)
         self.weights = tuple(float(w) for w in self.weights)
         if len(self.weights) != len(BRANCHES) or min(self.weights) < 0:
@@ -99,13 +98,7 @@ class SuperResSettings:
     def __post_init__(self):
         validate.integer("width", self.width, 4, 1024)
         validate.integer("blocks", self.blocks, 1, 64)
-        validate.integer("steps", self.steps, 1)
-        validate.optional(validate.positive, "max_seconds", self.max_seconds)
-        validate.integer("batch", self.batch, 1, 4096)
-        validate.positive("lr", self.lr)
-        validate.integer("checkpoint_every", self.checkpoint_every, 1)
-        validate.integer("threads", self.threads, 0)
-        validate.seed("seed", self.seed)
+        _check_training(self)
 
 
 @dataclass
