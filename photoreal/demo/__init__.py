@@ -97,11 +97,12 @@ def run_demo(out_dir: str | Path = "out/demo", s: DemoSettings | None = None,
 def _what_ran(s: DemoSettings, results: dict) -> dict[str, str]:
     """What each part of the report did in this run, in a few words (the time table's middle column)."""
     side = min(s.resolution, 384)
+    photos = ((results.get("capture") or {}).get("sfm") or {}).get("photos", "the")
     out = {"scenes": f"3 scenes and their intrinsic layers, {s.resolution}², {s.spp} spp",
            "face": f"a benchmark of the bundled scan and its fit at {s.face_uv_res}² texels",
            "photo": "landmarks, unwrap, delighting and relighting of one photo" if results.get("photo") else
                     "skipped: MediaPipe is not installed",
-           "capture": f"structure from motion of 10 photos at {side} px, a {min(s.morph_iterations, 60)}-iteration "
+           "capture": f"structure from motion of {photos} photos at {side} px, a {min(s.morph_iterations, 60)}-iteration "
                       "morph of its coarse mesh",
            "morph": f"a {s.morph_iterations}-iteration morph with its choices given",
            "refiners": f"Morph-GAN and the diffusion renderer, {s.refiner_seconds:g} s of training each",
