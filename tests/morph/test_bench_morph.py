@@ -235,3 +235,33 @@ def test_the_iteration_cost_bench_times_the_recipes_at_the_same_vertices(small_a
                              "light": [{"total": 0.33}, {"total": 0.4}, {"total": 0.45}]}, "issue_recipe")
     assert list(paired) == ["light"] and paired["light"]["per_round"] == pytest.approx([1.1, 1.0, 0.9])
     assert (paired["light"]["median"], paired["light"]["min"], paired["light"]["max"]) == pytest.approx((1.0, 0.9, 1.1))
+
+
+def test_time_to_quality_counts_the_trials_and_the_validation_renders():
+    from types import SimpleNamespace as NS
+
+    from inverse.morph.results import TracePoint
+    from photoreal.benchmarks.morph.bench import TTQ_GOALS, time_to_quality
+
+    def run(points, validation_seconds=0.0, trials=0.0, seconds=None, vertices=20_000):
+        trace = [TracePoint(it, sec, None, chamfer=c) for it, sec, c in points]
+        return NS(trace=trace, validation_seconds=validation_seconds, trial_seconds=trials,
+                  seconds=seconds if seconds is not None else trace[-1].seconds, iterations=trace[-1].iteration,
+                  vertices=vertices, chamfer_morphed=0.0, psnr_heldout_morphed=0.0)
+
+    recipe = run([(0, 1.0, 0.10), (300, 100.0, 0.05), (600, 200.0, 0.04)], validation_seconds=0.0)
+    # two checks of 3 s each: the second point's seconds are 20 + 2·3; 50 s of trials count in full
+    ours = run([(0, 2.0, 0.10), (25, 20.0, 0.039), (50, 40.0, 0.03)], validation_seconds=9.0, trials=50.0,
+               seconds=140.0)
+    q = time_to_quality(recipe, ours)
+    assert q["target_chamfer"] == 0.04 and q["recipe_seconds"] == 200.0
+    assert q["defaults_reached_at_iteration"] == 25
+    assert q["defaults_seconds_to_target"] == pytest.approx(20.0 + 2 * 3.0 + 50.0)
+    assert q["kept_run_seconds_to_target"] == pytest.approx(20.0 + 2 * 3.0)
+    assert q["ratio"] == pytest.approx(76.0 / 200.0) and q["met"]["ratio"] is (76.0 / 200.0 <= TTQ_GOALS["ratio"])
+    assert q["defaults_seconds_per_10k_vertices"] == pytest.approx((140.0 + 9.0) / 2)
+    never = run([(0, 2.0, 0.10), (50, 40.0, 0.05)])
+    q = time_to_quality(recipe, never)
+    assert q["ratio"] is None and q["defaults_seconds_to_target"] is None and q["met"]["ratio"] is False
+    with pytest.raises(ValueError, match="Chamfer traces"):
+        time_to_quality(recipe, run([(0, 1.0, None)]))

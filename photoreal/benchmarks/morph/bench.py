@@ -50,6 +50,9 @@ class MorphBenchSettings:
     cost_mesh: str = "village"  #: the "iteration" part's mesh (a suite mesh, "village" or "armadillo")
     cost_iterations: int = 25  #: steps per timed block of the "iteration" part
     cost_rounds: int = 3  #: timed blocks per recipe, interleaved (the median is reported)
+    #: the "iteration" part's time to quality: the issue's recipe's iterations (constant length) and the cap of
+    #: today's defaults (they stop early), both on ``cost_mesh`` in this process; 0: not measured
+    ttq_iterations: int = 600
     #: every benchmark's draw (photos' noise, views) and every run's render seeds; another seed works in
     #: ``OUT/morph_work_seed<k>``, so that it never resumes from (or overwrites) another draw's finished runs
     seed: int = 0
@@ -62,6 +65,9 @@ class MorphBenchSettings:
     #: (:attr:`~inverse.morph.MorphSettings.adam_quantile`)
     adam_quantile: float = MorphSettings.adam_quantile
     lr: float = MorphSettings.lr  #: the suite's runs' position learning rate (:attr:`~inverse.morph.MorphSettings.lr`)
+    #: the suite's runs' λ warm-up share, which sets where the photos' choices are made
+    #: (:attr:`~inverse.morph.MorphSettings.lambda_warmup`)
+    lambda_warmup: float = MorphSettings.lambda_warmup
     #: the suite's runs ask the photos about this quantile step (:attr:`~inverse.morph.MorphSettings.step_select_quantile`;
     #: 1: no such choice, the suite before 2026-11-28)
     step_select_quantile: float = MorphSettings.step_select_quantile
@@ -84,7 +90,7 @@ class MorphBenchSettings:
     def suite_settings(self) -> MorphSettings:
         """The suite's runs: today's defaults with this bench's fields of :class:`MorphSettings` (which checks them)."""
         return MorphSettings(iterations=self.iterations, seed=self.seed, prior_ties=self.prior_ties,
-                             adam_quantile=self.adam_quantile, lr=self.lr,
+                             adam_quantile=self.adam_quantile, lr=self.lr, lambda_warmup=self.lambda_warmup,
                              step_select_quantile=self.step_select_quantile, saturation=self.saturation,
                              **self.silhouette_fields())
 
@@ -94,6 +100,7 @@ class MorphBenchSettings:
         for name in ("iterations", "sweep_iterations", "speed_iterations", "stability_iterations",
                      "floor_iterations", "cost_iterations", "cost_rounds"):
             validate.integer(name, getattr(self, name), 1)
+        validate.integer("ttq_iterations", self.ttq_iterations, 0)
         for n in (*self.sweep_vertices, self.speed_vertices):
             validate.integer("sweep_vertices", n, 100)
         validate.integer("speed_views", self.speed_views, 1)
@@ -475,6 +482,67 @@ def bench_iteration_cost(work: Path, s: MorphBenchSettings, show_progress: bool)
             "ratio_by_round": ratio_by_round(out["blocks"], "issue_recipe")}
 
 
+def time_to_quality(recipe: MorphResult, defaults: MorphResult) -> dict:
+    """Seconds the defaults' run takes to reach the recipe's final Chamfer (both by the trace's estimator, before any
+    repair), against the recipe's own seconds. The trials the photos did not keep count in full, whenever the target
+    is reached (the run cannot be used before its choices are made); trace seconds are set-up and optimisation, each
+    run's validation renders added in proportion to the checks made so far."""
+    def points(m: MorphResult) -> list[tuple[int, float, float]]:
+        per_check = m.validation_seconds / max(len(m.trace), 1)
+        return [(t.iteration, t.seconds + per_check * (k + 1), t.chamfer) for k, t in enumerate(m.trace)
+                if t.chamfer is not None]
+
+    rec, ours = points(recipe), points(defaults)
+    if not rec or not ours:
+        raise ValueError("time to quality needs both runs' Chamfer traces (a benchmark with its ground truth)")
+    target, recipe_seconds = rec[-1][2], rec[-1][1]
+    trials = defaults.trial_seconds
+    reached = next(((it, sec + trials, sec) for it, sec, c in ours if c <= target), None)
+    ratio = None if reached is None else reached[1] / recipe_seconds
+    return {"target_chamfer": target, "recipe_seconds": recipe_seconds, "recipe_iterations": recipe.iterations,
+            "defaults_trial_seconds": trials, "defaults_reached_at_iteration": None if reached is None else reached[0],
+            "defaults_seconds_to_target": None if reached is None else reached[1], "ratio": ratio,
+            # the run the photos kept, on its own (its trial included): what the choices cost is the difference
+            "kept_run_seconds_to_target": None if reached is None else reached[2],
+            "defaults_final_chamfer": ours[-1][2], "defaults_seconds": defaults.seconds + defaults.validation_seconds,
+            "defaults_iterations": defaults.iterations, "vertices": defaults.vertices,
+            "defaults_seconds_per_10k_vertices": (defaults.seconds + defaults.validation_seconds) * 1e4
+            / defaults.vertices,
+            "chamfer_morphed": {"recipe": recipe.chamfer_morphed, "defaults": defaults.chamfer_morphed},
+            "psnr_heldout_morphed": {"recipe": recipe.psnr_heldout_morphed,
+                                     "defaults": defaults.psnr_heldout_morphed},
+            "goals": {"ratio": TTQ_GOALS["ratio"], "seconds_per_10k_vertices": TTQ_GOALS["seconds_per_10k_vertices"]},
+            "met": {"ratio": ratio is not None and ratio <= TTQ_GOALS["ratio"],
+                    "seconds_per_10k_vertices": (defaults.seconds + defaults.validation_seconds) * 1e4
+                    / defaults.vertices <= TTQ_GOALS["seconds_per_10k_vertices"]}}
+
+
+#: the time-to-quality goals (issue 75): the defaults reach the issue's recipe's final Chamfer in a quarter of its time,
+#: and a 10k-vertex mesh is done in 5 minutes on 2 cores
+TTQ_GOALS = {"ratio": 0.25, "seconds_per_10k_vertices": 300.0}
+
+
+def bench_time_to_quality(work: Path, s: MorphBenchSettings, show_progress: bool) -> dict:
+    """:func:`time_to_quality` on ``s.cost_mesh``: the recipe issue 17 was filed against (``issue_recipe`` of
+    :func:`cost_recipes`, ``s.ttq_iterations`` long) and today's defaults capped there, one after the other in this
+    process with its threads (each resumable in ``work/ttq_<mesh>_*``)."""
+    import hashlib
+
+    import drjit as dr
+
+    bench = load_morph_benchmark(_suite_bench(s.cost_mesh, work, MorphBenchmarkSettings(seed=s.seed)))
+    d = replace(s.suite_settings(), iterations=s.ttq_iterations)
+    rs = replace(cost_recipes(s)["issue_recipe"], iterations=s.ttq_iterations)
+    recipe = run_morph(bench, work / f"ttq_{s.cost_mesh}_issue_recipe", rs, show_progress=show_progress)
+    # one folder per setting of the bench's suite fields: a rerun with other ones never meets a refused checkpoint
+    key = hashlib.sha256(repr(asdict(d)).encode()).hexdigest()[:8]
+    ours = run_morph(bench, work / f"ttq_{s.cost_mesh}_defaults_{key}", d, show_progress=show_progress)
+    row = suite_row(s.cost_mesh, ours)  # the defaults' run is the suite's run of this mesh: its targets too
+    return {"mesh": s.cost_mesh, "threads": int(dr.thread_count()), **time_to_quality(recipe, ours),
+            "suite_checks": row["checks"], "suite_passes": row["passes"],
+            "chamfer_reduction": row["chamfer_reduction"], "psnr_gain_db": row["psnr_gain_db"]}
+
+
 def ratio_by_round(blocks: dict[str, list[dict]], ref: str) -> dict:
     """Each recipe's block total over the ``ref`` recipe's block of the same round (the two ran minutes apart, so
     the machine's slow drifts cancel): per round, and their median, min and max."""
@@ -516,6 +584,8 @@ def bench_morph(s: MorphBenchSettings, work: Path, show_progress: bool = True,
         result["floor"] = bench_floor(work, s, pool, show_progress)
     if "iteration" in s.parts:
         result["iteration_cost"] = bench_iteration_cost(work, s, show_progress)
+        if s.ttq_iterations:
+            result["time_to_quality"] = bench_time_to_quality(work, s, show_progress)
     result["seconds"] = time.perf_counter() - t0
     return result
 
@@ -551,6 +621,10 @@ def summary(result: dict) -> dict:
         c = result["iteration_cost"]
         shown.update(s_per_iteration=c["s_per_iteration"], iteration_cost_ratio=c["ratio"],
                      iteration_cost_ratio_by_round={k: round(v["median"], 4) for k, v in c["ratio_by_round"].items()})
+    if "time_to_quality" in result:
+        q = result["time_to_quality"]
+        shown.update(time_to_quality={k: q[k] for k in ("ratio", "defaults_seconds_to_target", "recipe_seconds",
+                                                       "defaults_seconds_per_10k_vertices", "met")})
     return shown
 
 
@@ -574,6 +648,9 @@ def options(p) -> None:
          help="the suite's runs: MorphSettings.adam_quantile (use a fresh --json folder: trials of another value "
               "are refused by name)")
     opt(p, MorphBenchSettings, "lr", type=float, help="the suite's runs' position learning rate (MorphSettings.lr)")
+    opt(p, MorphBenchSettings, "lambda_warmup", type=float,
+         help="the suite's runs' λ warm-up share; the photos' choices are made where it ends "
+              "(MorphSettings.lambda_warmup)")
     opt(p, MorphBenchSettings, "step_select_quantile", type=float,
          help="the suite's runs ask the validation photos about this quantile step (MorphSettings.step_select_quantile; "
               "1: no such choice)")
@@ -594,6 +671,8 @@ def options(p) -> None:
     opt(p, MorphBenchSettings, "cost_mesh", help="the mesh of --parts iteration")
     opt(p, MorphBenchSettings, "cost_iterations", help="steps per timed block (--parts iteration)")
     opt(p, MorphBenchSettings, "cost_rounds", help="timed blocks per recipe, in turns (--parts iteration)")
+    opt(p, MorphBenchSettings, "ttq_iterations", help="--parts iteration's time to quality: the issue's recipe's "
+         "iterations and the defaults' cap, on --cost-mesh (0: not measured)")
     opt(p, MorphBenchSettings, "cases")
     opt(p, MorphBenchSettings, "suite", help="suite meshes (village and armadillo may be added; paul, face000 "
                                                "and bracket are meshes the defaults never saw)")
