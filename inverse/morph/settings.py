@@ -85,7 +85,7 @@ class MorphSettings:
     #: large-steps λ starts here and falls geometrically to ``lambda_`` over ``lambda_warmup`` of the iterations; None =
     #: constant λ
     lambda_start: float | None = None
-    lambda_warmup: float = 0.3
+    lambda_warmup: float = 0.15  #: its end is where the photos' choices are made (iteration 100 of 600)
     #: λ decided from the photos: each start value runs to the selection point, the lowest validation L1 continues
     #: (:class:`LambdaSelection`); () = constant λ
     lambda_select: tuple[float, ...] = (2.0, 25.0)

@@ -26,7 +26,8 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     from inverse.morph.select import candidate_settings, choose_with_margin, selection_candidates, selection_point
 
     s = MorphSettings(iterations=8, checkpoint_every=2, resolution=32, min_vertices=None, check_every=2,
-                      validation_fraction=0.5, early_stop=False, lambda_select=(2.0, 25.0), planarity_select=(0.1,))
+                      validation_fraction=0.5, early_stop=False, lambda_select=(2.0, 25.0), planarity_select=(0.1,),
+                      lambda_warmup=0.3)
     assert selection_point(s) == 4
     r = run_morph(small_armadillo, tmp_path / "a", s, show_progress=False)
     sel = r.lambda_selection
