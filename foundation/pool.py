@@ -412,28 +412,29 @@ def _run_pool(items: list[Item], s: PoolSettings):
         round_no = 0
         while queue:
             round_no += 1
-            with cf.ProcessPoolExecutor(max_workers=min(s.workers, len(queue)), mp_context=ctx,
-                                        initializer=_pool_init, initargs=(s.threads, os.getpid())) as ex:
+            ex = cf.ProcessPoolExecutor(max_workers=min(s.workers, len(queue)), mp_context=ctx,
+                                        initializer=_pool_init, initargs=(s.threads, os.getpid()))
+            try:
                 started = {it.key: str(Path(marks) / f"{round_no}-{k}") for k, it in enumerate(queue)}
                 futures = {ex.submit(execute, it, s.threads, "", started[it.key]): it for it in queue}
                 queue, before = [], len(futures)
-                try:
-                    for fut in cf.as_completed(futures):
-                        it = futures[fut]
-                        try:
-                            r = fut.result()
-                        except cf.process.BrokenProcessPool:
-                            (suspects if Path(started[it.key]).exists() else queue).append(it)
-                            continue
-                        attempts[it.key] += 1
-                        r.attempts = attempts[it.key]
-                        if not r.ok and attempts[it.key] <= s.retries:
-                            queue.append(it)
-                            continue
-                        yield r
-                except BaseException:  # Ctrl-C, or the caller stopped reading: the workers stop now, not after
-                    _stop_workers(ex)  # their items (each item's output is written atomically: a cut one is absent)
-                    raise
+                for fut in cf.as_completed(futures):
+                    it = futures[fut]
+                    try:
+                        r = fut.result()
+                    except cf.process.BrokenProcessPool:
+                        (suspects if Path(started[it.key]).exists() else queue).append(it)
+                        continue
+                    attempts[it.key] += 1
+                    r.attempts = attempts[it.key]
+                    if not r.ok and attempts[it.key] <= s.retries:
+                        queue.append(it)
+                        continue
+                    yield r
+            except BaseException:  # Ctrl-C, or the caller stopped reading: the workers stop now, not after
+                _stop_workers(ex)  # their items (each item's output is written atomically: a cut one is absent)
+                raise
+            ex.shutdown(wait=True)
             if len(queue) == before and not any(Path(p).exists() for p in started.values()):
                 # No item even began: the workers die while starting (e.g. a script that starts a pool at import
                 # time without ``if __name__ == "__main__":``, which spawn re-runs in every worker).
@@ -465,7 +466,8 @@ def _stop_workers(ex: cf.ProcessPoolExecutor) -> None:
         if p.is_alive():  # SIGTERM not acted on in time (e.g. inside a long native call): SIGKILL
             p.kill()
             p.join(timeout=3)
-    ex.shutdown(wait=True, cancel_futures=True)  # the pool sees its workers gone and closes its queues
+    # no waiting on the pool's own threads: the workers are gone, and a join there is the one wait without a bound
+    ex.shutdown(wait=False, cancel_futures=True)
 
 
 _RAY_STARTED = False

@@ -76,10 +76,10 @@ class compiled_kernels:
         return False
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def small_armadillo(tmp_path_factory):
-    """A small morph benchmark of the armadillo (8 views at 48², 8 spp, an 800-vertex coarse input), made once per
-    test process (tests that change a benchmark copy it first; start remeshes it stores are keyed by settings)."""
+    """A small morph benchmark of the armadillo (8 views at 48², 8 spp, an 800-vertex coarse input), one per test
+    module that asks for it."""
     from pathlib import Path
 
     from inverse.morph import MorphBenchmarkSettings, load_morph_benchmark, make_morph_benchmark

@@ -185,7 +185,10 @@ def test_ctrl_c_to_the_driver_stops_its_workers_at_once(tmp_path):
     pids, dones = [tmp_path / f"pid{k}" for k in range(2)], [tmp_path / f"done{k}" for k in range(2)]
     items = ", ".join(f"Item('slow{k}', 'tests.foundation.test_pool:_sleeper', ({str(pids[k])!r}, {str(dones[k])!r}, "
                       "60.0))" for k in range(2))
-    code = ("import sys\nfrom foundation.pool import Item, PoolSettings, run_items\n"
+    # the driver prints where its threads are if it has not exited 20 s after the signal (a failure says where)
+    code = ("import faulthandler, signal, sys\nfrom foundation.pool import Item, PoolSettings, run_items\n"
+            "signal.signal(signal.SIGINT, lambda *a: (faulthandler.dump_traceback_later(20), "
+            "signal.default_int_handler(*a)))\n"
             f"try:\n    run_items([{items}], PoolSettings(workers=2, threads=1), show_progress=False)\n"
             "except KeyboardInterrupt:\n    sys.exit(130)\n")
     driver = subprocess.Popen([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[2],
@@ -198,7 +201,11 @@ def test_ctrl_c_to_the_driver_stops_its_workers_at_once(tmp_path):
         workers = [int(p.read_text()) for p in pids]
         t0 = time.time()
         driver.send_signal(signal.SIGINT)
-        err = driver.communicate(timeout=30)[1]
+        try:
+            err = driver.communicate(timeout=30)[1]
+        except subprocess.TimeoutExpired:
+            driver.kill()
+            err = driver.communicate()[1]
         rc, seconds = driver.returncode, time.time() - t0
     finally:
         driver.kill()
