@@ -154,7 +154,7 @@ def test_lambda_selection_keeps_the_candidate_the_validation_photos_prefer(small
     assert selection_point(replace(s, lambda_select=())) is None  # one λ, one weight: the original one-candidate case
     # an explicit λ start, one candidate, or a cap inside the warm-up: no choice to make
     assert selection_point(replace(s, lambda_start=25.0)) is None
-    assert selection_point(MorphSettings(iterations=20)) is None  # 0.3 × 20 rounds up to the first check, 25
+    assert selection_point(MorphSettings(iterations=20)) is None  # 0.15 × 20 rounds up to the first check, 25
     one = MorphSettings(lambda_select=(25.0,))
     assert one.lambda_start == 25.0 and one.lambda_select == () and MorphSettings(lambda_select=(1.0,)).lambda_start is None
     with pytest.raises(UsageError, match="lambda_select: repeated"):
