@@ -482,6 +482,11 @@ def bench_iteration_cost(work: Path, s: MorphBenchSettings, show_progress: bool)
             "ratio_by_round": ratio_by_round(out["blocks"], "issue_recipe")}
 
 
+#: the time-to-quality goals (issue 75): the defaults reach the issue's recipe's final Chamfer in a quarter of its time,
+#: and a 10k-vertex mesh is done in 5 minutes on 2 cores
+TTQ_GOALS = {"ratio": 0.25, "seconds_per_10k_vertices": 300.0}
+
+
 def time_to_quality(recipe: MorphResult, defaults: MorphResult) -> dict:
     """Seconds the defaults' run takes to reach the recipe's final Chamfer (both by the trace's estimator, before any
     repair), against the recipe's own seconds. The trials the photos did not keep count in full, whenever the target
@@ -497,45 +502,41 @@ def time_to_quality(recipe: MorphResult, defaults: MorphResult) -> dict:
         raise ValueError("time to quality needs both runs' Chamfer traces (a benchmark with its ground truth)")
     target, recipe_seconds = rec[-1][2], rec[-1][1]
     trials = defaults.trial_seconds
-    reached = next(((it, sec + trials, sec) for it, sec, c in ours if c <= target), None)
-    ratio = None if reached is None else reached[1] / recipe_seconds
+    at, kept = next(((it, sec) for it, sec, c in ours if c <= target), (None, None))
+    to_target = None if kept is None else kept + trials
+    ratio = None if to_target is None else to_target / recipe_seconds
+    run_seconds = defaults.seconds + defaults.validation_seconds
+    per_10k = run_seconds * 1e4 / defaults.vertices
     return {"target_chamfer": target, "recipe_seconds": recipe_seconds, "recipe_iterations": recipe.iterations,
-            "defaults_trial_seconds": trials, "defaults_reached_at_iteration": None if reached is None else reached[0],
-            "defaults_seconds_to_target": None if reached is None else reached[1], "ratio": ratio,
+            "defaults_trial_seconds": trials, "defaults_reached_at_iteration": at,
+            "defaults_seconds_to_target": to_target, "ratio": ratio,
             # the run the photos kept, on its own (its trial included): what the choices cost is the difference
-            "kept_run_seconds_to_target": None if reached is None else reached[2],
-            "defaults_final_chamfer": ours[-1][2], "defaults_seconds": defaults.seconds + defaults.validation_seconds,
+            "kept_run_seconds_to_target": kept,
+            "defaults_final_chamfer": ours[-1][2], "defaults_seconds": run_seconds,
             "defaults_iterations": defaults.iterations, "vertices": defaults.vertices,
-            "defaults_seconds_per_10k_vertices": (defaults.seconds + defaults.validation_seconds) * 1e4
-            / defaults.vertices,
+            "defaults_seconds_per_10k_vertices": per_10k,
             "chamfer_morphed": {"recipe": recipe.chamfer_morphed, "defaults": defaults.chamfer_morphed},
             "psnr_heldout_morphed": {"recipe": recipe.psnr_heldout_morphed,
                                      "defaults": defaults.psnr_heldout_morphed},
-            "goals": {"ratio": TTQ_GOALS["ratio"], "seconds_per_10k_vertices": TTQ_GOALS["seconds_per_10k_vertices"]},
+            "goals": dict(TTQ_GOALS),
             "met": {"ratio": ratio is not None and ratio <= TTQ_GOALS["ratio"],
-                    "seconds_per_10k_vertices": (defaults.seconds + defaults.validation_seconds) * 1e4
-                    / defaults.vertices <= TTQ_GOALS["seconds_per_10k_vertices"]}}
-
-
-#: the time-to-quality goals (issue 75): the defaults reach the issue's recipe's final Chamfer in a quarter of its time,
-#: and a 10k-vertex mesh is done in 5 minutes on 2 cores
-TTQ_GOALS = {"ratio": 0.25, "seconds_per_10k_vertices": 300.0}
+                    "seconds_per_10k_vertices": per_10k <= TTQ_GOALS["seconds_per_10k_vertices"]}}
 
 
 def bench_time_to_quality(work: Path, s: MorphBenchSettings, show_progress: bool) -> dict:
     """:func:`time_to_quality` on ``s.cost_mesh``: the recipe issue 17 was filed against (``issue_recipe`` of
     :func:`cost_recipes`, ``s.ttq_iterations`` long) and today's defaults capped there, one after the other in this
     process with its threads (each resumable in ``work/ttq_<mesh>_*``)."""
-    import hashlib
-
     import drjit as dr
+
+    from foundation.records import json_digest
 
     bench = load_morph_benchmark(_suite_bench(s.cost_mesh, work, MorphBenchmarkSettings(seed=s.seed)))
     d = replace(s.suite_settings(), iterations=s.ttq_iterations)
     rs = replace(cost_recipes(s)["issue_recipe"], iterations=s.ttq_iterations)
     recipe = run_morph(bench, work / f"ttq_{s.cost_mesh}_issue_recipe", rs, show_progress=show_progress)
     # one folder per setting of the bench's suite fields: a rerun with other ones never meets a refused checkpoint
-    key = hashlib.sha256(repr(asdict(d)).encode()).hexdigest()[:8]
+    key = json_digest(d, 8)
     ours = run_morph(bench, work / f"ttq_{s.cost_mesh}_defaults_{key}", d, show_progress=show_progress)
     row = suite_row(s.cost_mesh, ours)  # the defaults' run is the suite's run of this mesh: its targets too
     return {"mesh": s.cost_mesh, "threads": int(dr.thread_count()), **time_to_quality(recipe, ours),
