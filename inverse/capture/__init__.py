@@ -23,12 +23,12 @@ from .export import FORMATS, export_capture
 from .format import (FORMAT, HELD_OUT_EVERY, MARKER, MITSUBA_FROM_COLMAP, Capture, CaptureCamera, CaptureMeta,
                      check_camera,
                      load_capture, sensor, split)
-from .scores import colour_from_photos, heldout_scores, render_mesh
+from .scores import colour_from_photos, heldout_scores, project_photos, render_mesh
 from .sfm import SfmSettings, focal_prior, run_sfm, triangulate_known
 from .sources import Source, SourceFrame, camera, read_colmap, read_llff, read_source, read_transforms
 
 __all__ = ["FORMAT", "FORMATS", "HELD_OUT_EVERY", "MARKER", "MITSUBA_FROM_COLMAP", "Capture", "CaptureCamera", "CaptureMeta", "SfmSettings",
-           "Source", "SourceFrame", "area_resize", "camera", "camera_errors", "check_camera", "coarse_mesh_from_points", "colour_from_photos",
+           "Source", "SourceFrame", "area_resize", "camera", "camera_errors", "check_camera", "coarse_mesh_from_points", "colour_from_photos", "project_photos",
            "export_capture", "focal_prior", "heldout_scores", "import_capture", "load_capture", "load_coarse_mesh", "read_colmap",
            "read_llff", "read_source", "read_transforms", "render_mesh", "run_sfm", "sensor", "similarity", "split", "triangulate_known",
            "undistort", "visual_hull"]

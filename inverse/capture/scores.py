@@ -40,36 +40,50 @@ def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
 def colour_from_photos(cap: Capture, v: np.ndarray, f: np.ndarray, names: list[str] | None = None) -> np.ndarray:
     """(V, 3) linear vertex colours: the mean of the photos ``names`` (default: the training photos) that see each
     vertex, weighted by the cosine between its normal and the view ray; grey where none does."""
-    import mi_plugins  # noqa: F401  (the variant)
-    import mitsuba as mi
-
     from foundation.mesh import vertex_normals
 
     names = names or cap.meta.train
-    scene = _scene(v, f, None)
-    nrm = vertex_normals(v, f)
-    size = float(np.ptp(v, axis=0).max())
-    acc, wsum = np.zeros((len(v), 3)), np.zeros(len(v))
     cams = cap.cameras
-    for name in names:
-        c: CaptureCamera = cams[name]
-        uv, z = c.project(v)
-        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
-        d = v - c.centre
-        dist = np.linalg.norm(d, axis=1)
-        d = d / np.maximum(dist, 1e-12)[:, None]
-        ray = mi.Ray3f(mi.Point3f(*[mi.Float(np.full(len(v), c.centre[k], np.float32)) for k in range(3)]),
-                       mi.Vector3f(*[mi.Float(d[:, k].astype(np.float32)) for k in range(3)]))
-        t = np.array(scene.ray_intersect(ray).t, np.float64)
-        seen = ok & (np.abs(t - dist) < 2e-3 * size)
-        w = np.clip(-(nrm * d).sum(1), 0.0, 1.0)
-        w = np.where(seen, np.where(w > 0, w, 0.05), 0.0)  # a grazing view still counts a little
-        acc += w[:, None] * _bilinear(cap.photo(name), np.nan_to_num(uv))
-        wsum += w
+    acc, wsum = project_photos(v, f, v, vertex_normals(v, f), [cams[n] for n in names], [cap.photo(n) for n in names])
     out = np.full((len(v), 3), 0.5, np.float32)
     seen = wsum > 0
     out[seen] = (acc[seen] / wsum[seen, None]).astype(np.float32)
     return out
+
+
+def project_photos(v: np.ndarray, f: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                   cameras: list[CaptureCamera], photos: list[np.ndarray], gains: list | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The photos seen at surface ``points`` of the mesh (``v``, ``f``): Σ w·photo/gain (N, 3) and Σ w (N,), w the
+    cosine between the ``normals`` and the view ray (0.05 at grazing views), 0 where the point is outside the frame
+    or another part of the mesh hides it (a ray from the camera centre, Mitsuba's intersector). The classic
+    photogrammetry texturing step, at vertices or texels; ``gains`` (per photo, RGB: render × gain ≈ photo) are
+    divided out."""
+    import mi_plugins  # noqa: F401  (the variant)
+    import mitsuba as mi
+
+    scene = _scene(v, f, None)
+    size = float(np.ptp(v, axis=0).max())
+    points = np.asarray(points, np.float64)
+    acc, wsum = np.zeros((len(points), 3)), np.zeros(len(points))
+    for k, (c, photo) in enumerate(zip(cameras, photos)):
+        uv, z = c.project(points)
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
+        d = points - c.centre
+        dist = np.linalg.norm(d, axis=1)
+        d = d / np.maximum(dist, 1e-12)[:, None]
+        ray = mi.Ray3f(mi.Point3f(*[mi.Float(np.full(len(points), c.centre[j], np.float32)) for j in range(3)]),
+                       mi.Vector3f(*[mi.Float(d[:, j].astype(np.float32)) for j in range(3)]))
+        t = np.array(scene.ray_intersect(ray).t, np.float64)
+        seen = ok & (np.abs(t - dist) < 2e-3 * size)
+        w = np.clip(-(normals * d).sum(1), 0.0, 1.0)
+        w = np.where(seen, np.where(w > 0, w, 0.05), 0.0)  # a grazing view still counts a little
+        colour = _bilinear(photo, np.nan_to_num(uv))
+        if gains is not None:
+            colour = colour / np.maximum(np.asarray(gains[k], np.float64), 1e-6)
+        acc += w[:, None] * colour
+        wsum += w
+    return acc, wsum
 
 
 def render_mesh(v: np.ndarray, f: np.ndarray, colours: np.ndarray, cam: CaptureCamera, spp: int = 16,
