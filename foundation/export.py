@@ -448,10 +448,11 @@ class ExportSettings:
     """``photoreal export``: what every kind of result is written with."""
 
     format: str = "glb"  #: glb (one file), gltf (+ .bin + PNGs) or obj (+ .mtl + PNGs)
-    #: morph results: the base-colour texture baked from the photos through the fitted cameras ('photos') or from the
-    #: vertex colours ('colours'); 'photos' needs the capture or benchmark the run morphed
-    texture: str = "photos"
-    texture_size: int = 1024  #: side of the baked textures (morph results, the material tile)
+    #: morph results: the base-colour texture baked from the photos through the fitted cameras ('photos': a capture's
+    #: run only) or from the vertex colours ('colours'); 'auto': photos where the run's capture is found (the better
+    #: on held-out photos: docs/results/export.md), else colours
+    texture: str = "auto"
+    texture_size: int = 1024  #: side of the baked texture (morph results)
     padding: int = 4  #: texels between UV charts (morph results)
     eval_width: int = 256  #: width of the held-out renders the exported textures are scored with
     spp: int = 16  #: samples per pixel of those renders and of previews
@@ -462,8 +463,8 @@ class ExportSettings:
 
         if self.format not in FORMATS:
             raise UsageError(f"format {self.format!r}: one of {', '.join(FORMATS)}")
-        if self.texture not in ("photos", "colours"):
-            raise UsageError(f"texture {self.texture!r}: photos or colours")
+        if self.texture not in ("auto", "photos", "colours"):
+            raise UsageError(f"texture {self.texture!r}: auto, photos or colours")
         validate.integer("texture_size", self.texture_size, 16, 8192)
         validate.integer("padding", self.padding, 0, 64)
         validate.integer("eval_width", self.eval_width, 16, 4096)
@@ -472,39 +473,43 @@ class ExportSettings:
 
 
 def _unlit_render(v: np.ndarray, f: np.ndarray, uv: np.ndarray, texture: np.ndarray, res: int, spp: int) -> np.ndarray:
-    """The textured mesh emitting its base colour on both sides, seen along −Z from in front of its bounding box
-    (orthographic)."""
+    """The textured mesh (two-sided diffuse, its base colour) under a white sky, seen orthographically from the front
+    (along −Z) and from above (along −Y) of its bounding box, side by side: one of them sees a flat tile or a face."""
     import tempfile
 
     import mi_plugins  # noqa: F401  (the variant)
     import mitsuba as mi
 
     lo, hi = v.min(0), v.max(0)
-    c, half = (lo + hi) / 2, 0.55 * float(max(hi[0] - lo[0], hi[1] - lo[1], 1e-9))
-    f = np.concatenate([f, f[:, ::-1]])  # both sides emit: an area emitter's back is dark
+    c, half = (lo + hi) / 2, 0.55 * float(max(np.ptp(v, axis=0).max(), 1e-9))
     m = mi.Mesh("check", len(v), len(f), has_vertex_normals=False, has_vertex_texcoords=True)
     p = mi.traverse(m)
     p["vertex_positions"] = mi.Float(np.ascontiguousarray(v, np.float32).ravel())
     p["faces"] = mi.UInt32(np.ascontiguousarray(f, np.uint32).ravel())
     p["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uv, np.float32).ravel())
     p.update()
+    views = []
     with tempfile.TemporaryDirectory(prefix="photoreal-check-") as work:
         ply = Path(work) / "m.ply"
         m.write_ply(str(ply))
-        scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 1},
-                              "mesh": {"type": "ply", "filename": str(ply), "face_normals": True,
-                                       "bsdf": {"type": "diffuse", "reflectance": 0.0},
-                                       "emitter": {"type": "area", "radiance": {
-                                           "type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(texture, np.float32)),
-                                           "raw": True, "filter_type": "bilinear", "wrap_mode": "clamp"}}},
-                              "sensor": {"type": "orthographic",
-                                         "to_world": mi.ScalarTransform4f().look_at(
-                                             origin=[c[0], c[1], hi[2] + 10 * half], target=c.tolist(), up=[0, 1, 0])
-                                         @ mi.ScalarTransform4f().scale([half, half, 1]),
-                                         "film": {"type": "hdrfilm", "width": res, "height": res,
-                                                  "rfilter": {"type": "box"}},
-                                         "sampler": {"type": "independent"}}})
-        return np.array(mi.render(scene, spp=spp, seed=0))[..., :3]
+        for axis, up in ((2, [0, 1, 0]), (1, [0, 0, -1])):
+            eye = c.copy()
+            eye[axis] = hi[axis] + 10 * half
+            scene = mi.load_dict({
+                "type": "scene", "integrator": {"type": "path", "max_depth": 2},
+                "env": {"type": "constant", "radiance": 1.0},
+                "mesh": {"type": "ply", "filename": str(ply), "face_normals": True,
+                         "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {
+                             "type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(texture, np.float32)),
+                             "raw": True, "filter_type": "bilinear", "wrap_mode": "clamp"}}}},
+                "sensor": {"type": "orthographic",
+                           "to_world": mi.ScalarTransform4f().look_at(origin=eye.tolist(), target=c.tolist(), up=up)
+                           @ mi.ScalarTransform4f().scale([half, half, 1]),
+                           "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
+                           "sampler": {"type": "independent"}}})
+            views.append(np.array(mi.render(scene, spp=spp, seed=0))[..., :3])
+            del scene
+    return np.concatenate(views, 1)
 
 
 #: a render of the re-imported model against the same render of what was exported: at least this PSNR (the 8-bit sRGB
@@ -514,7 +519,7 @@ REIMPORT_PSNR_DB = 40.0
 
 def reimport_check(path: str | Path, mesh: ExportMesh, material: ExportMaterial, res: int = 192, spp: int = 16) -> dict:
     """Read the file back (trimesh) and compare with what was written: vertex and triangle counts, UVs in [0, 1], the
-    base colour's size, and an unlit render of each (along −Z of the glTF frame) — PSNR ≥ :data:`REIMPORT_PSNR_DB`."""
+    base colour's size, and an unlit render of each (along −Z and −Y of the glTF frame) — PSNR ≥ :data:`REIMPORT_PSNR_DB`."""
     from .metrics import masked_psnr
 
     r = reimport(path)
@@ -527,7 +532,7 @@ def reimport_check(path: str | Path, mesh: ExportMesh, material: ExportMaterial,
     if r.base_colour is not None and r.uvs is not None and material.base_colour is not None:
         a = _unlit_render(mesh.gltf_positions(), mesh.faces, mesh.uvs, material.base_colour, res, spp)
         b = _unlit_render(r.vertices, r.faces, r.uvs, r.base_colour, res, spp)
-        covered = (a.max(-1) > 0) | (b.max(-1) > 0)  # the background would only add agreeing zeros
+        covered = (a.max(-1) < 0.999) | (b.max(-1) < 0.999)  # the white sky would only add agreeing pixels
         out["render_psnr"] = float(masked_psnr(b, a, covered))
         out["render_covered"] = float(covered.mean())
         out["render_psnr_min"] = REIMPORT_PSNR_DB

@@ -27,7 +27,10 @@ from .photo import (TEMPLATE, DelitTexture, PhotoFaceResult, PhotoFitSettings, f
 from .register import ScanRegistration, frontal_render, register_scan
 from .uv_bake import GeometryMaps, bake_geometry, texel_uvs
 
+from .export import FaceExport, export_face, face_result
+
 __all__ = [
+    "FaceExport", "export_face", "face_result",
     "DelitTexture", "fill_and_delight", "normals_from_height", "orbit_direction", "scan_frame", "scan_scene",
     "scan_texture", "skin_relief", "smooth_noise", "key_light", "texel_observation", "ScanRegistration",
     "frontal_render", "register_scan", "TEMPLATE",

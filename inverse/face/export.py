@@ -66,10 +66,7 @@ def face_result(path: str | Path, input_path: str | Path | None = None) -> tuple
                      if (q / "maps.exr").is_file()), None) if fit_json is not None else None
     if maps is None:
         raise UsageError(f"{p}: no fitted maps (maps.exr) beside the fit; give the --maps folder of `face fit`")
-    mesh = bench / "mesh.obj"
-    if not mesh.is_file():
-        raise UsageError(f"{bench}: not a face benchmark (no mesh.obj); give it with --input")
-    return "fit", mesh, maps, {}
+    return "fit", bench / "mesh.obj", maps, {}
 
 
 def _layers(path: Path) -> dict[str, np.ndarray]:
@@ -87,8 +84,6 @@ def export_face(result: str | Path, out: str | Path, s: ExportSettings | None = 
     s = s or ExportSettings()
     t0 = time.perf_counter()
     source, mesh_path, maps_path, consts = face_result(result, input_path)
-    if not mesh_path.is_file():
-        raise UsageError(f"{mesh_path}: the avatar's mesh is missing")
     maps = _layers(maps_path)
     if "albedo" not in maps:
         raise UsageError(f"{maps_path}: no 'albedo' map (layers: {', '.join(sorted(maps)) or 'none'})")
@@ -97,6 +92,9 @@ def export_face(result: str | Path, out: str | Path, s: ExportSettings | None = 
             if k not in maps:
                 raise UsageError(f"{maps_path}: no '{k}' map (a face fit writes albedo, normal, roughness, specular, "
                                  "displacement)")
+    if not mesh_path.is_file():
+        raise UsageError(f"{mesh_path.parent}: not a face benchmark (no mesh.obj); name the fit's benchmark with "
+                         "--input" if source == "fit" else f"{mesh_path}: the avatar's mesh is missing")
     mesh = load_obj(mesh_path)
     faces, uv, vertex_of = split_uv_mesh(mesh.faces, mesh.face_uvs, mesh.uvs)
     v = mesh.vertices[vertex_of]

@@ -19,6 +19,7 @@ module             what
 ``errors``         where a mesh lies against the truth: both Chamfer directions, border, input error left, maps
 ``batch``          a morph run by paths (the unit batches fan out to workers)
 ``views``          both meshes of a result rendered at every camera, cached (what the GAN and diffrender read)
+``export``         a run's mesh as glTF/OBJ: UV atlas, texture baked from the photos or the colours, held-out scores
 =================  ==========================================================================
 
 Other features use only the names below.
@@ -60,7 +61,10 @@ def __getattr__(name: str):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
+from .export import MorphExport, export_morph, find_input
+
 __all__ = [
+    "MorphExport", "export_morph", "find_input",
     "MORPH_SEED_MAX", "PLANARITY_WHERE", "PRIOR_TIES", "TRUTH_NORMALS", "ARTIFACT_REGIONS", "Camera", "ErrorReport", "SurfaceErrors", "benchmark_errors", "benchmark_surface_errors", "surface_errors", "Candidate", "ColourPriorDecision", "ColourSelection", "GCNSettings", "MODES", "MorphBenchmark", "MorphBenchmarkMeta",
     "MorphBenchmarkSettings", "MorphEvaluation", "MorphResult", "MorphSettings", "MorphStage", "PlanarityDecision",
     "RepairReport", "StepSelection", "artifact_masks", "candidate_settings", "light_choice_draws", "dihedral_pairs", "dominant_plane_fraction", "evaluate_morph", "load_result",

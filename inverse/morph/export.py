@@ -122,6 +122,7 @@ def export_morph(run: str | Path, out: str | Path, s: ExportSettings | None = No
         if s.texture == "photos" and not capture:
             raise UsageError(f"{src}: the photos texture is baked through a capture's cameras; this is a synthetic "
                              "benchmark (use --texture colours)")
+        texture = s.texture if s.texture != "auto" else ("photos" if capture else "colours")
         atlas = unwrap(v, f, s.texture_size, s.padding)
         vv, ff, uv = v[atlas.vertex_of], atlas.faces, atlas.uvs
         surf = texel_surface(vv, ff, uv, atlas.width, atlas.height, {"colour": c[atlas.vertex_of]})
@@ -134,7 +135,7 @@ def export_morph(run: str | Path, out: str | Path, s: ExportSettings | None = No
         else:
             frame, what = np.eye(4), "+Y up and the units of the benchmark's scene (Mitsuba's frame)"
         mesh = ExportMesh(vv, ff, uv, c[atlas.vertex_of], to_gltf=frame)
-        material = ExportMaterial(name="morphed", base_colour=textures[s.texture], roughness_factor=1.0,
+        material = ExportMaterial(name="morphed", base_colour=textures[texture], roughness_factor=1.0,
                                   metallic_factor=0.0, double_sided=True)
         files = write_model(tmp, stem, s.format, mesh, material)
         check = reimport_check(files[0], mesh, material, spp=s.spp)
@@ -142,7 +143,7 @@ def export_morph(run: str | Path, out: str | Path, s: ExportSettings | None = No
         if bench is not None and bench.meta.test:
             heldout, views = score_textures(bench, result, run, (vv, ff, uv), c[atlas.vertex_of], textures, s)
         rec = MorphExport(kind="morph", run=str(run), input=str(src) if src else None, format=s.format,
-                          files=sorted(p.name for p in files), texture=s.texture, frame=what, vertices=int(len(v)),
+                          files=sorted(p.name for p in files), texture=texture, frame=what, vertices=int(len(v)),
                           exported_vertices=int(len(vv)), texture_size=atlas.width, photo_coverage=coverage,
                           heldout=heldout, heldout_views=views, reimport=check, seconds=time.perf_counter() - t0)
         write_json(tmp / "export.json", to_json(rec))

@@ -18,7 +18,7 @@ import os
 import sys
 
 #: command groups in the order ``photoreal --help`` lists them (module of this package: HELP, add(parser))
-GROUPS = ("render", "bench", "capture", "face", "morph", "btf", "gan", "diffrender", "demo")
+GROUPS = ("render", "bench", "capture", "face", "morph", "btf", "gan", "diffrender", "export", "demo")
 
 
 def _group(name: str):
