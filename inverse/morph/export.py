@@ -116,6 +116,11 @@ def export_morph(run: str | Path, out: str | Path, s: ExportSettings | None = No
     if s.texture == "photos" and src is None:
         raise UsageError(f"{run}: the photos texture needs the capture or benchmark the run morphed (give --input, or "
                          "--texture colours)")
+    if src is None:
+        import sys
+
+        print(f"export: {run}: no capture or benchmark beside the run: the vertex colours' texture, no held-out "
+              "scores (--input CAPTURE bakes from its photos)", file=sys.stderr)
     with tempfile.TemporaryDirectory(prefix="photoreal-export-") as work, atomic_dir(out, "export.json") as tmp:
         bench = load_morph_input(src, Path(work) / "input") if src is not None else None
         capture = bench is not None and is_capture(bench)

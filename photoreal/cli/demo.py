@@ -44,4 +44,5 @@ def add(parser: argparse.ArgumentParser, wanted: str | None = None) -> None:
     opt(d, DemoSettings, "refiner_seconds")
     opt(d, DemoSettings, "btf", "--no-btf", help="skip the neural materials section")
     opt(d, DemoSettings, "capture", "--no-capture", help="skip the real capture section")
+    opt(d, DemoSettings, "export", "--no-export", help="skip the exports section and the browser check")
     d.set_defaults(func=_cmd_demo)

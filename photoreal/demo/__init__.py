@@ -14,6 +14,7 @@ module         what
 ``morph``      a morph and why its choices went so, the GANs, the diffusion renderer
 ``materials``  fitted and generated neural materials
 ``tables``     every registered benchmark's result, the pool and Ray
+``export``     glTF exports in 3D viewers (``viewer``), the page checked in a browser (``browser``)
 =============  ==================================================================
 """
 
@@ -26,6 +27,7 @@ from pathlib import Path
 from foundation.files import check_output_dir, write_json
 
 from .capture import demo_capture
+from .export import check_report, demo_export
 from .face import demo_face, demo_face_learned, demo_photo
 from .materials import demo_btf, demo_matdiff
 from .morph import demo_diffrender, demo_gan, demo_morph, demo_refiners
@@ -33,7 +35,7 @@ from .report import DemoSettings, bench_section, time_section, write_index
 from .scenes import demo_scenes
 from .tables import demo_benchmarks, demo_scale
 
-__all__ = ["DemoSettings", "demo_benchmarks", "demo_capture", "demo_btf", "demo_diffrender", "demo_face", "demo_face_learned",
+__all__ = ["DemoSettings", "check_report", "demo_export", "demo_benchmarks", "demo_capture", "demo_btf", "demo_diffrender", "demo_face", "demo_face_learned",
            "demo_gan", "demo_matdiff", "demo_morph", "demo_photo", "demo_refiners", "demo_scale", "demo_scenes",
            "run_demo"]
 
@@ -88,10 +90,19 @@ def run_demo(out_dir: str | Path = "out/demo", s: DemoSettings | None = None,
             return {k: bench[k] for k in ("ggx_uv_ms", "principled_ms", "ggx_uv_vs_principled", "neural_btf_ms",
                                           "neural_btf_vs_principled", "neural_btf_vs_principled_evaluated")}
         step("bench_plugins", plugin_speed)
+    if s.export:
+        step("export", demo_export, out_dir, s.seed)
     results["seconds"] = seconds
     time_section(out_dir, seconds, _what_ran(s, results))
     write_json(out_dir / "demo.json", results)
-    return write_index(out_dir)
+    index = write_index(out_dir)
+    if s.export:  # the finished page in a real browser: every viewer loaded, no console error, a screenshot
+        print("demo: browser check …", file=sys.stderr, flush=True)
+        results["browser"] = check_report(out_dir)
+        write_json(out_dir / "demo.json", results)
+        if results["browser"].get("ok") is False:
+            print(f"demo: the report's browser check failed: {results['browser']}", file=sys.stderr, flush=True)
+    return index
 
 
 def _what_ran(s: DemoSettings, results: dict) -> dict[str, str]:
@@ -108,7 +119,8 @@ def _what_ran(s: DemoSettings, results: dict) -> dict[str, str]:
            "refiners": f"Morph-GAN and the diffusion renderer, {s.refiner_seconds:g} s of training each",
            "btf": "the neural materials scene with the bundled basis",
            "matdiff": "materials the bundled model generated",
-           "bench_plugins": "a short run of the plugin benchmark"}
+           "bench_plugins": "a short run of the plugin benchmark",
+           "export": "glTF exports of the capture's morph, the face fit and a material's distilled GGX"}
     for k in ("gan", "scale", "diffrender", "face_learned", "benchmarks"):
         out[k] = "tables of the bench folder's JSON" if results.get(k) else "nothing: no such JSON in the bench folder"
     return out

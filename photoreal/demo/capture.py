@@ -32,6 +32,13 @@ def demo_capture(out_dir: Path, resolution: int = 384, spp: int = 16, seed: int 
         v, f, _ = read_ply(cap.mesh)
         r = heldout_scores(cap, v, f, spp=spp, seed=seed)
         morph = _demo_morph(cap, Path(work) / "morph", cdir, morph_iterations, seed) if morph_iterations else None
+        if morph is not None:  # the morphed mesh as glTF, its texture from the photos (the report's 3D viewer)
+            from inverse.morph import export_morph
+
+            from foundation.export import ExportSettings
+
+            export_morph(Path(work) / "morph", cdir / "export", ExportSettings(eval_width=min(resolution, 256), seed=seed),
+                         input_path=Path(work) / "capture")
     test, train = cap.meta.test[0], cap.meta.train[0]
     for name, img in (("train_photo", cap.photo(train)), ("heldout_photo", cap.photo(test)),
                       ("heldout_mesh", r["renders"][test])):

@@ -27,6 +27,11 @@ def demo_face(out_dir: Path, uv_res: int = 256, seed: int = 0, bench_dir: Path |
                                           FaceBenchmarkSettings(uv_res=uv_res, seed=seed, render_res=render_res,
                                                                 render_spp=render_spp)))
     result = fit_face(bench, FaceFitSettings(seed=seed))
+    from foundation.export import ExportSettings
+    from inverse.face import export_face, save_maps
+
+    save_maps(result.maps, face_dir / "maps")
+    export_face(face_dir / "maps", face_dir / "export", ExportSettings(seed=seed), input_path=face_dir / "benchmark")
     relit: dict = {}
     fm = evaluate_fit(bench, result, images=relit)
     m = to_json(fm)

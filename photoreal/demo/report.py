@@ -26,6 +26,7 @@ class DemoSettings:
     btf: bool = True  #: neural materials scene (+ `photoreal bench btf` tables when present)
     plugin_bench: bool = True  #: time ggx_uv against principled (a short run of `photoreal bench plugins`)
     capture: bool = True  #: a real capture (the vendored ruins) through structure from motion
+    export: bool = True  #: glTF exports in 3D viewers, and the report opened in headless Chromium (where installed)
 
     def __post_init__(self):
         validate.integer("resolution", self.resolution, 8, 4096)
@@ -43,9 +44,12 @@ def add_section(out_dir: Path, key: str, title: str, body_html: str) -> Path:
 
 
 def write_index(out_dir: Path) -> Path:
+    from .viewer import page_scripts
+
     out_dir = Path(out_dir)
     sections = sorted((out_dir / "sections").glob("*.html"))
     body = "\n".join(p.read_text() for p in sections)
+    head, tail = page_scripts(out_dir)
     page = f"""<!doctype html>
 <html><head><meta charset="utf-8"><title>photoreal demo report</title>
 <style>
@@ -55,10 +59,11 @@ figure img {{ width: 240px; image-rendering: pixelated; border: 1px solid #ccc; 
 figcaption {{ font-size: 0.8em; }}
 table {{ border-collapse: collapse; margin: 0.5em 0; }}
 td, th {{ border: 1px solid #bbb; padding: 0.2em 0.6em; text-align: right; }}
-</style></head><body>
+</style>{head}</head><body>
 <h1>photoreal — demo report</h1>
 <p>Generated {time.strftime('%Y-%m-%d %H:%M:%S')} by <code>make demo</code>.</p>
 {body}
+{tail}
 </body></html>
 """
     return write_text(out_dir / "index.html", page)
@@ -135,6 +140,7 @@ FULL_COMMANDS = {
     "face_learned": "photoreal face train-models --out RUN; photoreal bench face-learned",
     "benchmarks": "make bench (photoreal bench all)",
     "bench_plugins": "photoreal bench plugins",
+    "export": "photoreal export RESULT --out DIR (a morph run, a face fit or from-photo folder, a neural material)",
 }
 
 
