@@ -37,6 +37,8 @@ class ExportMesh:
     colours: np.ndarray | None = None  #: (V, 3) linear RGB → COLOR_0
     #: 4×4: source frame → glTF (+Y up, metres): rotation × ``metres_per_unit``, applied on writing
     to_gltf: np.ndarray = field(default_factory=lambda: np.eye(4))
+    #: the tangents' w: −1 where the winding was turned round (:func:`outward`) and the normal map's frame kept
+    tangent_sign: float = 1.0
 
     def gltf_positions(self) -> np.ndarray:
         p = np.c_[self.positions, np.ones(len(self.positions))] @ self.to_gltf.T
@@ -62,7 +64,7 @@ class ExportMesh:
         t = t - n * (t * n).sum(1, keepdims=True)
         bad = np.linalg.norm(t, axis=1) < 1e-12
         t[bad] = np.cross(n[bad], [0.0, 0.0, 1.0]) + np.cross(n[bad], [1.0, 0.0, 0.0]) * 1e-3
-        return np.c_[_unit(t), np.ones(len(t))].astype(np.float32)
+        return np.c_[_unit(t), np.full(len(t), self.tangent_sign)].astype(np.float32)
 
 
 @dataclass
@@ -91,6 +93,14 @@ def vertex_normals(v, f):
     from .mesh import vertex_normals as vn
 
     return vn(np.asarray(v, np.float64), np.asarray(f))
+
+
+def outward(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The faces wound so that the normals point away from the centroid on average (a scan wound inside out shows its
+    inside in a viewer that culls back faces), and whether they were turned round."""
+    n = vertex_normals(v, f)
+    inward = float(np.mean(np.sum(n * (v - v.mean(0)), axis=1))) < 0
+    return (f[:, ::-1].copy(), True) if inward else (f, False)
 
 
 def rotation_to_y_up(up: np.ndarray) -> np.ndarray:

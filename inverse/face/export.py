@@ -15,7 +15,8 @@ import numpy as np
 
 from foundation import imageio
 from foundation.errors import UsageError
-from foundation.export import ExportMaterial, ExportMesh, ExportSettings, reimport_check, similarity, split_uv_mesh, write_model
+from foundation.export import (ExportMaterial, ExportMesh, ExportSettings, outward, reimport_check, similarity,
+                               split_uv_mesh, write_model)
 from foundation.mesh import load_obj
 
 from .photo import TEMPLATE
@@ -41,6 +42,7 @@ class FaceExport:
     vertices: int
     exported_vertices: int
     texture_size: list[int]
+    turned_winding: bool = False  #: the mesh was wound inside out (normals inward) and is written turned round
     reimport: dict = field(default_factory=dict)
     seconds: float = 0.0
 
@@ -109,7 +111,7 @@ def export_face(result: str | Path, out: str | Path, s: ExportSettings | None = 
         frame = np.eye(4)
         what = "the scan's own axes and units, read as +Y up and metres (the Cyberware heads are +Y up, in metres)"
     albedo = np.clip(maps["albedo"][..., :3], 0, 1)
-    material = ExportMaterial(name="face", base_colour=albedo, metallic_factor=0.0)
+    material = ExportMaterial(name="face", base_colour=albedo, metallic_factor=0.0, double_sided=True)  # an open surface
     written = ["albedo"]
     if "normal" in maps:
         material.normal = maps["normal"][..., :3]
@@ -127,7 +129,9 @@ def export_face(result: str | Path, out: str | Path, s: ExportSettings | None = 
     if "displacement" in maps:
         material.extra_maps["displacement"] = maps["displacement"][..., 0]
         written.append("displacement")
-    emesh = ExportMesh(v, faces, uv, None, to_gltf=frame)
+    faces, turned = outward(v, faces)
+    # a turned winding flips N and so N × T: w = −1 keeps the map's +y where ggx_uv (two-sided) reads it
+    emesh = ExportMesh(v, faces, uv, None, to_gltf=frame, tangent_sign=-1.0 if turned else 1.0)
     with atomic_dir(out, "export.json") as tmp:
         files = write_model(tmp, stem, s.format, emesh, material)
         check = reimport_check(files[0], emesh, material, spp=s.spp)
@@ -135,6 +139,6 @@ def export_face(result: str | Path, out: str | Path, s: ExportSettings | None = 
                          files=sorted(p.name for p in files), maps=written,
                          constants={k: consts[k] for k in consts if k not in maps}, frame=what,
                          vertices=int(len(mesh.vertices)), exported_vertices=int(len(v)),
-                         texture_size=list(albedo.shape[1::-1]), reimport=check, seconds=time.perf_counter() - t0)
+                         texture_size=list(albedo.shape[1::-1]), turned_winding=turned, reimport=check, seconds=time.perf_counter() - t0)
         write_json(tmp / "export.json", to_json(rec))
     return rec

@@ -63,7 +63,8 @@ class CaptureBenchSettings:
     seed: int = 0
 
     def __post_init__(self):
-        self.captures, self.suite = tuple(self.captures), tuple(self.suite)
+        # `--suite ''`: none (argparse's "+" takes at least one word)
+        self.captures, self.suite = tuple(self.captures), tuple(m for m in self.suite if m)
         validate.integer("suite_views", self.suite_views, 8, 400)
         validate.integer("suite_iterations", self.suite_iterations, 0)
         validate.integer("suite_resolution", self.suite_resolution, 64, 4096)
@@ -133,6 +134,7 @@ def _one(name: str, s: CaptureBenchSettings, work: Path, show_progress: bool) ->
         row["scores"] = r
         if not s.no_morph:
             row["morph"] = _morph_row(_morph(cap, work / name / "morph", show_progress), s)
+            row["export"] = _export_row(cap, work / name, s)
             if not s.no_refine_on:
                 row["morph_refine_on"] = _morph_row(_morph(cap, work / name / "morph_refine_on", show_progress,
                                                            refine_cameras="auto"), s)
@@ -142,6 +144,35 @@ def _one(name: str, s: CaptureBenchSettings, work: Path, show_progress: bool) ->
                       f"reprojection_at_most_{s.max_reprojection_px}_px":
                           sfm.get("reprojection_px", float("inf")) <= s.max_reprojection_px}
     return row
+
+
+def _export_row(cap, folder: Path, s: CaptureBenchSettings) -> dict:
+    """The morphed mesh exported (`photoreal export`): its textures baked from the photos and from the vertex colours
+    against the vertex colours themselves, on the held-out photos at the capture's working width."""
+    from foundation.export import ExportSettings
+    from inverse.morph import export_morph
+
+    width = max(c.width for c in cap.meta.cameras)
+    rec = export_morph(folder / "morph", folder / "export", ExportSettings(eval_width=min(width, 512), spp=s.spp,
+                                                                          seed=s.seed), input_path=cap.path)
+    h = rec.heldout
+    best = max(("photos", "colours"), key=lambda k: h[k]["psnr"])
+    return {"heldout": h, "eval_width": min(width, 512), "photo_coverage": rec.photo_coverage,
+            "default_texture": rec.texture, "better_texture_psnr": best,
+            "better_texture_flip": min(("photos", "colours"), key=lambda k: h[k]["flip"]),
+            "reimport_psnr": rec.reimport.get("render_psnr"), "validator_errors": _validator_errors(folder / "export"),
+            "seconds": rec.seconds}
+
+
+def _validator_errors(folder: Path) -> int | None:
+    """The Khronos validator's error count of the exported model (None without node)."""
+    import shutil
+
+    from foundation.export import validate_gltf
+
+    if shutil.which("node") is None:
+        return None
+    return int(validate_gltf(folder / "model.glb")["issues"]["numErrors"])
 
 
 def _speckled(path: Path, seed: int, min_vertices: int = 60_000):
@@ -321,6 +352,9 @@ def summary(result: dict) -> dict:
                      "points": sfm.get("points"), "reprojection_px": sfm.get("reprojection_px"),
                      "seconds": sfm.get("seconds"),
                      "heldout_mean": (r["scores"] or {}).get("mean"), "targets": r["targets"]}
+        if r.get("export"):
+            out[name]["export_heldout"] = {k: f"{v['psnr']:.2f} dB / ꟻLIP {v['flip']:.3f}"
+                                           for k, v in r["export"]["heldout"].items()}
     for name, r in result.get("suite", {}).items():
         out[f"suite {name}"] = {"registered": f"{r['sfm']['registered']}/{r['sfm']['photos']}",
                                 "centre_error_max": r["cameras"]["centre_error_max"],

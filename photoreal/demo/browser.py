@@ -85,12 +85,13 @@ def check_page(page: str | Path, screenshot: str | Path | None = None, timeout: 
         raise FailureError("no Chromium on PATH (Debian: apt install chromium)")
     url = Path(page).resolve().as_uri()
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="photoreal-browser-") as profile:
+    # Chromium's helper processes may still write into the profile as it is removed
+    with tempfile.TemporaryDirectory(prefix="photoreal-browser-", ignore_cleanup_errors=True) as profile:
         proc = subprocess.Popen(
             [browser, "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
              "--enable-unsafe-swiftshader", "--no-first-run", "--no-default-browser-check", "--remote-debugging-port=0",
              f"--user-data-dir={profile}", f"--window-size={size[0]},{size[1]}", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         cdp = None
         try:
             port_file = Path(profile) / "DevToolsActivePort"
@@ -128,13 +129,26 @@ def check_page(page: str | Path, screenshot: str | Path | None = None, timeout: 
         finally:
             if cdp is not None:
                 cdp.close()
-            proc.terminate()
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+            _stop(proc)
 
 
 def document_ready(cdp: _Cdp) -> bool:
     r = cdp.call("Runtime.evaluate", expression="document.readyState", returnByValue=True)
     return r.get("result", {}).get("value") == "complete"
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """End the browser and its helpers (their own process group)."""
+    import os
+    import signal
+
+    for sig, wait in ((signal.SIGTERM, 10), (signal.SIGKILL, 5)):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            proc.wait(timeout=wait)
+            return
+        except subprocess.TimeoutExpired:
+            continue
