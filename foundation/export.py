@@ -166,6 +166,27 @@ def split_uv_mesh(faces: np.ndarray, face_uvs: np.ndarray, uvs_obj: np.ndarray) 
     return inv.reshape(-1, 3), np.c_[uv[:, 0], 1.0 - uv[:, 1]], uniq[:, 0]
 
 
+def mitsuba_mesh(v: np.ndarray, f: np.ndarray, uvs: np.ndarray, normals: bool = False,
+                 attributes: dict[str, np.ndarray] | None = None):
+    """An in-memory ``mi.Mesh`` with per-vertex uv (and area-weighted vertex normals, and ``vertex_NAME``
+    attributes of (V, C) arrays, C ∈ {1, 3})."""
+    import mi_plugins  # noqa: F401  (the variant)
+    import mitsuba as mi
+
+    mesh = mi.Mesh("export", len(v), len(f), has_vertex_normals=normals, has_vertex_texcoords=True)
+    p = mi.traverse(mesh)
+    p["vertex_positions"] = mi.Float(np.ascontiguousarray(v, np.float32).ravel())
+    p["faces"] = mi.UInt32(np.ascontiguousarray(f, np.uint32).ravel())
+    if normals:
+        p["vertex_normals"] = mi.Float(vertex_normals(v, f).astype(np.float32).ravel())
+    p["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uvs, np.float32).ravel())
+    p.update()
+    for name, a in (attributes or {}).items():
+        a = np.asarray(a, np.float32).reshape(len(v), -1)
+        mesh.add_attribute(f"vertex_{name}", a.shape[1], mi.Float(a.ravel()))
+    return mesh
+
+
 @dataclass
 class TexelSurface:
     """The surface at every texel centre (row 0 at uv.y ≈ 0): where it is, which way it faces, what it interpolates."""
@@ -184,16 +205,7 @@ def texel_surface(v: np.ndarray, f: np.ndarray, uvs: np.ndarray, width: int, hei
     import mi_plugins  # noqa: F401  (the variant)
     import mitsuba as mi
 
-    mesh = mi.Mesh("export", len(v), len(f), has_vertex_normals=True, has_vertex_texcoords=True)
-    p = mi.traverse(mesh)
-    p["vertex_positions"] = mi.Float(np.ascontiguousarray(v, np.float32).ravel())
-    p["faces"] = mi.UInt32(np.ascontiguousarray(f, np.uint32).ravel())
-    p["vertex_normals"] = mi.Float(vertex_normals(v, f).astype(np.float32).ravel())
-    p["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uvs, np.float32).ravel())
-    p.update()
-    for name, a in (attributes or {}).items():
-        a = np.asarray(a, np.float32).reshape(len(v), -1)
-        mesh.add_attribute(f"vertex_{name}", a.shape[1], mi.Float(a.ravel()))
+    mesh = mitsuba_mesh(v, f, uvs, normals=True, attributes=attributes)
     j, i = np.meshgrid((np.arange(width) + 0.5) / width, (np.arange(height) + 0.5) / height)
     si = mesh.eval_parameterization(mi.Point2f(j.ravel().astype(np.float32), i.ravel().astype(np.float32)))
     valid = np.array(si.is_valid())
@@ -492,12 +504,7 @@ def _unlit_render(v: np.ndarray, f: np.ndarray, uv: np.ndarray, texture: np.ndar
 
     lo, hi = v.min(0), v.max(0)
     c, half = (lo + hi) / 2, 0.55 * float(max(np.ptp(v, axis=0).max(), 1e-9))
-    m = mi.Mesh("check", len(v), len(f), has_vertex_normals=False, has_vertex_texcoords=True)
-    p = mi.traverse(m)
-    p["vertex_positions"] = mi.Float(np.ascontiguousarray(v, np.float32).ravel())
-    p["faces"] = mi.UInt32(np.ascontiguousarray(f, np.uint32).ravel())
-    p["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uv, np.float32).ravel())
-    p.update()
+    m = mitsuba_mesh(v, f, uv)
     views = []
     with tempfile.TemporaryDirectory(prefix="photoreal-check-") as work:
         ply = Path(work) / "m.ply"

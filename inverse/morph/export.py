@@ -16,8 +16,8 @@ import mitsuba as mi
 
 from foundation import imageio
 from foundation.errors import UsageError
-from foundation.export import (ExportMaterial, ExportMesh, ExportSettings, reimport_check, rotation_to_y_up, scatter,
-                               similarity, texel_surface, unwrap, write_model)
+from foundation.export import (ExportMaterial, ExportMesh, ExportSettings, mitsuba_mesh, reimport_check,
+                               rotation_to_y_up, scatter, similarity, texel_surface, unwrap, write_model)
 from foundation.mesh import read_ply
 from foundation.scene import mitsuba_log_level
 
@@ -198,14 +198,7 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
     vv, ff, uv = mesh
     with tempfile.TemporaryDirectory(prefix="photoreal-export-score-") as work:
         ply = Path(work) / "mesh.ply"
-        m = mi.Mesh("export", len(vv), len(ff), has_vertex_normals=False, has_vertex_texcoords=True)
-        p = mi.traverse(m)
-        p["vertex_positions"] = mi.Float(np.ascontiguousarray(vv, np.float32).ravel())
-        p["faces"] = mi.UInt32(np.ascontiguousarray(ff, np.uint32).ravel())
-        p["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uv, np.float32).ravel())
-        p.update()
-        m.add_attribute("vertex_color", 3, mi.Float(np.ascontiguousarray(colours, np.float32).ravel()))
-        m.write_ply(str(ply))
+        mitsuba_mesh(vv, ff, uv, attributes={"color": colours}).write_ply(str(ply))
         looks = {"vertex_colours": ({"type": "mesh_attribute", "name": "vertex_color"}, mode)}
         for name, tex in textures.items():
             bmp = {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(_quantised(tex), np.float32)),
