@@ -194,7 +194,7 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
     else:
         env = envmap(bench.meta.hdri)
     _, gains = fitted_cameras(bench, result)
-    mode = result.settings.mode
+    mode = fit.mode if fit is not None else result.settings.mode  # the mode the run ended in (its selection's)
     vv, ff, uv = mesh
     with tempfile.TemporaryDirectory(prefix="photoreal-export-score-") as work:
         ply = Path(work) / "mesh.ply"
