@@ -64,6 +64,24 @@ def test_morph_export_of_a_capture(capture_run, tmp_path, capsys):
     assert rec["reimport"]["render_psnr"] >= rec["reimport"]["render_psnr_min"]
     assert rec["reimport"]["vertices"] == rec["exported_vertices"]
     assert "+Y up" in rec["frame"]
+    # the frame: the cameras' mean up becomes +Y (the mesh's extent along it is its extent along Y), the bounding
+    # box's centre the origin, the units kept (a rigid map: every edge keeps its length)
+    from foundation.export import reimport
+    from foundation.mesh import read_ply
+    from inverse.capture import load_capture
+
+    cams = load_capture(cap_dir).meta.cameras
+    up = -np.mean([np.asarray(c.matrix)[:3, 1] for c in cams], axis=0)
+    up /= np.linalg.norm(up)
+    v, f, _ = read_ply(run / "morphed.ply")
+    back = reimport(out / "model.glb").vertices
+    size = float(np.ptp(v, axis=0).max())
+    assert abs(np.ptp(back[:, 1]) - np.ptp(v @ up)) < 1e-5 * size
+    assert np.abs((back.min(0) + back.max(0)) / 2).max() < 1e-5 * size
+    from scipy.spatial.distance import pdist
+
+    assert len(v) < 5000  # the diameter below is quadratic
+    assert abs(pdist(back).max() - pdist(np.asarray(v, np.float64)).max()) < 1e-5 * size  # the diameter is kept
     _validated(out / "model.glb")
     printed = json.loads(capsys.readouterr().out)
     assert printed["files"] == ["model.glb"]
