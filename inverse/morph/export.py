@@ -93,9 +93,12 @@ def capture_frame(cameras: list, v: np.ndarray) -> tuple[np.ndarray, str]:
     """glTF frame of a capture: up is the cameras' mean up (COLMAP's −y axis), the mesh's bounding-box centre at the
     origin; structure from motion has no metric scale, so its units stay."""
     up = -np.mean([np.asarray(c.matrix)[:3, 1] for c in cameras], axis=0)
-    centre = (v.min(0) + v.max(0)) / 2
-    return (similarity(rotation_to_y_up(up), 1.0, centre),
-            "+Y up = the cameras' mean up, origin at the mesh's bounding-box centre, units of the capture "
+    r = rotation_to_y_up(up)
+    vr = v @ r.T
+    frame = similarity(r, 1.0)
+    frame[:3, 3] = -(vr.min(0) + vr.max(0)) / 2  # the upright mesh's bounding box centred
+    return (frame,
+            "+Y up = the cameras' mean up, origin at the upright mesh's bounding-box centre, units of the capture "
             "(structure from motion: no metric scale)")
 
 
