@@ -37,7 +37,10 @@ class DistilSettings:
 
     iterations: int = 300
     train_pairs: int = 96  #: direction pairs (ω_i, ω_o) every texel is fitted on
-    heldout_pairs: int = 32  #: other pairs, for the error only
+    #: other pairs that choose between the per-texel maps and one GGX for the tile (their mean): the one of lower mean
+    #: absolute error there (the fit's own L1, less swayed by one grazing pair than PSNR) is exported
+    validation_pairs: int = 32
+    heldout_pairs: int = 32  #: other pairs again, for the error only
     #: of the training pairs, per Adam step (all texels each); all of them (the default) is a deterministic full batch:
     #: small random subsets leave per-texel noise that a held-out direction sees (measured: −2 dB)
     pairs_per_step: int = 96
@@ -59,6 +62,9 @@ class MaterialExport:
     #: the distilled GGX against the neural BTF on the held-out direction pairs (every texel): PSNR (peak 1, values
     #: as the BTF's bench reads them) and the mean absolute error; the same for one GGX over the tile (the fitted
     #: parameters' mean) beside it: what the per-texel maps add
+    model: str  #: 'per-texel' or 'uniform' (one GGX for the tile): what the validation pairs preferred, exported
+    validation: dict  #: both models on the validation pairs (PSNR, MAE)
+    exported_heldout_psnr: float  #: the exported model on the held-out pairs
     ggx_heldout_psnr: float
     ggx_heldout_mae: float
     constant_heldout_psnr: float
@@ -197,11 +203,12 @@ def distil_ggx(basis: Basis, mat: NeuralMaterial, s: DistilSettings | None = Non
     """Fit the GGX maps to the neural material; returns the maps and their errors (train and held-out pairs)."""
     s = s or DistilSettings()
     rng = np.random.default_rng([s.seed, 7])
-    n_pairs = s.train_pairs + s.heldout_pairs
+    n_pairs = s.train_pairs + s.validation_pairs + s.heldout_pairs
     wi = sample_directions((n_pairs,), s.max_theta_deg, rng)
     wo = sample_directions((n_pairs,), s.max_theta_deg, rng)
     target = neural_values(basis, mat, wi, wo)
-    tr, ho = slice(0, s.train_pairs), slice(s.train_pairs, n_pairs)
+    tr, va = slice(0, s.train_pairs), slice(s.train_pairs, s.train_pairs + s.validation_pairs)
+    ho = slice(s.train_pairs + s.validation_pairs, n_pairs)
     stage = DistilStage(target[tr], wi[tr], wo[tr], s, key)
     params, steps = run_loop(stage, LoopSettings(steps=s.iterations, checkpoint_every=max(1, s.iterations)),
                              checkpoint, show_progress=show_progress)
@@ -210,7 +217,15 @@ def distil_ggx(basis: Basis, mat: NeuralMaterial, s: DistilSettings | None = Non
     pred_tr = evaluate_pairs(params, r, wi[tr][:16], wo[tr][:16])
     mean = {k: np.full_like(v, float(np.mean(v))) for k, v in params.items()}
     const_ho = evaluate_pairs(mean, r, wi[ho], wo[ho])
-    return {"maps": maps_of(params, r), "iterations": steps,
+    val = {}
+    if s.validation_pairs:
+        for name, p in (("per-texel", params), ("uniform", mean)):
+            pred = evaluate_pairs(p, r, wi[va], wo[va])
+            val[name] = {"psnr": _psnr(pred, target[va]), "mae": float(np.mean(np.abs(pred - target[va])))}
+    chosen = "uniform" if val and val["uniform"]["mae"] < val["per-texel"]["mae"] else "per-texel"
+    return {"maps": maps_of(params if chosen == "per-texel" else mean, r), "iterations": steps, "model": chosen,
+            "validation": val,
+            "exported_heldout_psnr": _psnr(pred_ho if chosen == "per-texel" else const_ho, target[ho]),
             "constant_heldout_mae": float(np.mean(np.abs(const_ho - target[ho]))),
             "heldout_psnr": _psnr(pred_ho, target[ho]), "heldout_mae": float(np.mean(np.abs(pred_ho - target[ho]))),
             "constant_heldout_psnr": _psnr(const_ho, target[ho]), "train_psnr": _psnr(pred_tr, target[tr][:16])}
@@ -294,7 +309,8 @@ def export_material(material: str | Path, out: str | Path, s: ExportSettings | N
         rec = MaterialExport(kind="material", material=str(mat_path), basis=str(basis_path), format=s.format,
                              files=sorted([p.name for p in files] + ["material.xml", "basis.npz", mat_path.name,
                                                                      "preview.png"]),
-                             texture_size=mat.res, ggx_heldout_psnr=fit["heldout_psnr"],
+                             texture_size=mat.res, model=fit["model"], validation=fit["validation"],
+                             exported_heldout_psnr=fit["exported_heldout_psnr"], ggx_heldout_psnr=fit["heldout_psnr"],
                              ggx_heldout_mae=fit["heldout_mae"], constant_heldout_psnr=fit["constant_heldout_psnr"],
                              constant_heldout_mae=fit["constant_heldout_mae"],
                              train_psnr=fit["train_psnr"], preview_psnr=preview_psnr, distil=distil,

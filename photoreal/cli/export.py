@@ -18,7 +18,8 @@ def _cmd_export(a: argparse.Namespace) -> int:
     from ..options import settings_from
 
     rec = to_json(export_result(a.result, a.out, settings_from(ExportSettings, a), input_path=a.input, basis=a.basis))
-    keep = ("kind", "format", "files", "texture", "heldout", "ggx_heldout_psnr", "constant_heldout_psnr",
+    keep = ("kind", "format", "files", "texture", "heldout", "model", "exported_heldout_psnr", "ggx_heldout_psnr",
+            "constant_heldout_psnr",
             "preview_psnr", "reimport", "seconds")
     print_json({k: rec[k] for k in keep if k in rec})
     return 0
