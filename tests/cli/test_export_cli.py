@@ -149,6 +149,10 @@ def test_material_export(tmp_path):
                           distil=DistilSettings(iterations=60, train_pairs=24, heldout_pairs=8), show_progress=False)
     assert {"material.xml", "basis.npz", "leather.npz", "preview.png", "model.glb"} <= set(rec.files)
     assert rec.train_psnr > 30 and np.isfinite(rec.ggx_heldout_psnr) and rec.preview_psnr > 20
+    # the validation pairs' choice is the one of lower validation MAE, and its held-out figure is the one recorded
+    v = rec.validation
+    assert rec.model == ("uniform" if v["uniform"]["mae"] < v["per-texel"]["mae"] else "per-texel")
+    assert rec.exported_heldout_psnr == (rec.ggx_heldout_psnr if rec.model == "per-texel" else rec.constant_heldout_psnr)
     assert rec.reimport["render_psnr"] >= rec.reimport["render_psnr_min"]
     xml = (out / "material.xml").read_text()
     scene = mi.load_string(f"<scene version='3.0.0'>{xml.split('-->', 1)[1]}</scene>".replace(
