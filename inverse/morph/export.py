@@ -46,6 +46,9 @@ class MorphExport:
     heldout: dict = field(default_factory=dict)
     heldout_views: list[str] = field(default_factory=list)
     reimport: dict = field(default_factory=dict)  #: :func:`foundation.export.reimport_check`
+    #: where the photos were taken from, seen from the model (glTF frame): azimuth about +Y from +Z towards +X and
+    #: polar angle from +Y, degrees — a viewer's first camera (model-viewer's ``camera-orbit``); None: not a capture
+    view_orbit_deg: list | None = None
     seconds: float = 0.0
 
 
@@ -102,6 +105,13 @@ def capture_frame(cameras: list, v: np.ndarray) -> tuple[np.ndarray, str]:
             "(structure from motion: no metric scale)")
 
 
+def photo_orbit(cameras: list, frame: np.ndarray) -> list[float]:
+    """The mean direction from the model to the cameras in the glTF frame, as (azimuth, polar) degrees."""
+    c = np.array([frame[:3, :3] @ np.asarray(cam.centre) + frame[:3, 3] for cam in cameras]).mean(0)
+    d = c / max(float(np.linalg.norm(c)), 1e-12)
+    return [float(np.degrees(np.arctan2(d[0], d[2]))), float(np.degrees(np.arccos(np.clip(d[1], -1, 1))))]
+
+
 def export_morph(run: str | Path, out: str | Path, s: ExportSettings | None = None, input_path: str | Path | None = None,
                  stem: str = "model") -> MorphExport:
     """Write the run's mesh as ``out/stem.{glb,gltf,obj}`` with ``out/export.json`` (:class:`MorphExport`); the folder
@@ -140,7 +150,9 @@ def export_morph(run: str | Path, out: str | Path, s: ExportSettings | None = No
             cams, gains = fitted_cameras(bench, result)
             textures["photos"], coverage = bake_photos(bench, result, cams, gains, v, f, surf)
             frame, what = capture_frame(bench.meta.cameras, v)
+            orbit = photo_orbit(bench.meta.cameras, frame)
         else:
+            orbit = None
             frame, what = np.eye(4), "+Y up and the units of the benchmark's scene (Mitsuba's frame)"
         mesh = ExportMesh(vv, ff, uv, c[atlas.vertex_of], to_gltf=frame)
         material = ExportMaterial(name="morphed", base_colour=textures[texture], roughness_factor=1.0,
@@ -153,7 +165,7 @@ def export_morph(run: str | Path, out: str | Path, s: ExportSettings | None = No
         rec = MorphExport(kind="morph", run=str(run), input=str(src) if src else None, format=s.format,
                           files=sorted(p.name for p in files), texture=texture, frame=what, vertices=int(len(v)),
                           exported_vertices=int(len(vv)), texture_size=atlas.width, photo_coverage=coverage,
-                          heldout=heldout, heldout_views=views, reimport=check, seconds=time.perf_counter() - t0)
+                          heldout=heldout, heldout_views=views, reimport=check, view_orbit_deg=orbit, seconds=time.perf_counter() - t0)
         write_json(tmp / "export.json", to_json(rec))
     return rec
 

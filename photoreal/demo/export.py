@@ -31,7 +31,7 @@ def demo_export(out_dir: Path, seed: int = 0, material_iterations: int = 150) ->
             continue
         rec = read_json(folder / "export.json", "export record")
         glb = folder / "model.glb"
-        viewers.append(f"<figure>{add_model(out_dir, name, glb)}<figcaption>{html.escape(caption)}</figcaption></figure>")
+        viewers.append(f"<figure>{add_model(out_dir, name, glb, rec.get('view_orbit_deg'))}<figcaption>{html.escape(caption)}</figcaption></figure>")
         row = {"model": name, "vertices": rec.get("exported_vertices", rec.get("reimport", {}).get("vertices")),
                "texture": "×".join(map(str, rec.get("texture_size") if isinstance(rec.get("texture_size"), list)
                                        else [rec.get("texture_size")] * 2)),

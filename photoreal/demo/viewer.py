@@ -35,7 +35,7 @@ STATUS_JS = """<script>
 </script>"""
 
 
-def add_model(out_dir: Path, name: str, glb: Path) -> str:
+def add_model(out_dir: Path, name: str, glb: Path, orbit: list | None = None) -> str:
     """Copy ``glb`` into ``out_dir/models/`` with its data-URI script; the viewer element's HTML."""
     models = Path(out_dir) / "models"
     models.mkdir(parents=True, exist_ok=True)
@@ -43,7 +43,9 @@ def add_model(out_dir: Path, name: str, glb: Path) -> str:
     uri = "data:model/gltf-binary;base64," + base64.b64encode(glb.read_bytes()).decode()
     (models / f"{name}.js").write_text("window.PHOTOREAL_MODELS=window.PHOTOREAL_MODELS||{};"
                                        f"window.PHOTOREAL_MODELS[{json.dumps(name)}]={json.dumps(uri)};\n")
+    first = "" if orbit is None else f"camera-orbit='{orbit[0]:.1f}deg {orbit[1]:.1f}deg auto' "
     return (f"<model-viewer data-model='{html.escape(name)}' alt='{html.escape(name)}' camera-controls loading='eager' "
+            + first +
             "environment-image='neutral' shadow-intensity='0.6' interaction-prompt='none' "
             "style='width:360px;height:360px;display:inline-block;border:1px solid #ccc;background:#f4f4f4'>"
             "</model-viewer>")

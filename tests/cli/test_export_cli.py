@@ -64,6 +64,9 @@ def test_morph_export_of_a_capture(capture_run, tmp_path, capsys):
     assert rec["reimport"]["render_psnr"] >= rec["reimport"]["render_psnr_min"]
     assert rec["reimport"]["vertices"] == rec["exported_vertices"]
     assert "+Y up" in rec["frame"]
+    # the viewer's first camera: the benchmark's drone orbit looks down from 15–35° above the horizon
+    azimuth, polar = rec["view_orbit_deg"]
+    assert -180 <= azimuth <= 180 and 0 < polar < 90
     # the frame: the cameras' mean up becomes +Y (the mesh's extent along it is its extent along Y), the bounding
     # box's centre the origin, the units kept (a rigid map: every edge keeps its length)
     from foundation.export import reimport
