@@ -13,8 +13,8 @@ from .viewer import add_model
 
 
 def demo_export(out_dir: Path, seed: int = 0, material_iterations: int = 150) -> dict:
-    """Export the bundled leather (its GGX distilled in ``material_iterations`` steps); show it with the capture's
-    and the face's exports (written by their sections) in viewers."""
+    """Export the bundled leather (its GGX distilled in ``material_iterations`` steps); show it with the capture's,
+    the face fit's and the photo's exports (written by their sections) in viewers."""
     from foundation.assets import NEURAL
     from foundation.export import ExportSettings
     from inverse.btf import DistilSettings, export_material
@@ -24,6 +24,7 @@ def demo_export(out_dir: Path, seed: int = 0, material_iterations: int = 150) ->
                     distil=DistilSettings(iterations=material_iterations, seed=seed), show_progress=False)
     parts = {"capture": ("the morphed ruins, texture baked from the photos", out_dir / "capture" / "export"),
              "face": ("the fitted face (josie), maps as a PBR material", out_dir / "face" / "export"),
+             "photo": ("the astronaut photograph's avatar (delit albedo, skin defaults)", out_dir / "photo_export"),
              "material": ("leather: the GGX SVBRDF distilled from the neural BTF", out_dir / "material" / "export")}
     viewers, rows, figures = [], [], {}
     for name, (caption, folder) in parts.items():

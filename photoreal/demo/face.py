@@ -95,6 +95,10 @@ def demo_photo(out_dir: Path, uv_res: int = 256, seed: int = 0, relight_res: int
     source = "MediaPipe Face Mesh 0.10.14 (run now)"
     r = to_json(photo_to_face(skimage.data.astronaut(), photo_dir, PhotoFitSettings(
         uv_res=uv_res, seed=seed, relight_res=relight_res, relight_spp=relight_spp)))
+    from foundation.export import ExportSettings
+    from inverse.face import export_face
+
+    export_face(photo_dir, Path(out_dir) / "photo_export", ExportSettings(seed=seed))  # the avatar as glTF
     figs = [figure("photo/photo.png", "input photo (scikit-image astronaut)"),
             figure("photo/photo_uv.png", "photo unwrapped into UV"),
             figure("photo/visibility.png", "visibility mask"),

@@ -47,7 +47,7 @@ def add_model(out_dir: Path, name: str, glb: Path, orbit: list | None = None) ->
     return (f"<model-viewer data-model='{html.escape(name)}' alt='{html.escape(name)}' camera-controls loading='eager' "
             + first +
             "environment-image='neutral' shadow-intensity='0.6' interaction-prompt='none' "
-            "style='width:360px;height:360px;display:inline-block;border:1px solid #ccc;background:#f4f4f4'>"
+            "style='width:280px;height:280px;display:inline-block;border:1px solid #ccc;background:#f4f4f4'>"
             "</model-viewer>")
 
 

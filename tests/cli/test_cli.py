@@ -185,8 +185,9 @@ def test_demo_writes_report(tmp_path, capsys):
     assert all(f"<th style='text-align:left'>{k}</th>" in table for k in summary["seconds"])
     assert table.count("<td style='text-align:left'><code>photoreal ") + \
         table.count("<td style='text-align:left'><code>make bench") == len(summary["seconds"])
-    # the exports in 3D viewers (no morph here: the face and the material), the page in a real browser
-    assert set(summary["export"]) == {"face", "material"}
+    # the exports in 3D viewers (no morph here: the face fit, the photo's avatar and the material), in a real browser
+    shown = {"face", "material"} | ({"photo"} if summary["photo"] else set())
+    assert set(summary["export"]) == shown
     assert all((out / "models" / f"{k}.js").is_file() and f"data-model='{k}'" in index for k in summary["export"])
     assert (out / "model-viewer-umd.min.js").is_file() and "id='viewer-status'" in index
     from photoreal.demo.browser import find_browser
@@ -195,7 +196,7 @@ def test_demo_writes_report(tmp_path, capsys):
         assert "no Chromium" in summary["browser"]["skipped"]
     else:
         b = summary["browser"]
-        assert b["ok"] and b["viewers"] == b["loaded"] == 2 and b["console_errors"] == [], b
+        assert b["ok"] and b["viewers"] == b["loaded"] == len(shown) and b["console_errors"] == [], b
         assert (out / "report_screenshot.png").stat().st_size > 10_000
 
 
