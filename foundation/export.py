@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import FailureError, UsageError
+from .mesh import vertex_normals
 
 FORMATS = ("glb", "gltf", "obj")
 #: the Khronos glTF validator 2.0.0-dev.3.10 from npm, vendored with its licence (Apache-2.0)
@@ -49,8 +50,9 @@ class ExportMesh:
         return _unit(vertex_normals(self.positions, self.faces) @ r.T).astype(np.float32)
 
     def gltf_tangents(self) -> np.ndarray:
-        """(V, 4) ∂p/∂u orthogonalised against the normal, w = +1: the bitangent is N × T, the frame ggx_uv's
-        tangent-space normal maps are expressed in (Gram–Schmidt, :func:`mi_plugins.shading.frame_from_normal_tangent`)."""
+        """(V, 4) ∂p/∂u orthogonalised against the normal, w = :attr:`tangent_sign`: the bitangent is N × T · w, the
+        frame ggx_uv's tangent-space normal maps are expressed in (Gram–Schmidt,
+        :func:`mi_plugins.shading.frame_from_normal_tangent`)."""
         v, f, uv = self.gltf_positions().astype(np.float64), self.faces, self.uvs
         e1, e2 = v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]
         d1, d2 = uv[f[:, 1]] - uv[f[:, 0]], uv[f[:, 2]] - uv[f[:, 0]]
@@ -87,12 +89,6 @@ class ExportMaterial:
 
 def _unit(x: np.ndarray) -> np.ndarray:
     return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
-
-
-def vertex_normals(v, f):
-    from .mesh import vertex_normals as vn
-
-    return vn(np.asarray(v, np.float64), np.asarray(f))
 
 
 def outward(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -250,33 +246,31 @@ def _png_bytes(img: np.ndarray, srgb: bool) -> bytes:
 
     a = np.asarray(img, np.float32)
     a8 = to_uint8_srgb(a) if srgb else np.round(np.clip(a, 0, 1) * 255).astype(np.uint8)
-    if srgb and a.shape[-1] == 4:
-        a8 = np.concatenate([a8, np.round(np.clip(a[..., 3:], 0, 1) * 255).astype(np.uint8)], -1)
     buf = io.BytesIO()
     Image.fromarray(a8).save(buf, format="PNG")
     return buf.getvalue()
 
 
-def material_images(m: ExportMaterial) -> dict[str, tuple[bytes, str]]:
-    """The material's textures as PNG bytes: slot → (bytes, colour space)."""
+def material_images(m: ExportMaterial) -> dict[str, bytes]:
+    """The material's textures as PNG bytes by slot (base colour sRGB-encoded, the rest linear)."""
     out = {}
     if m.base_colour is not None:
-        out["base_colour"] = (_png_bytes(m.base_colour[..., :3], srgb=True), "srgb")
+        out["base_colour"] = _png_bytes(m.base_colour[..., :3], srgb=True)
     if m.normal is not None:
-        out["normal"] = (_png_bytes(_unit(np.asarray(m.normal, np.float64)) * 0.5 + 0.5, srgb=False), "linear")
+        out["normal"] = _png_bytes(_unit(np.asarray(m.normal, np.float64)) * 0.5 + 0.5, srgb=False)
     if m.roughness is not None or m.metallic is not None:
         ref = m.roughness if m.roughness is not None else m.metallic
         r = np.ones(ref.shape[:2]) if m.roughness is None else np.asarray(m.roughness).reshape(ref.shape[:2])
         k = np.zeros(ref.shape[:2]) if m.metallic is None else np.asarray(m.metallic).reshape(ref.shape[:2])
         # glTF: roughness in G, metalness in B (R: occlusion when packed; 1 here)
-        out["metallic_roughness"] = (_png_bytes(np.stack([np.ones_like(r), r, k], -1), srgb=False), "linear")
+        out["metallic_roughness"] = _png_bytes(np.stack([np.ones_like(r), r, k], -1), srgb=False)
     if m.specular is not None:
         s = np.asarray(m.specular).reshape(m.specular.shape[:2])
-        out["specular"] = (_png_bytes(np.stack([s, s, s, s], -1), srgb=False), "linear")  # the spec reads A
+        out["specular"] = _png_bytes(np.stack([s, s, s, s], -1), srgb=False)  # the spec reads A
     return out
 
 
-def build_gltf(mesh: ExportMesh, material: ExportMaterial, images: dict[str, tuple[bytes, str]],
+def build_gltf(mesh: ExportMesh, material: ExportMaterial, images: dict[str, bytes],
                embed_images: bool, image_uris: dict[str, str] | None = None):
     """A ``pygltflib.GLTF2`` (one mesh, one node, one material) and its binary buffer."""
     import pygltflib as g
@@ -313,7 +307,7 @@ def build_gltf(mesh: ExportMesh, material: ExportMaterial, images: dict[str, tup
     idx = add_accessor(np.asarray(mesh.faces, np.uint32).ravel(), g.SCALAR, g.ELEMENT_ARRAY_BUFFER)
 
     gl_images, textures, slot_tex = [], [], {}
-    for slot, (data, _) in images.items():
+    for slot, data in images.items():
         if embed_images:
             gl_images.append(g.Image(bufferView=add_view(data, None), mimeType="image/png", name=slot))
         else:
@@ -375,7 +369,7 @@ def write_model(folder: Path, stem: str, fmt: str, mesh: ExportMesh, material: E
         gltf.save_binary(str(path))
         return [path, *written]
     uris = {slot: f"{stem}_{slot}.png" for slot in images}
-    for slot, (data, _) in images.items():
+    for slot, data in images.items():
         (folder / uris[slot]).write_bytes(data)
         written.append(folder / uris[slot])
     if fmt == "gltf":

@@ -26,7 +26,7 @@ def result_kind(path: str | Path) -> str:
     if p.is_file() and p.name.endswith(".json") and p.name != "metrics.json":
         from foundation.files import read_json
 
-        if "benchmark" in read_json(p, "face fit") and "metrics" in read_json(p, "face fit"):
+        if {"benchmark", "metrics"} <= set(read_json(p, "face fit")):
             return "face"
     if is_neural_material(p):
         return "material"

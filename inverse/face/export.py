@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from foundation import imageio
 from foundation.errors import UsageError
 from foundation.export import (ExportMaterial, ExportMesh, ExportSettings, outward, reimport_check, similarity,
                                split_uv_mesh, write_model)
 from foundation.mesh import load_obj
 
-from .photo import TEMPLATE
+from .benchmark import _layers
+from .photo import TEMPLATE, PhotoFitSettings
 
 PHOTO_MARKER = "photo_face.json"
 #: the MediaPipe template's units: centimetres
@@ -54,9 +54,9 @@ def face_result(path: str | Path, input_path: str | Path | None = None) -> tuple
     p = Path(path)
     if (p / PHOTO_MARKER).is_file():
         rec = read_json(p / PHOTO_MARKER, "from-photo result")
-        s = rec.get("settings", {})
-        return "from-photo", p / "face_fitted.obj", p / "maps.exr", {"roughness": s.get("roughness", 0.5),
-                                                                      "specular": s.get("specular", 0.35)}
+        s, default = rec.get("settings", {}), PhotoFitSettings()
+        return "from-photo", p / "face_fitted.obj", p / "maps.exr", {
+            "roughness": s.get("roughness", default.roughness), "specular": s.get("specular", default.specular)}
     fit_json = p if p.is_file() else next((q for q in (p / "fit.json", p.parent / "fit.json") if q.is_file()), None)
     maps = (p / "maps.exr") if p.is_dir() else None
     if fit_json is None and input_path is None:
@@ -71,12 +71,6 @@ def face_result(path: str | Path, input_path: str | Path | None = None) -> tuple
     return "fit", bench / "mesh.obj", maps, {}
 
 
-def _layers(path: Path) -> dict[str, np.ndarray]:
-    ch = imageio.read_exr(path)
-    names = sorted({k.rsplit(".", 1)[0] if "." in k else "" for k in ch})
-    return {n: imageio.exr_layer(ch, n) for n in names if n}
-
-
 def export_face(result: str | Path, out: str | Path, s: ExportSettings | None = None,
                 input_path: str | Path | None = None, stem: str = "model") -> FaceExport:
     """Write the avatar as ``out/stem.{glb,gltf,obj}`` with ``out/export.json``; complete or not at all."""
@@ -86,7 +80,7 @@ def export_face(result: str | Path, out: str | Path, s: ExportSettings | None = 
     s = s or ExportSettings()
     t0 = time.perf_counter()
     source, mesh_path, maps_path, consts = face_result(result, input_path)
-    maps = _layers(maps_path)
+    maps = {k: v for k, v in _layers(maps_path).items() if k}  # named layers only
     if "albedo" not in maps:
         raise UsageError(f"{maps_path}: no 'albedo' map (layers: {', '.join(sorted(maps)) or 'none'})")
     if source == "fit":

@@ -146,8 +146,8 @@ def export_morph(run: str | Path, out: str | Path, s: ExportSettings | None = No
         surf = texel_surface(vv, ff, uv, atlas.width, atlas.height, {"colour": c[atlas.vertex_of]})
         textures = {"colours": scatter(surf.mask, surf.attributes["colour"])}
         coverage = None
+        cams, gains = fitted_cameras(bench, result) if bench is not None else (None, None)
         if capture:
-            cams, gains = fitted_cameras(bench, result)
             textures["photos"], coverage = bake_photos(bench, result, cams, gains, v, f, surf)
             frame, what = capture_frame(bench.meta.cameras, v)
             orbit = photo_orbit(bench.meta.cameras, frame)
@@ -161,7 +161,7 @@ def export_morph(run: str | Path, out: str | Path, s: ExportSettings | None = No
         check = reimport_check(files[0], mesh, material, spp=s.spp)
         heldout, views = ({}, [])
         if bench is not None and bench.meta.test:
-            heldout, views = score_textures(bench, result, run, (vv, ff, uv), c[atlas.vertex_of], textures, s)
+            heldout, views = score_textures(bench, result, run, (vv, ff, uv), c[atlas.vertex_of], textures, gains, s)
         rec = MorphExport(kind="morph", run=str(run), input=str(src) if src else None, format=s.format,
                           files=sorted(p.name for p in files), texture=texture, frame=what, vertices=int(len(v)),
                           exported_vertices=int(len(vv)), texture_size=atlas.width, photo_coverage=coverage,
@@ -191,7 +191,7 @@ def _quantised(tex: np.ndarray) -> np.ndarray:
 
 
 def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: np.ndarray, textures: dict,
-                   s: ExportSettings) -> tuple[dict, list[str]]:
+                   gains: dict, s: ExportSettings) -> tuple[dict, list[str]]:
     """Renders at the held-out cameras (as imported: the photos no step fitted) of the result with its vertex colours
     and with each texture, under the run's fitted environment and with each photo's gain, against the photos; mean
     PSNR and ꟻLIP over the held-out photos. Unlit results: the colour is emitted; lit: diffuse under the environment
@@ -208,7 +208,6 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
         env = fitted_envmap(imageio.exr_layer(imageio.read_exr(run / fit.environment), ""))
     else:
         env = envmap(bench.meta.hdri)
-    _, gains = fitted_cameras(bench, result)
     mode = fit.mode if fit is not None else result.settings.mode  # the mode the run ended in (its selection's)
     vv, ff, uv = mesh
     with tempfile.TemporaryDirectory(prefix="photoreal-export-score-") as work:
@@ -221,12 +220,11 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
             looks[name] = (bmp, "unlit" if name == "photos" else mode)
         out: dict = {}
         for name, (colour, look) in looks.items():
+            shape = {"type": "ply", "filename": str(ply), "face_normals": True}
             if look == "unlit":
-                shape = {"type": "ply", "filename": str(ply), "face_normals": True,
-                         "bsdf": {"type": "diffuse", "reflectance": 0.0}, "emitter": {"type": "area", "radiance": colour}}
+                shape.update(bsdf={"type": "diffuse", "reflectance": 0.0}, emitter={"type": "area", "radiance": colour})
             else:
-                shape = {"type": "ply", "filename": str(ply), "face_normals": True,
-                         "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": colour}}}
+                shape["bsdf"] = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": colour}}
             with mitsuba_log_level(mi.LogLevel.Error):
                 scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2}, "env": env,
                                       "mesh": shape})

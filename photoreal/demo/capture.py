@@ -33,9 +33,8 @@ def demo_capture(out_dir: Path, resolution: int = 384, spp: int = 16, seed: int 
         r = heldout_scores(cap, v, f, spp=spp, seed=seed)
         morph = _demo_morph(cap, Path(work) / "morph", cdir, morph_iterations, seed) if morph_iterations else None
         if morph is not None:  # the morphed mesh as glTF, its texture from the photos (the report's 3D viewer)
-            from inverse.morph import export_morph
-
             from foundation.export import ExportSettings
+            from inverse.morph import export_morph
 
             export_morph(Path(work) / "morph", cdir / "export", ExportSettings(eval_width=min(resolution, 256), seed=seed),
                          input_path=Path(work) / "capture")
