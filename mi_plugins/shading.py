@@ -257,3 +257,59 @@ def to_perturbed(frame: mi.Frame3f | None, wo: mi.Vector3f) -> tuple[mi.Vector3f
         return wo, wo.z > 0.0
     wo_p = frame.to_local(wo)
     return wo_p, (wo.z > 0.0) & (wo_p.z > 0.0)
+
+
+# -- directional albedo of the glossy lobe (environment light) ----------------------------------
+
+_ALBEDO_TABLE: dict[int, tuple] = {}
+
+
+def directional_albedo_table(n: int = 32, samples: int = 1024) -> tuple[mi.Float, mi.Float]:
+    """(A, B) on an n×n grid over (roughness j/(n−1), cosθi i/(n−1)): ∫ f_s cosθo dωo = F0·A + F90·B.
+
+    Schlick's F is linear in F0 and F90, so the lobe's white-furnace albedo splits into these two tables
+    (the "split sum" of prefiltered environment lighting). Estimated with the VNDF samples of
+    :func:`sample_vndf` (weight F·G1(wo) for the separable Smith G) on a fixed stratified sequence: deterministic.
+    Flat arrays of n² entries, index j·n + i.
+    """
+    key = (n, samples)
+    if key in _ALBEDO_TABLE:
+        return _ALBEDO_TABLE[key]
+    import numpy as np
+
+    k = int(np.sqrt(samples))
+    g = (np.arange(k) + 0.5) / k
+    su, sv = [a.ravel() for a in np.meshgrid(g, g, indexing="ij")]
+    grid = np.arange(n) / (n - 1)
+    rj, ci, s = np.meshgrid(grid, grid, np.arange(k * k), indexing="ij")
+    rough = mi.Float(rj.ravel().astype(np.float32))
+    cos_i = mi.Float(np.maximum(ci.ravel(), 1e-3).astype(np.float32))
+    u = mi.Point2f(mi.Float(su[s.ravel()].astype(np.float32)), mi.Float(sv[s.ravel()].astype(np.float32)))
+    wi = mi.Vector3f(dr.safe_sqrt(1.0 - cos_i * cos_i), 0.0, cos_i)
+    alpha = alpha_from_roughness(rough)
+    m = sample_vndf(alpha, wi, u)
+    wo = 2.0 * dr.dot(wi, m) * m - wi
+    g1 = dr.select(wo.z > 0.0, smith_g1(alpha, wo, m), 0.0)
+    t = dr.clip(1.0 - dr.dot(wi, m), 0.0, 1.0)
+    t5 = (t * t) * (t * t) * t
+    a = np.array(g1 * (1.0 - t5)).reshape(n * n, k * k).mean(1)
+    b = np.array(g1 * t5).reshape(n * n, k * k).mean(1)
+    _ALBEDO_TABLE[key] = (mi.Float(a.astype(np.float32)), mi.Float(b.astype(np.float32)))
+    return _ALBEDO_TABLE[key]
+
+
+def directional_albedo(f0: mi.Color3f, f90: mi.Float, roughness: mi.Float, cos_i: mi.Float,
+                       n: int = 32) -> mi.Color3f:
+    """∫ f_s cosθo dωo for view cosine ``cos_i``: F0·A + F90·B, bilinear in the tables (differentiable)."""
+    a_tab, b_tab = directional_albedo_table(n)
+    x = dr.clip(cos_i, 0.0, 1.0) * (n - 1)
+    y = dr.clip(roughness, 0.0, 1.0) * (n - 1)
+    i0 = mi.UInt32(dr.minimum(dr.floor(x), n - 2))
+    j0 = mi.UInt32(dr.minimum(dr.floor(y), n - 2))
+    fx, fy = x - mi.Float(i0), y - mi.Float(j0)
+
+    def lookup(tab):
+        at = lambda j, i: dr.gather(mi.Float, tab, j * n + i)  # noqa: E731
+        return dr.lerp(dr.lerp(at(j0, i0), at(j0, i0 + 1), fx), dr.lerp(at(j0 + 1, i0), at(j0 + 1, i0 + 1), fx), fy)
+
+    return f0 * lookup(a_tab) + f90 * lookup(b_tab)

@@ -18,6 +18,18 @@ or a constant direction towards the camera (orthographic). Lights below the
 geometric horizon give nothing (the surface itself blocks them); cast shadows
 from other parts of the mesh are the visibility mask's job.
 
+Environment light (``UVEnvironment``): radiance as real spherical harmonics (:mod:`mi_plugins.sh`),
+
+    T̂_env(u) = M(u) [ (1 − metallic) T̂_alb/π · E(u, n') + DFG(n'·v, α) · s(u) · Σ_lm g_l(α) L_lm Y_lm(r) ]
+    E(u, n') = h(n') Σ_lm L_lm [ T_lm(u) + a(u) Â_l (Y_lm(n') − Y_lm(n_geo)) ],   h = (1 + n'·n_geo) / 2
+
+with n' the mapped normal, r the view mirrored about it, T_lm(u) the texel's precomputed transfer (occluded
+cosine, :mod:`mi_plugins.sh`; without one, T_lm = Â_l Y_lm(n_geo): no occlusion), a(u) = T_00 / (π Y_00) its
+visible cosine-weighted fraction, which also occludes the glossy term (s = a), h the share of the mapped normal's
+cosine lobe above the geometric horizon (which cuts it, as in Mitsuba's ``normalmap``), and DFG the glossy lobe's
+directional albedo (:func:`mi_plugins.shading.directional_albedo`). Exact for the diffuse term under band-limited
+light at the geometric normal; the mapped normal's change is first order, the glossy term an approximation.
+
 All inputs are Dr.Jit tensors/arrays, so gradients flow to every map.
 """
 
@@ -30,6 +42,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import sh as harmonics
 from . import shading as sh
 
 
@@ -62,6 +75,29 @@ class UVView:
     def __post_init__(self):
         if (self.position is None) == (self.direction is None):
             raise ValueError("UVView needs exactly one of 'position' or 'direction'")
+
+
+@dataclass
+class UVEnvironment:
+    """Environment radiance as SH coefficients and, optionally, each texel's occluded transfer.
+
+    coeffs: (n_coeffs, 3) numbers, or a Color3f of n_coeffs entries when being optimised (order = √n − 1).
+    transfer: (H, W, n_coeffs) tensor T_lm(u) = ∫ V (n_geo·ω)⁺ Y_lm dω of the texels (None: nothing occludes).
+    """
+
+    coeffs: np.ndarray | mi.Color3f
+    transfer: mi.TensorXf | None = None
+
+    @property
+    def n(self) -> int:
+        return dr.width(self.coeffs) if dr.is_array_v(self.coeffs) else len(self.coeffs)
+
+    def __post_init__(self):
+        n = self.n
+        if int(np.sqrt(n)) ** 2 != n:
+            raise ValueError(f"UVEnvironment: {n} coefficients is not (order + 1)²")
+        if self.transfer is not None and self.transfer.shape[-1] != n:
+            raise ValueError(f"UVEnvironment: transfer has {self.transfer.shape[-1]} channels for {n} coefficients")
 
 
 @dataclass
@@ -129,6 +165,7 @@ def shade_uv(
     ambient: float | Sequence[float] = 0.0,
     mask: mi.TensorXf | None = None,
     light_visibility: Sequence[mi.TensorXf | None] | None = None,
+    environment: UVEnvironment | None = None,
 ) -> mi.TensorXf:
     """Shaded UV texture T̂_shaded, an (H, W, 3) tensor (seed 003).
 
@@ -137,6 +174,7 @@ def shade_uv(
     ambient: I_amb (scalar or RGB), multiplies the albedo.
     light_visibility: per light, an optional (H, W) cast-shadow factor in [0, 1]
     (1 = the light reaches the texel), e.g. precomputed by ray tracing.
+    environment: SH environment light added to the lights (see the module docstring).
     """
     if light_visibility is not None and len(light_visibility) != len(lights):
         raise ValueError(f"light_visibility has {len(light_visibility)} entries for {len(lights)} lights")
@@ -182,8 +220,52 @@ def shade_uv(
             contrib *= mi.Float(light_visibility[k].array)
         result += contrib
 
+    if environment is not None:
+        result += _environment(environment, geo, n_geo, v_world, frame, wi_p, valid_i, albedo, rough, spec, metal, n)
+
     amb = np.broadcast_to(np.asarray(ambient, dtype=np.float32), (3,))
     result += albedo * mi.Color3f(*[float(a) for a in amb])
     if mask is not None:
         result *= mi.Float(mask.array)
     return mi.TensorXf(dr.ravel(result), shape=(h, w, 3))
+
+
+def _environment(env: UVEnvironment, geo: mi.Frame3f, n_geo: mi.Vector3f, v_world: mi.Vector3f,
+                 frame: mi.Frame3f | None, wi_p: mi.Vector3f, valid_i: mi.Bool, albedo: mi.Color3f, rough: mi.Float,
+                 spec: mi.Float, metal: mi.Float, n: int) -> mi.Color3f:
+    """Diffuse and glossy reflection of an SH environment at every texel (module docstring, T̂_env)."""
+    j_count = env.n
+    order = int(np.sqrt(j_count)) - 1
+    if dr.is_array_v(env.coeffs):
+        coeff = [dr.gather(mi.Color3f, env.coeffs, j) for j in range(j_count)]
+    else:
+        c = np.asarray(env.coeffs, np.float64)
+        coeff = [mi.Color3f(*map(float, c[j])) for j in range(j_count)]
+    n_sh = n_geo if frame is None else geo.to_world(frame.n)
+    y_sh = harmonics.basis(n_sh.x, n_sh.y, n_sh.z, order)
+    lobe = [harmonics.cosine_lobe(harmonics.band(j)) for j in range(j_count)]
+    irr = mi.Color3f(0.0)
+    if env.transfer is None:
+        for j in range(j_count):
+            if lobe[j] != 0.0:
+                irr += coeff[j] * (lobe[j] * y_sh[j])
+        occl = mi.Float(1.0)
+    else:
+        t = unravel_channels(env.transfer.array, j_count)
+        occl = dr.clip(t[0] / (dr.pi * harmonics.basis(0.0, 0.0, 1.0, 0)[0]), 0.0, 1.0)
+        y_geo = harmonics.basis(n_geo.x, n_geo.y, n_geo.z, order)
+        for j in range(j_count):
+            irr += coeff[j] * (t[j] + occl * lobe[j] * (y_sh[j] - y_geo[j]))
+    if frame is not None:
+        # the mapped normal's hemisphere is cut by the geometric one (Mitsuba's normalmap): exact for uniform light
+        irr *= 0.5 * (1.0 + dr.dot(n_sh, n_geo))
+    diffuse = (1.0 - metal) * albedo * dr.inv_pi * irr
+    r = 2.0 * dr.dot(v_world, n_sh) * n_sh - v_world
+    y_r = harmonics.basis(r.x, r.y, r.z, order)
+    alpha = sh.alpha_from_roughness(rough)
+    refl = mi.Color3f(0.0)
+    for j in range(j_count):
+        refl += coeff[j] * (harmonics.glossy_lobe(harmonics.band(j), alpha) * y_r[j])
+    f0 = sh.f0_from_maps(albedo, spec, metal)
+    glossy = sh.directional_albedo(f0, sh.f90_from_f0(f0), rough, wi_p.z) * occl * refl
+    return dr.select(valid_i, diffuse + glossy, mi.Color3f(0.0))
