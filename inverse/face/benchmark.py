@@ -382,6 +382,43 @@ def light_visibility(scene: mi.Scene, geo: GeometryMaps, to_light: np.ndarray) -
     return out.reshape(geo.mask.shape)
 
 
+def environment_transfer(mesh_path: Path, geo: GeometryMaps, order: int, rays: int = 256,
+                         seed: int = 0) -> np.ndarray:
+    """Each texel's SH transfer T_lm = ∫ V(ω) (n·ω)⁺ Y_lm(ω) dω (H, W, (order + 1)²): what it receives of an SH
+    environment, its own geometry's occlusion included (:mod:`mi_plugins.uv_shader`, ``UVEnvironment``).
+
+    ``rays`` cosine-weighted directions per texel about Mitsuba's shading normal there (a stratified grid,
+    shifted per texel by a seeded offset), each tested for an occluder by a shadow ray spawned as Mitsuba's
+    renderer does; the estimate is π/N Σ V Y_lm. Uncovered texels are 0.
+    """
+    from mi_plugins import sh
+
+    scene = mi.load_dict({"type": "scene", "scan": {"type": "obj", "filename": str(mesh_path), "face_normals": False}})
+    idx, si = _texel_interactions(scene, geo)
+    n_tex, k = len(idx), int(np.ceil(np.sqrt(rays)))
+    rng = np.random.default_rng(seed)
+    shift = rng.random((n_tex, 2))
+    g = np.arange(k) / k
+    su, sv = [a.ravel() for a in np.meshgrid(g, g, indexing="ij")]
+    out = np.zeros((geo.mask.size, sh.n_coeffs(order)), np.float64)
+    valid = np.array(si.is_valid())
+    frame_n = np.array(si.sh_frame.n).T
+    frame_s = np.array(si.sh_frame.s).T
+    frame_t = np.array(si.sh_frame.t).T
+    for j in range(k * k):  # one wavefront of every texel per direction: memory stays at one ray per texel
+        u = (shift + np.array([su[j], sv[j]])) % 1.0
+        r = np.sqrt(u[:, 0])
+        phi = 2 * np.pi * u[:, 1]
+        local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1 - u[:, 0], 0))], 1)
+        d = local[:, :1] * frame_s + local[:, 1:2] * frame_t + local[:, 2:] * frame_n
+        ray = si.spawn_ray(mi.Vector3f(aligned(d.T.astype(np.float32))))
+        lit = ~np.array(scene.ray_test(ray)) & valid
+        y = np.stack(sh.basis(d[:, 0], d[:, 1], d[:, 2], order), 1)
+        out[idx] += y * lit[:, None]
+    out *= np.pi / (k * k)
+    return out.reshape(geo.mask.shape + (sh.n_coeffs(order),)).astype(np.float32)
+
+
 def camera_sensor(eye: np.ndarray, target: np.ndarray, res: int, fov: float = 30.0) -> dict:
     return {
         "type": "perspective", "fov": fov,
