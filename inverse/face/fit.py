@@ -11,10 +11,13 @@ T̂ is :func:`mi_plugins.uv_shader.shade_uv` — the same GGX functions as the
 ``ggx_uv`` plugin. Optimised with Adam in Dr.Jit over a coarse-to-fine pyramid
 (each level initialised by upsampling the previous one).
 
-Lighting: known (light stage) or fitted jointly (``fit_lights``): directions,
-RGB intensities and an ambient term; albedo and light intensity then share a
-global scale that no image can resolve, so metrics compare albedo after the
-least-squares global scale (stated in the results).
+Lighting: known (light stage) or fitted jointly (``fit_lights``), either as an
+environment per observation — real spherical harmonics of order ``sh_order``
+with each texel's occlusion by the geometry (precomputed transfer,
+:mod:`mi_plugins.sh`), started by alternating least squares of albedo and
+light — or as directional lights (directions, RGB intensities, an ambient
+term). Albedo and light intensity share a global scale that no image can
+resolve, so metrics compare albedo after the least-squares global scale.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from foundation.errors import UsageError
 from foundation.loop import DrJitStage, LoopSettings, RunState, StepResult, TrainingSummary, run_loop
 from foundation.mesh import load_obj
 from foundation.optim_state import load_optimizer_state, optimizer_state
-from mi_plugins.uv_shader import UVLight, UVMaps, UVView, shade_uv, unravel_channels
+from mi_plugins.uv_shader import UVEnvironment, UVLight, UVMaps, UVView, shade_uv, unravel_channels
 
 from .benchmark import FaceBenchmark, Light, benchmark_digest
 from .uv_bake import bake_geometry
@@ -54,7 +57,13 @@ class FaceFitSettings:
     w_smooth_specular: float = 2.0
     w_smooth_normal: float = 0.0
     w_chroma: float = 0.0  #: smoothness of albedo chromaticity (useful when lighting is unknown)
-    fit_lights: bool = False  #: unknown lighting: fit directions, intensities and ambient
+    fit_lights: bool = False  #: unknown lighting: fit it jointly with the maps (``light_model``)
+    #: unknown lighting as ``sh`` (an environment per observation, spherical harmonics) or ``directional`` (one
+    #: directional light + a shared ambient per observation)
+    light_model: str = "directional"
+    sh_order: int = 2  #: bands 0…order of the fitted environments ((order + 1)² RGB coefficients each)
+    occlusion: bool = True  #: environments occluded by the mesh itself (per-texel transfer, ray traced once)
+    transfer_rays: int = 256  #: rays per texel for the transfer
     light_init_error_deg: float = 0.0  #: perturb the initial light directions (stability tests)
     init_roughness: float = 0.5
     init_specular: float = 0.5
@@ -73,6 +82,9 @@ class FaceFitSettings:
         for name in ("w_smooth_roughness", "w_smooth_specular", "w_smooth_normal", "w_chroma"):
             validate.non_negative(name, getattr(self, name))
         validate.in_range("light_init_error_deg", self.light_init_error_deg, 0.0, 180.0)
+        validate.one_of("light_model", self.light_model, ("sh", "directional"))
+        validate.integer("sh_order", self.sh_order, 0, 6)
+        validate.integer("transfer_rays", self.transfer_rays, 1, 1 << 16)
         validate.in_range("init_roughness", self.init_roughness, 0.05, 1.0)
         validate.in_range("init_specular", self.init_specular, 0.0, 1.0)
         validate.seed("seed", self.seed)
@@ -156,6 +168,46 @@ def _albedo_init(pos, nrm, tan, views, dirs, intens, vis_l, lvis, obs_l, res) ->
 
 
 
+def _env_init(basis: np.ndarray, mask: np.ndarray, vis: list, obs: dict, n_views: int, n_lights: int,
+              rounds: int = 10) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Albedo (H, W, 3) and per-light SH coefficients (n_coeffs, 3) by alternating least squares of the diffuse
+    model O_vk(u) ≈ ρ(u)/π Σ_j L_kj B_j(u) (flat normals, no gloss): each half is linear in its unknowns.
+
+    The scale shared by albedo and light is fixed by putting the albedo's 99th percentile at 0.8.
+    """
+    m = mask.ravel()
+    b = basis.reshape(-1, basis.shape[-1])[m].astype(np.float64) / np.pi  # (P, J)
+    vs = [np.array(vis[v]).reshape(-1)[m] > 0.5 for v in range(n_views)]
+    o = {key: np.array(val).reshape(-1, 3)[m].astype(np.float64) for key, val in obs.items()}
+    rho = np.full((b.shape[0], 3), 0.5)
+    coeffs = [np.zeros((b.shape[1], 3)) for _ in range(n_lights)]
+    ridge = 1e-3 * float(np.mean(b * b)) * len(b)  # keeps directions the texels hardly see from growing
+    for _ in range(rounds):
+        for k in range(n_lights):
+            for c in range(3):
+                ata = np.zeros((b.shape[1],) * 2)
+                atb = np.zeros(b.shape[1])
+                for v in range(n_views):
+                    a = b[vs[v]] * rho[vs[v], c:c + 1]
+                    ata += a.T @ a
+                    atb += a.T @ o[v, k][vs[v], c]
+                coeffs[k][:, c] = np.linalg.solve(ata + ridge * np.eye(len(atb)), atb)
+        num, den = np.zeros_like(rho), np.zeros_like(rho)
+        for k in range(n_lights):
+            shade = b @ coeffs[k]  # (P, 3)
+            for v in range(n_views):
+                num[vs[v]] += o[v, k][vs[v]] * shade[vs[v]]
+                den[vs[v]] += shade[vs[v]] ** 2
+        seen = den.min(1) > 1e-12
+        rho = np.where(seen[:, None], num / np.maximum(den, 1e-12), np.median(rho[seen], 0) if seen.any() else 0.5)
+        scale = 0.8 / max(float(np.percentile(rho[seen], 99)) if seen.any() else 1.0, 1e-6)
+        rho *= scale
+        coeffs = [c / scale for c in coeffs]
+    out = np.full(mask.shape + (3,), 0.4, np.float32)
+    out.reshape(-1, 3)[m] = np.clip(rho, 0.0, 1.0)
+    return out, coeffs
+
+
 @dataclass
 class FaceFitResult:
     maps: dict[str, np.ndarray]  #: albedo (H,W,3), normal (H,W,3 unit tangent-space), roughness, specular, displacement (H,W,1)
@@ -165,6 +217,7 @@ class FaceFitResult:
     loss_history: list[float]
     seconds: float
     training: TrainingSummary | None = None
+    environments: list[np.ndarray] | None = None  #: light_model "sh": per observation light, (n_coeffs, 3) SH radiance
 
 
 _MAPS = ("albedo", "slope", "roughness", "specular")
@@ -195,6 +248,13 @@ class FaceFitStage(DrJitStage):
             self.inten0 = [np.full(3, float(np.mean(l.irradiance))) * 0.7 for l in self.lights_meta]
         else:
             self.inten0 = [np.asarray(l.irradiance, float) for l in self.lights_meta]
+        self.env = s.fit_lights and s.light_model == "sh"
+        self.transfer = None
+        if self.env and s.occlusion:
+            from .benchmark import environment_transfer
+
+            self.transfer = environment_transfer(bench.mesh_path, bake_geometry(self.mesh, self.full), s.sh_order,
+                                                 s.transfer_rays, s.seed)
         self.bounds = np.cumsum([0, *s.iterations])  #: first step of every level
         self.level = -1
         self.opt = None
@@ -223,10 +283,18 @@ class FaceFitStage(DrJitStage):
         self.lvis = [_tensor(_downsample(bench.visibility[f"light{k}"], factor)[..., None]) for k in range(self.n_lights)]
         self.pos, self.nrm, self.tan = _tensor(geo.position), _tensor(geo.normal), _tensor(geo.tangent)
         self.res = res
+        env0 = None
+        if self.env:
+            basis = self._env_basis(geo, factor)
+            self.transfer_l = None if self.transfer is None else _tensor(basis)
+            if level == 0:
+                albedo0, env0 = _env_init(basis, geo.mask, [self.vis_l[v] for v in range(self.n_views)],
+                                          self.obs_l, self.n_views, self.n_lights)
         if maps_np is None:
             params = {
-                "albedo": _albedo_init(self.pos, self.nrm, self.tan, self.views, self.dirs0, self.inten0, self.vis_l,
-                                       self.lvis, self.obs_l, res),
+                "albedo": albedo0 if env0 is not None else _albedo_init(
+                    self.pos, self.nrm, self.tan, self.views, self.dirs0, self.inten0, self.vis_l, self.lvis,
+                    self.obs_l, res),
                 "slope": np.zeros((res, res, 2), np.float32),
                 "roughness": np.full((res, res, 1), s.init_roughness, np.float32),
                 "specular": np.full((res, res, 1), s.init_specular, np.float32),
@@ -238,7 +306,14 @@ class FaceFitStage(DrJitStage):
         for k, v in params.items():
             self.opt[k] = _tensor(v)
         self.opt.set_learning_rate({"slope": s.lr_normal})
-        if s.fit_lights:
+        if self.env:
+            for k in range(self.n_lights):
+                c = env0[k] if level == 0 else self.light_params[f"sh{k}"]
+                self.opt[f"sh{k}"] = mi.Color3f(aligned(np.ascontiguousarray(c.T))) if level == 0 else c
+                # Adam moves every coefficient by ~lr per step: in units of the environment's mean radiance
+                scale = float(np.abs(np.array(self.opt[f"sh{k}"])).max()) if level else float(np.abs(c).max())
+                self.opt.set_learning_rate({f"sh{k}": s.lr * max(scale, 1e-6)})
+        elif s.fit_lights:
             for k in range(self.n_lights):
                 if level == 0:
                     self.opt[f"dir{k}"] = mi.Vector3f(*map(float, self.dirs0[k]))
@@ -250,12 +325,23 @@ class FaceFitStage(DrJitStage):
         self.n_valid = max(1.0, float(self.mask_np.sum()))
         self.level = level
 
+    def _env_basis(self, geo, factor: int) -> np.ndarray:
+        """Per texel of a level, what each SH coefficient gives a flat-normal texel: the transfer (box average of
+        the full-resolution one) or, unoccluded, Â_l Y_lm(n)."""
+        from mi_plugins import sh
+
+        if self.transfer is not None:
+            return _downsample(self.transfer, factor).astype(np.float32)
+        n = geo.normal
+        y = sh.basis(n[..., 0], n[..., 1], n[..., 2], self.s.sh_order)
+        return np.stack([sh.cosine_lobe(sh.band(j)) * y[j] for j in range(len(y))], -1).astype(np.float32)
+
     def _leave(self) -> dict:
         """The current level's maps (numpy) and fitted lights (kept for the next level)."""
         maps = {k: np.array(self.opt[k]) for k in _MAPS}
         if self.s.fit_lights:
             self.light_params = {k: type(self.opt[k])(self.opt[k]) for k in self.opt.keys()
-                                 if k.startswith(("dir", "int", "ambient"))}
+                                 if k.startswith(("dir", "int", "ambient", "sh"))}
         return maps
 
     # -- the loop's interface -------------------------------------------------------------------------------------
@@ -272,7 +358,12 @@ class FaceFitStage(DrJitStage):
     def load_state(self, tree: dict) -> None:
         if tree["level"] < 0:
             return
-        if self.s.fit_lights and tree["level"] > 0:
+        if self.env and tree["level"] > 0:
+            from mi_plugins import sh
+
+            self.light_params = {f"sh{k}": mi.Color3f(np.zeros((3, sh.n_coeffs(self.s.sh_order)), np.float32))
+                                 for k in range(self.n_lights)}
+        elif self.s.fit_lights and tree["level"] > 0:
             # the level was entered with the previous level's lights; its optimiser state holds the current ones
             self.light_params = {f"dir{k}": mi.Vector3f(0.0) for k in range(self.n_lights)}
             self.light_params.update({f"int{k}": mi.Color3f(0.0) for k in range(self.n_lights)})
@@ -293,6 +384,14 @@ class FaceFitStage(DrJitStage):
         maps = UVMaps(albedo=opt["albedo"], normal=enc, roughness=opt["roughness"], specular=opt["specular"])
         loss = mi.Float(0.0)
         for k in range(self.n_lights):
+            if self.env:
+                env = UVEnvironment(opt[f"sh{k}"], self.transfer_l)
+                for v in range(self.n_views):
+                    pred = shade_uv(self.pos, self.nrm, self.tan, maps, [], UVView(position=tuple(self.views[v])),
+                                    mask=self.vis_l[v], environment=env)
+                    diff = pred - self.obs_l[v, k] * self.vis_l[v]
+                    loss += dr.sum(diff * diff, axis=None) / (self.n_valid * self.n_views * self.n_lights)
+                continue
             if s.fit_lights:
                 light = UVLight("directional", dr.normalize(opt[f"dir{k}"]), opt[f"int{k}"])
                 amb = opt["ambient"]
@@ -330,7 +429,7 @@ class FaceFitStage(DrJitStage):
         opt["roughness"] = dr.clip(opt["roughness"], 0.05, 1.0)
         opt["specular"] = dr.clip(opt["specular"], 0.0, 1.0)
         opt["slope"] = dr.clip(opt["slope"], -3.0, 3.0)
-        if s.fit_lights:
+        if s.fit_lights and not self.env:
             for k in range(self.n_lights):
                 opt[f"int{k}"] = dr.maximum(opt[f"int{k}"], 0.0)
             opt["ambient"] = dr.maximum(opt["ambient"], 0.0)
@@ -355,7 +454,11 @@ class FaceFitStage(DrJitStage):
         maps_out = fill_unobserved(maps_out, observed, bench.geometry["mask"] > 0)
         geo_full = bake_geometry(self.mesh, maps_out["albedo"].shape[0])
         maps_out["displacement"] = integrate_normals(maps_out["normal"], geo_full.bitangent_sign, geo_full.mask)
-        if s.fit_lights:
+        environments = None
+        if self.env:
+            environments = [np.array(self.light_params[f"sh{k}"]).reshape(3, -1).T.copy() for k in range(self.n_lights)]
+            lights, ambient = list(self.lights_meta), 0.0
+        elif s.fit_lights:
             lp = self.light_params
             lights = [Light("directional",
                             tuple(map(float, np.array(lp[f"dir{k}"]).ravel() / np.linalg.norm(np.array(lp[f"dir{k}"]).ravel()))),
@@ -364,7 +467,7 @@ class FaceFitStage(DrJitStage):
         else:
             lights, ambient = list(self.lights_meta), 0.0
         return FaceFitResult(maps_out, observed, lights, ambient, list(run.losses), run.train_seconds,
-                             run.summary())
+                             run.summary(), environments)
 
 
 def fit_face(bench: FaceBenchmark, s: FaceFitSettings | None = None, show_progress: bool = True,

@@ -57,6 +57,9 @@ REGISTRY: dict[str, Entry] = {
     "face-learned": Entry(f"{__name__}.face_learned", "learned face stages vs the optimisation baseline on a "
                           "held-out scan: completion, decomposition variants, super-resolution, cross-model fit, "
                           "end to end"),
+    "face-light": Entry(f"{__name__}.face_light", "the face fit under unknown environment light (principled, "
+                        "HDRIs, interreflection) per light model: directional vs spherical-harmonic orders, with "
+                        "each order's model floor"),
     "capture": Entry(f"{__name__}.capture", "real captures (skull, ruins) through structure from motion on the CPU, "
                      "and the held-out-photo scores of the coarse mesh"),
     "startup": Entry(f"{__name__}.startup", "`photoreal … --help` and argument errors: median wall seconds, each "

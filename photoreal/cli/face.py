@@ -149,6 +149,12 @@ def _add_fit(ff: argparse.ArgumentParser) -> None:
     out_opt(ff, "--out-dir", default=None, help="several benchmarks: DIR/NAME/fit.json and DIR/NAME/maps")
     out_opt(ff, "--maps", default=None, help="folder for the fitted maps (EXR + PNG)")
     opt(ff, FaceFitSettings, "fit_lights", help="treat lighting as unknown and fit it jointly")
+    opt(ff, FaceFitSettings, "light_model", choices=["directional", "sh"],
+        help="unknown lighting as one directional light + ambient per observation, or an environment in spherical "
+             "harmonics per observation, occluded by the mesh (see docs/face.md)")
+    opt(ff, FaceFitSettings, "sh_order", type=int)
+    opt(ff, FaceFitSettings, "occlusion", "--no-occlusion", help="with --light-model sh: the environments reach every "
+        "texel unoccluded (no ray-traced transfer)")
     opt(ff, FaceFitSettings, "iterations", type=int, help="Adam steps per pyramid level")
     ff.add_argument("--refine-renders", type=int, default=0, metavar="N",
                     help=f"then refine N Adam steps through full camera renders (prb through ggx_uv; "
