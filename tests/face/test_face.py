@@ -303,3 +303,19 @@ def test_environment_light_fit_is_finite_and_resumes_from_its_checkpoint(small_b
     again = fit_face(small_benchmark, s, show_progress=False, checkpoint=ckpt)  # the finished run, read back
     np.testing.assert_allclose(again.maps["albedo"], r.maps["albedo"], atol=1e-6)
     np.testing.assert_allclose(again.environments[0], r.environments[0], atol=1e-6)
+
+
+def test_bench_face_light_writes_every_model_and_floor(tmp_path):
+    from photoreal.benchmarks.face_light import FaceLightBenchSettings, bench_face_light
+
+    s = FaceLightBenchSettings(scans=("josie",), uv_res=32, models=("directional", "sh1"), iterations=(5, 10),
+                               render_res=24)
+    r = bench_face_light(s, tmp_path, show_progress=False)
+    row = r["scans"]["josie"]
+    assert set(row["models"]) == {"directional", "sh1"} and set(row["floor_psnr"]) == {"sh1"}
+    for m in row["models"].values():
+        assert np.isfinite([m["albedo_psnr"], m["normal_err_deg"], m["relit_psnr"], m["fit_seconds"]]).all()
+        assert len(m["relit"]) == 3 and isinstance(m["meets_targets"], bool)
+    assert 5.0 < row["floor_psnr"]["sh1"] < 60.0  # a PSNR, not a placeholder
+    with pytest.raises(Exception, match="sh<order>"):
+        FaceLightBenchSettings(models=("spherical",))
