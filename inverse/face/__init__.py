@@ -17,7 +17,8 @@ Other features use only the names below.
 
 from .benchmark import (FaceBenchmark, FaceBenchmarkMeta, FaceBenchmarkSettings, HeldoutCamera, Light, normals_from_height,
                         orbit_direction, scan_frame, scan_scene, scan_texture, skin_relief, smooth_noise,
-                        key_light, load_benchmark, make_benchmark, render_heldout, texel_observation)
+                        key_light, load_benchmark, make_benchmark, render_heldout, texel_observation,
+                        MARKER as BENCHMARK_MARKER, environment_transfer, rendered_maps)
 from .batch import FaceFitReport, fit_benchmark_dir, fit_benchmark_item
 from .fit import (FaceFitMetrics, FaceFitResult, FaceFitSettings, RelitMetrics, evaluate_fit, fill_unobserved, fit_face,
                   integrate_normals, save_maps)
@@ -38,5 +39,5 @@ __all__ = [
     "FaceFitSettings", "GeometryMaps", "HeldoutCamera", "Light", "PhotoFaceResult", "PhotoFitSettings", "RelitMetrics",
     "RenderRefineSettings", "bake_geometry", "check_landmarks", "detect_landmarks", "evaluate_fit", "fill_unobserved",
     "fit_benchmark_dir", "fit_benchmark_item", "fit_face", "fit_template", "integrate_normals", "load_benchmark", "load_landmarks",
-    "make_benchmark", "photo_to_face", "refine_through_renders", "render_heldout", "save_maps", "texel_uvs",
+    "make_benchmark", "BENCHMARK_MARKER", "environment_transfer", "rendered_maps", "photo_to_face", "refine_through_renders", "render_heldout", "save_maps", "texel_uvs",
 ]

@@ -72,7 +72,7 @@ def model_floor(bench, order: int, transfer: np.ndarray) -> float:
 
     from foundation.assets import hdri_pixels
     from foundation.metrics import psnr
-    from inverse.face.benchmark import rendered_maps
+    from inverse.face import rendered_maps
     from mi_plugins import sh
     from mi_plugins.arrays import aligned
     from mi_plugins.uv_shader import UVEnvironment, UVMaps, UVView, shade_uv
@@ -98,10 +98,8 @@ def model_floor(bench, order: int, transfer: np.ndarray) -> float:
 def bench_face_light(s: FaceLightBenchSettings, work: Path, show_progress: bool = True) -> dict:
     from foundation.mesh import load_obj
     from foundation.records import to_json
-    from inverse.face import (FaceBenchmarkSettings, FaceFitSettings, evaluate_fit, fit_face, load_benchmark,
-                              make_benchmark)
-    from inverse.face.benchmark import MARKER, environment_transfer
-    from inverse.face.uv_bake import bake_geometry
+    from inverse.face import (BENCHMARK_MARKER, FaceBenchmarkSettings, FaceFitSettings, bake_geometry,
+                              environment_transfer, evaluate_fit, fit_face, load_benchmark, make_benchmark)
 
     from .face import FaceBenchSettings
 
@@ -117,7 +115,7 @@ def bench_face_light(s: FaceLightBenchSettings, work: Path, show_progress: bool 
                                        max_depth=s.max_depth, albedo_blur=s.albedo_blur,
                                        render_res=s.render_res)
             t0 = time.perf_counter()
-            if not (folder / MARKER).is_file():  # the work folder keeps the benchmark between runs
+            if not (folder / BENCHMARK_MARKER).is_file():  # the work folder keeps the benchmark between runs
                 make_benchmark(path, folder, bs, show_progress=False)
             bench = load_benchmark(folder)
             row: dict = {"benchmark_seconds": time.perf_counter() - t0, "models": {}, "floor_psnr": {}}
