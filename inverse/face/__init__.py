@@ -39,5 +39,6 @@ __all__ = [
     "FaceFitSettings", "GeometryMaps", "HeldoutCamera", "Light", "PhotoFaceResult", "PhotoFitSettings", "RelitMetrics",
     "RenderRefineSettings", "bake_geometry", "check_landmarks", "detect_landmarks", "evaluate_fit", "fill_unobserved",
     "fit_benchmark_dir", "fit_benchmark_item", "fit_face", "fit_template", "integrate_normals", "load_benchmark", "load_landmarks",
-    "make_benchmark", "BENCHMARK_MARKER", "environment_transfer", "rendered_maps", "photo_to_face", "refine_through_renders", "render_heldout", "save_maps", "texel_uvs",
+    "make_benchmark", "BENCHMARK_MARKER", "environment_transfer", "rendered_maps", "photo_to_face",
+    "refine_through_renders", "render_heldout", "save_maps", "texel_uvs",
 ]

@@ -41,7 +41,7 @@ from foundation.mesh import load_obj
 from foundation.optim_state import load_optimizer_state, optimizer_state
 from mi_plugins.uv_shader import UVEnvironment, UVLight, UVMaps, UVView, shade_uv, unravel_channels
 
-from .benchmark import FaceBenchmark, Light, benchmark_digest
+from .benchmark import FaceBenchmark, Light, benchmark_digest, environment_transfer
 from .uv_bake import bake_geometry
 
 
@@ -251,8 +251,6 @@ class FaceFitStage(DrJitStage):
         self.env = s.fit_lights and s.light_model == "sh"
         self.transfer = None
         if self.env and s.occlusion:
-            from .benchmark import environment_transfer
-
             self.transfer = environment_transfer(bench.mesh_path, bake_geometry(self.mesh, self.full), s.sh_order,
                                                  s.transfer_rays, s.seed)
         self.bounds = np.cumsum([0, *s.iterations])  #: first step of every level
@@ -308,11 +306,10 @@ class FaceFitStage(DrJitStage):
         self.opt.set_learning_rate({"slope": s.lr_normal})
         if self.env:
             for k in range(self.n_lights):
-                c = env0[k] if level == 0 else self.light_params[f"sh{k}"]
-                self.opt[f"sh{k}"] = mi.Color3f(aligned(np.ascontiguousarray(c.T))) if level == 0 else c
-                # Adam moves every coefficient by ~lr per step: in units of the environment's mean radiance
-                scale = float(np.abs(np.array(self.opt[f"sh{k}"])).max()) if level else float(np.abs(c).max())
-                self.opt.set_learning_rate({f"sh{k}": s.lr * max(scale, 1e-6)})
+                c = env0[k] if level == 0 else np.array(self.light_params[f"sh{k}"]).T  # (n_coeffs, 3)
+                self.opt[f"sh{k}"] = mi.Color3f(aligned(np.ascontiguousarray(c.T)))
+                # Adam moves every coefficient by ~lr per step: in units of the environment's largest coefficient
+                self.opt.set_learning_rate({f"sh{k}": s.lr * max(float(np.abs(c).max()), 1e-6)})
         elif s.fit_lights:
             for k in range(self.n_lights):
                 if level == 0:

@@ -67,7 +67,8 @@ def _small(px: np.ndarray, rows: int = 128) -> np.ndarray:
 
 
 def model_floor(bench, order: int, transfer: np.ndarray) -> float:
-    """PSNR of the observations predicted from the true maps and the true HDRIs projected onto SH ``order``."""
+    """PSNR of the observations predicted from the true maps and the true HDRIs projected onto SH ``order``
+    (``transfer``: that order's channels, or more: the basis is nested, so the first (order + 1)² are used)."""
     import mitsuba as mi
 
     from foundation.assets import hdri_pixels
@@ -81,15 +82,16 @@ def model_floor(bench, order: int, transfer: np.ndarray) -> float:
     t = lambda a: mi.TensorXf(aligned(np.ascontiguousarray(a, np.float32)))  # noqa: E731
     maps = UVMaps(albedo=t(gt["albedo"]), normal=t(gt["normal"] * 0.5 + 0.5), roughness=t(gt["roughness"]),
                   specular=t(gt["specular"]))
+    pos, nrm, tan = t(g["position"]), t(g["normal"]), t(g["tangent"])
+    transfer = t(transfer[..., :sh.n_coeffs(order)])
     pred_all, obs_all = [], []
     for k, light in enumerate(bench.meta.lights):
         rot = np.array(mi.ScalarTransform4f().rotate([0, 1, 0], light.rotation_deg).matrix)[:3, :3]
         hdri = str(bench.path / light.hdri) if light.hdri.startswith("hdri/") else light.hdri
-        env = UVEnvironment(sh.project_envmap(_small(hdri_pixels(hdri)), order, rot), t(transfer))
+        env = UVEnvironment(sh.project_envmap(_small(hdri_pixels(hdri)), order, rot), transfer)
         for v, eye in enumerate(bench.meta.views):
             seen = bench.visibility[f"v{v}"] > 0
-            pred = np.array(shade_uv(t(g["position"]), t(g["normal"]), t(g["tangent"]), maps, [],
-                                     UVView(position=tuple(eye)), environment=env))
+            pred = np.array(shade_uv(pos, nrm, tan, maps, [], UVView(position=tuple(eye)), environment=env))
             pred_all.append(pred[seen])
             obs_all.append(bench.observations[f"v{v}_l{k}"][seen])
     return psnr(np.concatenate(pred_all), np.concatenate(obs_all))
@@ -119,10 +121,11 @@ def bench_face_light(s: FaceLightBenchSettings, work: Path, show_progress: bool 
                 make_benchmark(path, folder, bs, show_progress=False)
             bench = load_benchmark(folder)
             row: dict = {"benchmark_seconds": time.perf_counter() - t0, "models": {}, "floor_psnr": {}}
-            geo = bake_geometry(load_obj(bench.mesh_path), s.uv_res)
+            # one transfer at the highest order serves every lower one (same rays; the SH basis is nested)
+            transfer = environment_transfer(bench.mesh_path, bake_geometry(load_obj(bench.mesh_path), s.uv_res),
+                                            max(orders)) if orders else None
             for order in orders:
-                row["floor_psnr"][f"sh{order}"] = model_floor(bench, order,
-                                                              environment_transfer(bench.mesh_path, geo, order))
+                row["floor_psnr"][f"sh{order}"] = model_floor(bench, order, transfer)
             bar.update(1)
             for name in s.models:
                 fs = FaceFitSettings(fit_lights=True, seed=s.seed, iterations=tuple(s.iterations),
