@@ -143,13 +143,13 @@ def import_capture(source, out: str | Path, resolution: int | None = 512, mesh: 
                 bar.update(1)
         train, test = split([c.name for c in cams])
         points = 0
-        pts, cols = source.points, source.colours
+        pts, cols, dirs = source.points, source.colours, source.view_dirs
         masked = (tmp / "masks").is_dir()
         hull = user_mesh is None and (coarse == "hull" or (coarse == "auto" and pts is None and masked))
         if pts is None and user_mesh is None and triangulate and not hull:
             from .sfm import triangulate_known
 
-            pts, cols = triangulate_known(tmp, cams, show_progress)
+            pts, cols, dirs = triangulate_known(tmp, cams, show_progress)
         if pts is not None and len(pts):
             points = len(pts)
             write_ply(tmp / "points.ply", pts, np.zeros((0, 3), np.int64),
@@ -169,7 +169,7 @@ def import_capture(source, out: str | Path, resolution: int | None = 512, mesh: 
             mesh_name = "mesh.ply"
         elif pts is not None and len(pts) >= 100:
             v, f, c = coarse_mesh_from_points(pts, None if cols is None else imageio.srgb_to_linear(cols),
-                                              np.array([c.centre for c in cams]))
+                                              np.array([c.centre for c in cams]), view_dirs=dirs)
             write_ply(tmp / "mesh.ply", v, f, c)
             mesh_name = "mesh.ply"
         meta = CaptureMeta(cams, train, test, {"format": source.kind, "path": str(source.path), **source.notes,

@@ -11,7 +11,9 @@ import numpy as np
 from foundation.errors import UsageError
 
 POISSON_DEPTH = 8  #: octree depth of the screened Poisson reconstruction (depth 8: the shape, holes where untextured)
-TRIM_QUANTILE = 0.08  #: Poisson vertices of the lowest point density dropped (the surface it invents far from points)
+#: Poisson vertices of the lowest point density dropped when the points' normals are turned by the nearest camera (the
+#: surface invented where that guess flips them); points with view directions need no trim
+TRIM_QUANTILE = 0.08
 
 
 def load_coarse_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -41,9 +43,14 @@ def inliers(points: np.ndarray, k: int = 8, sigmas: float = 2.0, tail: float = 0
 
 
 def coarse_mesh_from_points(points: np.ndarray, colours: np.ndarray | None, cam_centres: np.ndarray,
-                            depth: int = POISSON_DEPTH) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """A screened Poisson surface of sparse points: normals from 10 neighbours, turned toward the nearest camera;
-    the faces of least point support trimmed; the largest piece kept; vertex colours from the nearest point."""
+                            depth: int = POISSON_DEPTH, view_dirs: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A screened Poisson surface of sparse points: normals from 10 neighbours, turned toward the side each point was
+    seen from (``view_dirs``, :func:`~inverse.capture.sources.model_points`), else toward the nearest camera and the
+    faces of least point support trimmed; the largest piece kept; vertex colours from the nearest point.
+
+    The side matters: on an orbit every camera is about as near as any other, so the nearest one is on the wrong side
+    of a third of a skull's points, and Poisson then closes inside-out pockets that render black."""
     import pymeshlab
     from scipy.spatial import cKDTree
 
@@ -51,19 +58,22 @@ def coarse_mesh_from_points(points: np.ndarray, colours: np.ndarray | None, cam_
     if len(pts) < 100:
         raise UsageError(f"{len(pts)} triangulated points: too few for a mesh (at least 100)")
     keep = inliers(pts)
+    if view_dirs is not None:
+        view_dirs = np.asarray(view_dirs, np.float64)
+        keep &= np.linalg.norm(view_dirs, axis=1) > 1e-6  # a point of an empty track has no side
     pts, colours = pts[keep], (None if colours is None else np.asarray(colours)[keep])
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts))
     ms.compute_normal_for_point_clouds(k=10, smoothiter=2)
     n = ms.current_mesh().vertex_normal_matrix()
-    near = cam_centres[cKDTree(cam_centres).query(pts)[1]]
-    n = np.where(((near - pts) * n).sum(1, keepdims=True) < 0, -n, n)
+    toward = view_dirs[keep] if view_dirs is not None else cam_centres[cKDTree(cam_centres).query(pts)[1]] - pts
+    n = np.where((toward * n).sum(1, keepdims=True) < 0, -n, n)
     ms.clear()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts, v_normals_matrix=n))
     ms.generate_surface_reconstruction_screened_poisson(depth=depth, preclean=True)
     m = ms.current_mesh()
     q = m.vertex_scalar_array() if m.has_vertex_scalar() else np.zeros(0)  # Poisson's point density
-    if len(q) and np.ptp(q) > 0:
+    if view_dirs is None and len(q) and np.ptp(q) > 0:
         ms.compute_selection_by_condition_per_vertex(condselect=f"q < {np.quantile(q, TRIM_QUANTILE)}")
         ms.meshing_remove_selected_vertices()
     ms.meshing_remove_connected_component_by_diameter(mincomponentdiag=pymeshlab.PercentageValue(20))

@@ -14,7 +14,7 @@ import numpy as np
 
 from foundation.errors import FailureError, UsageError
 
-from .sources import PHOTO_SUFFIXES, Source, SourceFrame
+from .sources import PHOTO_SUFFIXES, Source, SourceFrame, model_points
 
 
 @dataclass
@@ -210,8 +210,7 @@ def run_sfm(photos: str | Path, work: str | Path, s: SfmSettings | None = None,
         full.rescale(round(cam.width / scale), round(cam.height / scale))
         frames.append(SourceFrame(orig.stem, orig, full, np.linalg.inv(w2c)))
         registered.add(im.name)
-    pts = np.array([p.xyz for p in rec.points3D.values()], np.float64).reshape(-1, 3)
-    cols = np.array([p.color for p in rec.points3D.values()], np.float64).reshape(-1, 3) / 255.0
+    pts, cols, dirs = model_points(rec)
     left = sorted(prepared[n][0].name for n in prepared if n not in registered)
     figures = {"photos": len(files), "registered": len(frames), "models": len(models),
                "model_sizes": sorted((m.num_reg_images() for m in models.values()), reverse=True),
@@ -220,7 +219,7 @@ def run_sfm(photos: str | Path, work: str | Path, s: SfmSettings | None = None,
                "matching": "exhaustive" if exhaustive else "sequential", "max_size": s.max_size,
                "cameras": "single" if single else "per photo",
                "seconds": {k: round(v, 2) for k, v in seconds.items()}, "unregistered": left}
-    return Source("sfm", folder, frames, pts, cols, {"sfm": figures})
+    return Source("sfm", folder, frames, pts, cols, {"sfm": figures}, view_dirs=dirs)
 
 
 def _set_focal_priors(db: Path, prepared: dict) -> None:
@@ -244,8 +243,9 @@ def _set_focal_priors(db: Path, prepared: dict) -> None:
         database.close()
 
 
-def triangulate_known(capture_dir: Path, cams: list, show_progress: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Points (N, 3) and colours (N, 3, sRGB) triangulated from a capture's own photos and pinhole cameras (known
+def triangulate_known(capture_dir: Path, cams: list,
+                      show_progress: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points (N, 3), colours (N, 3, sRGB) and view directions (N, 3, :func:`model_points`) triangulated from a capture's own photos and pinhole cameras (known
     poses: features, exhaustive matching, triangulation; nothing is re-estimated)."""
     import tempfile
 
@@ -287,6 +287,4 @@ def triangulate_known(capture_dir: Path, cams: list, show_progress: bool = True)
         opts = pycolmap.IncrementalPipelineOptions()
         opts.triangulation.ignore_two_view_tracks = False  # a point two photos agree on is a point (few photos)
         rec = pycolmap.triangulate_points(rec, db, tmp / "images", tmp / "tri", options=opts)
-    pts = np.array([p.xyz for p in rec.points3D.values()], np.float64).reshape(-1, 3)
-    cols = np.array([p.color for p in rec.points3D.values()], np.float64).reshape(-1, 3) / 255.0
-    return pts, cols
+    return model_points(rec)

@@ -35,6 +35,9 @@ class Source:
     points: np.ndarray | None = None  #: (N, 3) triangulated points, if the tool left some
     colours: np.ndarray | None = None  #: (N, 3) their colours in [0, 1] (sRGB, as photographed)
     notes: dict = field(default_factory=dict)
+    #: (N, 3) each point's mean unit direction toward the cameras that observed it (its track), where the tool kept
+    #: tracks: which side of the surface a point was seen from
+    view_dirs: np.ndarray | None = None
 
 
 def camera(model: str, width: int, height: int, params, where: str):
@@ -143,10 +146,25 @@ def read_colmap(path: str | Path, images: str | Path | None = None, masks: str |
                                   _check_pose(np.linalg.inv(w2c), where), _mask_for(masks, im.name)))
     if len(frames) < 2:
         raise UsageError(f"{model}: {len(frames)} registered image(s); a capture needs at least 2")
+    pts, cols, dirs = model_points(rec)
+    return Source("colmap", model, _unique_names(frames, model), pts if len(pts) else None,
+                  cols if len(pts) else None, {"cameras": len(rec.cameras), "images": len(rec.images)},
+                  view_dirs=dirs if len(pts) else None)
+
+
+def model_points(rec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A pycolmap reconstruction's points (N, 3), colours (N, 3, sRGB in [0, 1]) and view directions (N, 3): the
+    mean of the unit vectors from each point to the centres of the photos in its track (zero for an empty track)."""
+    centres = {i: np.asarray(im.projection_center(), np.float64) for i, im in rec.images.items() if im.has_pose}
     pts = np.array([p.xyz for p in rec.points3D.values()], np.float64).reshape(-1, 3)
     cols = np.array([p.color for p in rec.points3D.values()], np.float64).reshape(-1, 3) / 255.0
-    return Source("colmap", model, _unique_names(frames, model), pts if len(pts) else None,
-                  cols if len(pts) else None, {"cameras": len(rec.cameras), "images": len(rec.images)})
+    dirs = np.zeros_like(pts)
+    for k, p in enumerate(rec.points3D.values()):
+        c = [centres[e.image_id] for e in p.track.elements if e.image_id in centres]
+        if c:
+            d = np.asarray(c) - pts[k]
+            dirs[k] = (d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)).mean(0)
+    return pts, cols, dirs
 
 
 # -- transforms.json (nerfstudio, instant-ngp) ----------------------------------------------------------------------

@@ -262,7 +262,8 @@ def _suite_case(name: str, s: CaptureBenchSettings, work: Path, show_progress: b
     row = {"sfm": sfm, "cameras": err, "orbit_radius": radius, "views": s.suite_views,
            "resolution": s.suite_resolution}
     try:
-        mv, mf, _ = coarse_mesh_from_points(src.points, None, np.array([fr.cam_to_world[:3, 3] for fr in src.frames]))
+        mv, mf, _ = coarse_mesh_from_points(src.points, None, np.array([fr.cam_to_world[:3, 3] for fr in src.frames]),
+                                            view_dirs=src.view_dirs)
         r, t = np.asarray(err["rotation"]), np.asarray(err["translation"])
         aligned = err["scale"] * mv @ r.T + t
         ch = chamfer(aligned, mf, v, f)

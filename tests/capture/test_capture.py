@@ -243,6 +243,20 @@ def test_the_poisson_mesh_of_sparse_points_is_the_surface_they_sample():
     assert len(f) > 500 and np.median(e) < 0.01 and np.quantile(e, 0.99) < 0.04 and e.max() < 0.1
     assert (np.einsum("ij,ij->i", vertex_normals(v, f), v / r[:, None]) > 0).mean() > 0.95
     assert np.mean((c[:, 0] > 0.5) == (v[:, 0] > 0)) > 0.97
+    # with the side each point was seen from (the mean direction to the cameras in front of it), nothing is trimmed:
+    # closed, within 1 % of the radius at the 99th percentile and 8 % at worst (measured 0.85 % and 5.5 %), every
+    # normal outward
+    toward = cams[None] - pts[:, None]
+    seen = np.einsum("ncj,nj->nc", toward, p) > 0
+    dirs = (toward / np.linalg.norm(toward, axis=2, keepdims=True) * seen[..., None]).sum(1)
+    v, f, _ = coarse_mesh_from_points(pts, cols, cams, view_dirs=dirs)
+    r = np.linalg.norm(v, axis=1)
+    e = np.abs(r - 1)
+    assert np.quantile(e, 0.99) < 0.01 and e.max() < 0.08, (np.quantile(e, 0.99), e.max())
+    assert (np.einsum("ij,ij->i", vertex_normals(v, f), v / r[:, None]) > 0).all()
+    import trimesh
+
+    assert trimesh.Trimesh(v, f, process=False).is_watertight
 
 
 def test_the_similarity_of_camera_centres_is_recovered_exactly():
@@ -319,7 +333,9 @@ def test_a_tools_mesh_comes_with_its_colours(tmp_path):
 def test_a_capture_without_points_or_mesh_is_triangulated_with_its_own_cameras(tmp_path):
     """A transforms.json of 20 renders of a speckled bunny with their true cameras, no points, no mesh: the import
     triangulates SIFT matches with the given cameras (pycolmap) and meshes them. Oracle: the points lie on the true
-    surface (median distance < 1 % of its size, measured 0.2 %)."""
+    surface (median distance < 1 % of its size, measured 0.2 %); their normals, turned by the side each was seen from,
+    give a mesh whose back faces the cameras see at under 3 % of the hits and half as often as when turned toward the
+    nearest camera (measured 2.2 % against 6.1 %)."""
     import mi_plugins  # noqa: F401
     import mitsuba as mi
     from scipy.spatial import cKDTree
@@ -349,6 +365,36 @@ def test_a_capture_without_points_or_mesh_is_triangulated_with_its_own_cameras(t
     size = float(np.linalg.norm(v.max(0) - v.min(0)))
     d = cKDTree(sample_surface(v, f, 200_000, np.random.default_rng(0))[0]).query(pts)[0]
     assert np.median(d) < 0.01 * size, np.median(d) / size
+    # the mesh was turned by the side each point was seen from: the cameras see its front, not inside-out pockets
+    from foundation.mesh import read_ply
+
+    from inverse.capture import coarse_mesh_from_points
+
+    mv, mf, _ = read_ply(out.path / "mesh.ply")
+    back, hits = _backfacing(mv, mf, out.meta.cameras, tmp_path)
+    nv, nf, _ = coarse_mesh_from_points(pts, None, np.array([c.centre for c in out.meta.cameras]))
+    back_near, hits_near = _backfacing(nv, nf, out.meta.cameras, tmp_path)
+    print(f"back faces seen: {back / hits:.4f} of the hits; turned by the nearest camera {back_near / hits_near:.4f}")
+    assert hits > 1000 and back / hits < 0.03 and back / hits < 0.5 * back_near / hits_near, (back, hits, back_near)
+
+
+def _backfacing(v, f, cams, tmp_path) -> tuple[int, int]:
+    """(pixels whose first hit is a back face, pixels that hit the mesh) over the cameras' views."""
+    import drjit as dr
+    import mi_plugins  # noqa: F401
+    import mitsuba as mi
+
+    from foundation.mesh import write_ply
+
+    scene = mi.load_dict({"type": "scene", "m": {"type": "ply", "filename": str(write_ply(tmp_path / "bf.ply", v, f))}})
+    back = hits = 0
+    for c in cams:
+        x, y = np.meshgrid((np.arange(c.width) + 0.5) / c.width, (np.arange(c.height) + 0.5) / c.height)
+        ray, _ = mi.load_dict(sensor(c)).sample_ray(0.0, 0.5, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5))
+        si = scene.ray_intersect(ray)
+        hit, cos = np.array(si.is_valid()), np.array(dr.dot(si.n, ray.d))
+        hits, back = hits + int(hit.sum()), back + int((hit & (cos > 0)).sum())
+    return back, hits
 
 
 def test_masks_travel_with_their_photos_and_limit_the_scores(tmp_path):
