@@ -245,8 +245,9 @@ def _set_focal_priors(db: Path, prepared: dict) -> None:
 
 def triangulate_known(capture_dir: Path, cams: list,
                       show_progress: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points (N, 3), colours (N, 3, sRGB) and view directions (N, 3, :func:`model_points`) triangulated from a capture's own photos and pinhole cameras (known
-    poses: features, exhaustive matching, triangulation; nothing is re-estimated)."""
+    """Points (N, 3), colours (N, 3, sRGB) and view directions (N, 3, :func:`model_points`) triangulated from a
+    capture's own photos and pinhole cameras (known poses: features, exhaustive matching, triangulation; nothing is
+    re-estimated)."""
     import tempfile
 
     import pycolmap

@@ -226,7 +226,8 @@ def test_the_capture_commands_end_to_end(bench, tmp_path, capsys):
 def test_the_poisson_mesh_of_sparse_points_is_the_surface_they_sample():
     """Oracle: 3000 noisy points (σ 0.5 %) on a unit sphere, cameras around it: the coarse mesh's vertices lie within
     1 % of the radius in the median, 4 % at the 99th percentile, 10 % at worst (measured 2.5 % and 8.8 %, near the
-    holes the trimming leaves), the mesh faces outward (normals turned toward the cameras), colours come from the points."""
+    holes the trimming leaves), the mesh faces outward (normals turned toward the nearest camera), colours come from
+    the points; with the side each point was seen from, the untrimmed surface is closed and faces outward everywhere."""
     from foundation.mesh import vertex_normals
     from inverse.capture import coarse_mesh_from_points
 
