@@ -156,10 +156,10 @@ def model_points(rec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A pycolmap reconstruction's points (N, 3), colours (N, 3, sRGB in [0, 1]) and view directions (N, 3): the
     mean of the unit vectors from each point to the centres of the photos in its track (zero for an empty track)."""
     centres = {i: np.asarray(im.projection_center(), np.float64) for i, im in rec.images.items() if im.has_pose}
-    pts = np.array([p.xyz for p in rec.points3D.values()], np.float64).reshape(-1, 3)
-    cols = np.array([p.color for p in rec.points3D.values()], np.float64).reshape(-1, 3) / 255.0
-    dirs = np.zeros_like(pts)
+    n = len(rec.points3D)
+    pts, cols, dirs = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
     for k, p in enumerate(rec.points3D.values()):
+        pts[k], cols[k] = p.xyz, np.asarray(p.color, np.float64) / 255.0
         c = [centres[e.image_id] for e in p.track.elements if e.image_id in centres]
         if c:
             d = np.asarray(c) - pts[k]
