@@ -64,6 +64,9 @@ class FaceFitSettings:
     sh_order: int = 2  #: bands 0…order of the fitted environments ((order + 1)² RGB coefficients each)
     occlusion: bool = True  #: environments occluded by the mesh itself (per-texel transfer, ray traced once)
     transfer_rays: int = 256  #: rays per texel for the transfer
+    #: unknown lighting: the lights average to white (grey world), which fixes the per-channel split of colour
+    #: between albedo and light that images cannot resolve
+    grey_world: bool = True
     light_init_error_deg: float = 0.0  #: perturb the initial light directions (stability tests)
     init_roughness: float = 0.5
     init_specular: float = 0.5
@@ -169,11 +172,12 @@ def _albedo_init(pos, nrm, tan, views, dirs, intens, vis_l, lvis, obs_l, res) ->
 
 
 def _env_init(basis: np.ndarray, mask: np.ndarray, vis: list, obs: dict, n_views: int, n_lights: int,
-              rounds: int = 10) -> tuple[np.ndarray, list[np.ndarray]]:
+              rounds: int = 10, grey_world: bool = False) -> tuple[np.ndarray, list[np.ndarray]]:
     """Albedo (H, W, 3) and per-light SH coefficients (n_coeffs, 3) by alternating least squares of the diffuse
     model O_vk(u) ≈ ρ(u)/π Σ_j L_kj B_j(u) (flat normals, no gloss): each half is linear in its unknowns.
 
-    The scale shared by albedo and light is fixed by putting the albedo's 99th percentile at 0.8.
+    The scale shared by albedo and light is fixed by putting the albedo's 99th percentile at 0.8; each channel's
+    scale, as ambiguous (a bluer light on a less blue skin), by ``grey_world``: the lights average to white.
     """
     m = mask.ravel()
     b = basis.reshape(-1, basis.shape[-1])[m].astype(np.float64) / np.pi  # (P, J)
@@ -200,6 +204,11 @@ def _env_init(basis: np.ndarray, mask: np.ndarray, vis: list, obs: dict, n_views
                 den[vs[v]] += shade[vs[v]] ** 2
         seen = den.min(1) > 1e-12
         rho = np.where(seen[:, None], num / np.maximum(den, 1e-12), np.median(rho[seen], 0) if seen.any() else 0.5)
+        if grey_world:  # the lights' mean colour (their DC terms) white; the albedo keeps every product ρ·L
+            dc = np.mean([c[0] for c in coeffs], 0)
+            tint = np.where(dc > 0, dc / max(float(dc.mean()), 1e-12), 1.0)
+            rho *= tint
+            coeffs = [c / tint for c in coeffs]
         scale = 0.8 / max(float(np.percentile(rho[seen], 99)) if seen.any() else 1.0, 1e-6)
         rho *= scale
         coeffs = [c / scale for c in coeffs]
@@ -287,7 +296,7 @@ class FaceFitStage(DrJitStage):
             self.transfer_l = None if self.transfer is None else _tensor(basis)
             if level == 0:
                 albedo0, env0 = _env_init(basis, geo.mask, [self.vis_l[v] for v in range(self.n_views)],
-                                          self.obs_l, self.n_views, self.n_lights)
+                                          self.obs_l, self.n_views, self.n_lights, grey_world=s.grey_world)
         if maps_np is None:
             params = {
                 "albedo": albedo0 if env0 is not None else _albedo_init(
@@ -426,10 +435,25 @@ class FaceFitStage(DrJitStage):
         opt["roughness"] = dr.clip(opt["roughness"], 0.05, 1.0)
         opt["specular"] = dr.clip(opt["specular"], 0.0, 1.0)
         opt["slope"] = dr.clip(opt["slope"], -3.0, 3.0)
+        if self.env and s.grey_world:
+            self._grey_world()
         if s.fit_lights and not self.env:
             for k in range(self.n_lights):
                 opt[f"int{k}"] = dr.maximum(opt[f"int{k}"], 0.0)
             opt["ambient"] = dr.maximum(opt["ambient"], 0.0)
+
+    def _grey_world(self) -> None:
+        """Project onto lights that average to white: albedo × tint, every environment ÷ tint (the diffuse
+        products unchanged), tint = the environments' mean DC colour over its grey level."""
+        opt = self.opt
+        dc = sum(dr.gather(mi.Color3f, opt[f"sh{k}"], 0) for k in range(self.n_lights)) / self.n_lights
+        grey = (dc.x + dc.y + dc.z) / 3.0
+        tint = dr.select(dc > 0, dc / dr.maximum(grey, 1e-12), 1.0)
+        for k in range(self.n_lights):
+            opt[f"sh{k}"] = opt[f"sh{k}"] / tint
+        r_, g_, b_ = unravel_channels(opt["albedo"].array, 3)
+        tinted = mi.Vector3f(r_ * tint.x, g_ * tint.y, b_ * tint.z)
+        opt["albedo"] = mi.TensorXf(dr.ravel(dr.clip(tinted, 0.0, 1.0)), shape=opt["albedo"].shape)
 
     def finish(self, run: RunState) -> FaceFitResult:
         s, bench, full = self.s, self.bench, self.full

@@ -9,8 +9,10 @@ relit PSNR under each held-out HDRI, fit seconds — the speed-vs-accuracy chart
 
 The **model floor** of each SH order says what the model could reach at best: the observations predicted by the
 UV shader from the *true* maps (as rendered, blur included) and the *true* HDRIs projected onto that order, with
-the transfer, against the observations (PSNR on the seen texels). A floor far below the targets means the light
-model, not the optimisation, limits the fit.
+the transfer, against the observations (PSNR on the seen texels). The **fitted floor** replaces the projection by
+each observation's least-squares best coefficients of that order (what a fit of the light could explain with the
+true maps; never below the projected floor). The **relit floor** relights the true maps through the fit's own
+relighting: a target above it cannot be met by any fit on this benchmark.
 """
 
 from __future__ import annotations
@@ -66,6 +68,21 @@ def _small(px: np.ndarray, rows: int = 128) -> np.ndarray:
     return px[:h, :w].reshape(h // f, f, w // f, f, -1).mean((1, 3))
 
 
+def _truth_shading(bench):
+    """The UV shader's inputs for the true maps (as rendered, blur included) and a numpy → tensor helper."""
+    import mitsuba as mi
+
+    from inverse.face import rendered_maps
+    from mi_plugins.arrays import aligned
+    from mi_plugins.uv_shader import UVMaps
+
+    g, gt = bench.geometry, rendered_maps(bench.ground_truth, bench.settings)
+    t = lambda a: mi.TensorXf(aligned(np.ascontiguousarray(a, np.float32)))  # noqa: E731
+    maps = UVMaps(albedo=t(gt["albedo"]), normal=t(gt["normal"] * 0.5 + 0.5), roughness=t(gt["roughness"]),
+                  specular=t(gt["specular"]))
+    return maps, (t(g["position"]), t(g["normal"]), t(g["tangent"])), t
+
+
 def model_floor(bench, order: int, transfer: np.ndarray) -> float:
     """PSNR of the observations predicted from the true maps and the true HDRIs projected onto SH ``order``
     (``transfer``: that order's channels, or more: the basis is nested, so the first (order + 1)² are used)."""
@@ -73,16 +90,10 @@ def model_floor(bench, order: int, transfer: np.ndarray) -> float:
 
     from foundation.assets import hdri_pixels
     from foundation.metrics import psnr
-    from inverse.face import rendered_maps
     from mi_plugins import sh
-    from mi_plugins.arrays import aligned
-    from mi_plugins.uv_shader import UVEnvironment, UVMaps, UVView, shade_uv
+    from mi_plugins.uv_shader import UVEnvironment, UVView, shade_uv
 
-    g, gt = bench.geometry, rendered_maps(bench.ground_truth, bench.settings)
-    t = lambda a: mi.TensorXf(aligned(np.ascontiguousarray(a, np.float32)))  # noqa: E731
-    maps = UVMaps(albedo=t(gt["albedo"]), normal=t(gt["normal"] * 0.5 + 0.5), roughness=t(gt["roughness"]),
-                  specular=t(gt["specular"]))
-    pos, nrm, tan = t(g["position"]), t(g["normal"]), t(g["tangent"])
+    maps, (pos, nrm, tan), t = _truth_shading(bench)
     transfer = t(transfer[..., :sh.n_coeffs(order)])
     pred_all, obs_all = [], []
     for k, light in enumerate(bench.meta.lights):
@@ -95,6 +106,47 @@ def model_floor(bench, order: int, transfer: np.ndarray) -> float:
             pred_all.append(pred[seen])
             obs_all.append(bench.observations[f"v{v}_l{k}"][seen])
     return psnr(np.concatenate(pred_all), np.concatenate(obs_all))
+
+
+def fitted_floor(bench, order: int, transfer: np.ndarray) -> float:
+    """PSNR of the observations predicted from the true maps under each observation's *best* SH light of
+    ``order``: its coefficients by linear least squares against the observation (per RGB channel) — the most a
+    fit of the light can explain with the true maps, where :func:`model_floor` projects the true HDRI."""
+    from foundation.metrics import psnr
+    from mi_plugins import sh
+    from mi_plugins.uv_shader import UVEnvironment, UVView, shade_uv
+
+    maps, (pos, nrm, tan), t = _truth_shading(bench)
+    n = sh.n_coeffs(order)
+    transfer = t(transfer[..., :n])
+    seen = [bench.visibility[f"v{v}"] > 0 for v in range(len(bench.meta.views))]
+    # the shading is linear in the coefficients: one render per unit (white) coefficient serves every observation
+    cols = []
+    for j in range(n):
+        unit = np.zeros((n, 3))
+        unit[j] = 1.0
+        env = UVEnvironment(unit, transfer)
+        cols.append(np.concatenate([np.array(shade_uv(pos, nrm, tan, maps, [], UVView(position=tuple(eye)),
+                                                      environment=env))[m] for eye, m in zip(bench.meta.views, seen)]))
+    pred_all, obs_all = [], []
+    for k in range(len(bench.meta.lights)):
+        obs = np.concatenate([bench.observations[f"v{v}_l{k}"][m] for v, m in enumerate(seen)])
+        pred = np.empty_like(obs)
+        for c in range(3):
+            a = np.stack([col[:, c] for col in cols], 1).astype(np.float64)
+            pred[:, c] = a @ np.linalg.lstsq(a, obs[:, c], rcond=None)[0]
+        pred_all.append(pred)
+        obs_all.append(obs)
+    return psnr(np.concatenate(pred_all), np.concatenate(obs_all))
+
+
+def relit_floor(bench) -> dict[str, float]:
+    """Relit PSNR of the *true* maps under each held-out HDRI, through the same relighting as a fit's (the UV
+    shader's ``ggx_uv`` render against the benchmark's reference): the most any fit can score there."""
+    from inverse.face import FaceFitResult, evaluate_fit
+
+    truth = FaceFitResult(dict(bench.ground_truth), bench.geometry["mask"] > 0, [], 0.0, [], 0.0)
+    return {h: v.psnr for h, v in evaluate_fit(bench, truth).relit.items()}
 
 
 def bench_face_light(s: FaceLightBenchSettings, work: Path, show_progress: bool = True) -> dict:
@@ -124,8 +176,11 @@ def bench_face_light(s: FaceLightBenchSettings, work: Path, show_progress: bool 
             # one transfer at the highest order serves every lower one (same rays; the SH basis is nested)
             transfer = environment_transfer(bench.mesh_path, bake_geometry(load_obj(bench.mesh_path), s.uv_res),
                                             max(orders)) if orders else None
+            row["fitted_floor_psnr"] = {}
             for order in orders:
                 row["floor_psnr"][f"sh{order}"] = model_floor(bench, order, transfer)
+                row["fitted_floor_psnr"][f"sh{order}"] = fitted_floor(bench, order, transfer)
+            row["relit_floor"] = relit_floor(bench)
             bar.update(1)
             for name in s.models:
                 fs = FaceFitSettings(fit_lights=True, seed=s.seed, iterations=tuple(s.iterations),

@@ -155,6 +155,8 @@ def _add_fit(ff: argparse.ArgumentParser) -> None:
     opt(ff, FaceFitSettings, "sh_order", type=int)
     opt(ff, FaceFitSettings, "occlusion", "--no-occlusion", help="with --light-model sh: the environments reach every "
         "texel unoccluded (no ray-traced transfer)")
+    opt(ff, FaceFitSettings, "grey_world", "--no-grey-world", help="with --light-model sh: leave the split of each "
+        "colour channel between albedo and light to the fit (by default the lights average to white)")
     opt(ff, FaceFitSettings, "iterations", type=int, help="Adam steps per pyramid level")
     ff.add_argument("--refine-renders", type=int, default=0, metavar="N",
                     help=f"then refine N Adam steps through full camera renders (prb through ggx_uv; "
