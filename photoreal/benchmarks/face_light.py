@@ -128,12 +128,12 @@ def fitted_floor(bench, order: int, transfer: np.ndarray) -> float:
         env = UVEnvironment(unit, transfer)
         cols.append(np.concatenate([np.array(shade_uv(pos, nrm, tan, maps, [], UVView(position=tuple(eye)),
                                                       environment=env))[m] for eye, m in zip(bench.meta.views, seen)]))
+    design = [np.stack([col[:, c] for col in cols], 1).astype(np.float64) for c in range(3)]  # per channel
     pred_all, obs_all = [], []
     for k in range(len(bench.meta.lights)):
         obs = np.concatenate([bench.observations[f"v{v}_l{k}"][m] for v, m in enumerate(seen)])
         pred = np.empty_like(obs)
-        for c in range(3):
-            a = np.stack([col[:, c] for col in cols], 1).astype(np.float64)
+        for c, a in enumerate(design):
             pred[:, c] = a @ np.linalg.lstsq(a, obs[:, c], rcond=None)[0]
         pred_all.append(pred)
         obs_all.append(obs)

@@ -293,8 +293,8 @@ def test_environment_init_recovers_a_bilinear_diffuse_model():
 
 
 def test_grey_world_keeps_what_images_see_and_whitens_the_lights():
-    """The per-channel split of colour is a symmetry of O = ρ/π Σ L B: with grey_world the product comes back as
-    without it, and the lights' mean DC colour is white."""
+    """The per-channel split of colour is a symmetry of O = ρ/π Σ L B: with grey_world the product still comes
+    back, and the lights' mean DC colour is white."""
     from inverse.face.fit import _env_init
 
     rng = np.random.default_rng(1)
