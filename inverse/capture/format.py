@@ -43,6 +43,8 @@ class CaptureCamera:
     cx: float  #: principal point, pixels from the left edge
     cy: float  #: principal point, pixels from the top edge
     cam_to_world: list[list[float]]  #: 4×4, COLMAP axes (x right, y down, z forward)
+    #: the photo's EXIF says a flash fired (a light at the camera); None: not known (no EXIF, or not a photo file)
+    flash: bool | None = None
 
     @property
     def matrix(self) -> np.ndarray:
@@ -56,7 +58,7 @@ class CaptureCamera:
         """The same camera with its image resampled to ``width`` pixels across (the height keeps the aspect)."""
         k = width / self.width
         return CaptureCamera(self.name, int(width), max(1, int(round(self.height * k))), self.f * k, self.cx * k,
-                             self.cy * k, self.cam_to_world)
+                             self.cy * k, self.cam_to_world, self.flash)
 
     def K(self) -> np.ndarray:
         return np.array([[self.f, 0.0, self.cx], [0.0, self.f, self.cy], [0.0, 0.0, 1.0]])

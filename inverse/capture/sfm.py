@@ -67,6 +67,19 @@ def focal_prior(path: Path, width: int) -> float | None:
     return None
 
 
+def flash_fired(path: Path) -> bool | None:
+    """Whether a photo's EXIF ``Flash`` tag (0x9209, bit 0) says the flash fired; None where the file has no such tag
+    (PNG, EXR, an edited copy that lost its EXIF)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            tag = im.getexif().get_ifd(0x8769).get(0x9209)
+    except (OSError, ValueError):
+        return None
+    return None if tag is None else bool(int(tag) & 1)
+
+
 def _prepare_photos(photos: list[Path], folder: Path, max_size: int) -> dict[str, tuple[Path, float, float | None]]:
     """Upright 8-bit copies at most ``max_size`` on their longest side: name → (original, scale, focal prior)."""
     from PIL import Image

@@ -134,7 +134,7 @@ def evaluate_capture_morph(stage, v_in, f_in, c_in, v_out, f_out, c_out, start=N
 
     Both are rendered at the held-out photos' imported cameras, at the fitting width, with the fitted exposure (a
     held-out photo's gain from its two nearest fitted cameras) and the fitted environment as the background (and, for
-    a 'lit' result, the light). The input is scored as photogrammetry gives it: its colours from the training photos,
+    a 'lit' result, the light, with the fitted flash at the camera where the photo's EXIF says it fired). The input is scored as photogrammetry gives it: its colours from the training photos,
     unlit. Renders: ``path`` at depth 2, 32 spp, seed = view index. Spikes and inverted triangles compare the result
     with the mesh the optimisation started from (``start``), as for a benchmark."""
     from foundation.features import perceptual_distance
@@ -147,7 +147,8 @@ def evaluate_capture_morph(stage, v_in, f_in, c_in, v_out, f_out, c_out, start=N
     light = pm.fitted_envmap(stage.env_values) if stage.env_values is not None else meta.hdri
     meshes = {"input": (v_in, f_in, np.clip(c_in, 0, None), "unlit"),
               "morphed": (v_out, f_out, np.clip(c_out, 0, None), stage.s.mode)}
-    renders = heldout_renders(stage.bench, meshes, light, stage.res, stage.out, max_depth=2, gain=stage.gain_of)
+    renders = heldout_renders(stage.bench, meshes, light, stage.res, stage.out, max_depth=2, gain=stage.gain_of,
+                              flash=stage.flash_intensity if stage.flash else None)
     mean = {n: ImageMetrics.mean([image_metrics(img, ref) for img, ref in pairs]) for n, pairs in renders.items()}
     perceptual = {n: [float(perceptual_distance(img[None], ref[None])[0]) for img, ref in pairs]
                   for n, pairs in renders.items()}

@@ -17,7 +17,7 @@ from foundation.mesh_metrics import chamfer, facing_against_truth, spikes, truth
 from foundation.metrics import ImageMetrics, image_metrics
 
 from .benchmark import MorphBenchmark, sensor_dict
-from .scene import morph_scene, photo_at
+from .scene import camera_centre, morph_scene, photo_at, set_flash
 
 
 @dataclass
@@ -54,18 +54,25 @@ class MorphEvaluation:
 
 
 def heldout_renders(bench, meshes: dict, light, res: int, out: Path, max_depth: int,
-                    gain=None) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+                    gain=None, flash=None) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
     """Per mesh (``name: (v, f, colours, mode)``), its render and the photo at every held-out camera: ``path`` at
     ``max_depth``, 32 spp, seed = view index, under ``light`` (an HDRI or a fitted envmap dict), times ``gain(i)``
-    where given. The first held-out view's renders and photo are written to ``out`` as PNGs."""
+    where given; 'lit' meshes also under a flash at the camera of RGB intensity ``flash(i)`` where given
+    (:func:`~inverse.morph.scene.set_flash`). The first held-out view's renders and photo are written to ``out`` as
+    PNGs."""
     meta = bench.meta
     result: dict[str, list] = {}
     for name, (v, f, c, mode) in meshes.items():
         ply = out / f".eval_{name}.ply"
         write_ply(ply, v, f, c)
-        scene = morph_scene(ply, mode, light, integrator={"type": "path", "max_depth": max_depth})
+        lit_by_flash = flash is not None and mode == "lit"
+        scene = morph_scene(ply, mode, light, integrator={"type": "path", "max_depth": max_depth}, flash=lit_by_flash)
+        params = mi.traverse(scene) if lit_by_flash else None
         result[name] = []
         for i in meta.test:
+            if lit_by_flash:
+                set_flash(params, camera_centre(meta.cameras[i]), flash(i))
+                params.update()
             sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, meta.fov))
             img = np.array(mi.render(scene, sensor=sensor, spp=32, seed=int(i)))[..., :3]
             if gain is not None:

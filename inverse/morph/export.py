@@ -195,13 +195,14 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
     """Renders at the held-out cameras (as imported: the photos no step fitted) of the result with its vertex colours
     and with each texture, under the run's fitted environment and with each photo's gain, against the photos; mean
     PSNR and ꟻLIP over the held-out photos. Unlit results: the colour is emitted; lit: diffuse under the environment
-    (the 'photos' texture holds radiance, light baked in: always emitted)."""
+    (the 'photos' texture holds radiance, light baked in: always emitted); a lit run's fitted flash lights the photos
+    it lit."""
     from foundation.assets import envmap
     from foundation.metrics import image_metrics
 
     from .benchmark import sensor_dict
     from .photo_model import fitted_envmap
-    from .scene import photo_at
+    from .scene import FLASH, camera_centre, photo_at, set_flash
 
     fit = result.photo_fit
     if fit is not None and fit.environment:
@@ -225,11 +226,19 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
                 shape.update(bsdf={"type": "diffuse", "reflectance": 0.0}, emitter={"type": "area", "radiance": colour})
             else:
                 shape["bsdf"] = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": colour}}
+            scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 2}, "env": env, "mesh": shape}
+            flash = look == "lit" and fit is not None and fit.flash is not None
+            if flash:
+                scene[FLASH] = {"type": "point", "position": [0.0, 0.0, 0.0], "intensity": {"type": "rgb", "value": 0.0}}
             with mitsuba_log_level(mi.LogLevel.Error):
-                scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2}, "env": env,
-                                      "mesh": shape})
+                scene = mi.load_dict(scene)
+            params = mi.traverse(scene)
             scores = []
             for i in bench.meta.test:
+                if flash:  # the fitted flash at the camera, for the photos it lit
+                    set_flash(params, camera_centre(bench.meta.cameras[i]),
+                              fit.flash if i in (fit.flash_photos or ()) else np.zeros(3))
+                    params.update()
                 sensor = mi.load_dict(sensor_dict(bench.meta.cameras[i], s.eval_width, bench.meta.fov))
                 img = np.array(mi.render(scene, sensor=sensor, spp=s.spp, seed=s.seed + int(i)))[..., :3] * gains[i]
                 scores.append(image_metrics(img, photo_at(bench, i, s.eval_width)))

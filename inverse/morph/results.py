@@ -189,6 +189,8 @@ class PhotoFit:
     gains: dict | None = None
     environment: str | None = None  #: the fitted environment map, in the run folder
     focal_scale: float | None = None  #: the shared focal length's factor, where refined (``refine_focal``)
+    flash: list | None = None  #: the fitted flash's RGB intensity (W/sr, the capture's length unit), where modelled
+    flash_photos: list | None = None  #: the photos it lit (their indices)
 
 
 @dataclass

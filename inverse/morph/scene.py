@@ -19,11 +19,13 @@ from .benchmark import Camera, MorphBenchmark, sensor_dict
 MODES = ("unlit", "lit")
 
 
-def morph_scene(mesh_ply: Path, mode: str, hdri: str | Path | dict, integrator: dict | None = None) -> mi.Scene:
+def morph_scene(mesh_ply: Path, mode: str, hdri: str | Path | dict, integrator: dict | None = None,
+                flash: bool = False) -> mi.Scene:
     """Scene with the morphable mesh (PLY with vertex colours) and the HDR environment.
 
     ``unlit``: the mesh emits its vertex colour (the thesis); ``lit``: diffuse vertex colour under ``hdri``
-    (a bundled name or an EXR file).
+    (a bundled name or an EXR file). ``flash`` ('lit' only): also a point light ``flash``, placed at each view's
+    camera and given its intensity by :func:`set_flash` before a render.
     """
     colour = {"type": "mesh_attribute", "name": "vertex_color"}
     env = hdri if isinstance(hdri, dict) else envmap(hdri)  # a dict: a fitted map (photo_model.fitted_envmap)
@@ -35,10 +37,31 @@ def morph_scene(mesh_ply: Path, mode: str, hdri: str | Path | dict, integrator: 
                  "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": colour}}}
     else:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    scene = {"type": "scene", "integrator": integrator or {"type": "direct_projective", "sppi": 0}, "env": env,
+             "mesh": shape}
+    if flash and mode == "lit":
+        scene[FLASH] = {"type": "point", "position": [0.0, 0.0, 0.0], "intensity": {"type": "rgb", "value": 0.0}}
     # Remeshed/decimated reconstructions often have a few non-manifold vertices (expected here).
     with mitsuba_log_level(mi.LogLevel.Error):
-        return mi.load_dict({"type": "scene", "integrator": integrator or {"type": "direct_projective", "sppi": 0},
-                             "env": env, "mesh": shape})
+        return mi.load_dict(scene)
+
+
+#: the scene key of the light attached to the camera (:func:`morph_scene`)
+FLASH = "flash"
+
+
+def set_flash(params, position, intensity) -> None:
+    """Put the scene's flash at ``position`` (the camera's centre) with RGB ``intensity`` (W/sr: a diffuse surface
+    of albedo ρ at distance r, turned θ from the light, then has radiance ρ·I·cos θ / (π r²)); a differentiable
+    ``intensity`` (mi.Color3f) carries gradients. The caller updates ``params``."""
+    params[f"{FLASH}.position"] = mi.Point3f(*[float(x) for x in position])
+    params[f"{FLASH}.intensity.value"] = intensity if isinstance(intensity, mi.Color3f) else \
+        mi.Color3f(*[float(x) for x in intensity])
+
+
+def camera_centre(cam) -> np.ndarray:
+    """Where a camera is: a capture camera's centre, a benchmark camera's eye."""
+    return np.asarray(cam.centre if hasattr(cam, "centre") else cam.eye, np.float64)
 
 
 def mask_scene(mesh_ply: Path, integrator: dict | None = None) -> mi.Scene:

@@ -149,6 +149,10 @@ class MorphSettings:
     #: where the light is not known (captures): the fitted environment map's height (its width is twice that)
     env_resolution: int = 8
     lr_env: float = 0.01  #: Adam's step of the fitted environment's texels
+    #: a light at the camera ('lit' mode, where the light is fitted): a point light at each photo's centre, one RGB
+    #: intensity fitted for all. "auto": on for the photos whose EXIF says the flash fired; "on": every photo
+    flash: Literal["auto", "on", "off"] = "auto"
+    lr_flash: float = 0.01  #: Adam's step of the flash's log-intensity
     #: where the light is fitted, 'lit' runs' twin in 'unlit' mode is asked of the photos (:class:`ModeSelection`)
     mode_select: bool = True
     seed: int = 0
@@ -205,6 +209,8 @@ class MorphSettings:
         validate.non_negative("lr_exposure", self.lr_exposure)
         validate.integer("env_resolution", self.env_resolution, 2, 256)
         validate.non_negative("lr_env", self.lr_env)
+        validate.one_of("flash", self.flash, AUTO_ON_OFF)
+        validate.non_negative("lr_flash", self.lr_flash)
         validate.integer("validation_views", self.validation_views, 0)
         validate.in_range("validation_fraction", self.validation_fraction, 0.0, 0.5)
         validate.integer("check_every", self.check_every, 1)

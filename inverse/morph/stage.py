@@ -63,8 +63,9 @@ from .evaluate import evaluate_morph
 from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (iron_border_turns, iron_spikes, remesh,
                         repair_flips, undo_flips, unfold_pleats)
-from .scene import (inward_thickness, mask_integrator, mask_scene, morph_scene, photo_l1, photo_masks,
-                    photo_saturation, photo_tensors, projective_integrator, render_views, upsample_bilinear, views_seeing)
+from .scene import (camera_centre, inward_thickness, mask_integrator, mask_scene, morph_scene, photo_l1, photo_masks,
+                    photo_saturation, photo_tensors, projective_integrator, render_views, set_flash, upsample_bilinear,
+                    views_seeing)
 
 from .results import (ColourPriorDecision, MorphResult, PhotoFit,
                       PlanarityDecision, TracePoint)
@@ -163,6 +164,10 @@ class MorphStage(DrJitStage):
                                                    bool(getattr(meta, "estimated_cameras", False)))
         self.exposure = s.exposure == "on" or (s.exposure == "auto" and self.capture)
         self.env_fit = meta.hdri is None
+        #: the photos lit by a flash (a light at the camera, :attr:`MorphSettings.flash`): 'lit' runs whose light is
+        #: fitted; the flash is modelled where a training photo is among them
+        self.flash_photos = flash_photos(meta.cameras, s.flash) if s.mode == "lit" and self.env_fit else set()
+        self.flash = any(i in self.flash_photos for i in meta.train)
         self.per_view = self.refine or self.exposure or self.env_fit
         if self.env_fit and s.indirect_every:
             raise UsageError("indirect_every: the light estimate needs a known light (a benchmark's HDRI); a "
@@ -184,7 +189,7 @@ class MorphStage(DrJitStage):
                                                         int(s.validation_fraction * len(meta.train))))
         self.train_ids = [i for i in meta.train if i not in self.val_ids]
         self.train_index = {int(i): k for k, i in enumerate(self.train_ids)}
-        self.centres = np.array([c.centre if hasattr(c, "centre") else c.eye for c in meta.cameras], np.float64)
+        self.centres = np.array([camera_centre(c) for c in meta.cameras], np.float64)
         #: a photo not fitted takes the mean gain of these fitted neighbours (never its own pixels)
         self.gain_from = pm.nearest_fitted(self.centres, self.train_ids)
         n = len(self.train_ids)
@@ -194,6 +199,9 @@ class MorphStage(DrJitStage):
         self.focal = self.refine and s.refine_focal and all(hasattr(c, "matrix") for c in meta.cameras)
         self.log_focal = 0.0
         self.env_values = self._initial_env() if self.env_fit else None
+        #: the flash's RGB log-intensity (W/sr in the capture's length unit)
+        self.log_flash = np.full(3, np.log(initial_flash(self.centres[self.train_ids], v0))) if self.flash \
+            else np.zeros(3)
         self.trace: list[TracePoint] = []
         self.snapshots: list[np.ndarray] = []  #: vertices at the trace points (same topology only)
         self.validation_seconds = 0.0
@@ -219,7 +227,8 @@ class MorphStage(DrJitStage):
         write_ply(self.work_ply, v, f, c)
         light = pm.fitted_envmap(self.env_values) if self.env_fit else self.bench.meta.hdri
         self.scene = morph_scene(self.work_ply, s.mode, light,
-                                 integrator=None if self.shared_spp else projective_integrator(s.spp, s.boundary_spp))
+                                 integrator=None if self.shared_spp else projective_integrator(s.spp, s.boundary_spp),
+                                 flash=self.flash)
         self.params = mi.traverse(self.scene)
         if self.mask_weight > 0:  # the same mesh file: both scenes get the step's positions
             self.mask_scene = mask_scene(self.work_ply, integrator=mask_integrator(None if self.shared_spp else
@@ -257,6 +266,8 @@ class MorphStage(DrJitStage):
             self.popt["env"] = mi.Float(aligned(self.env_values).ravel())
             self.env_index = mi.UInt32(pm.envmap_index(*self.env_values.shape[:2]))
             self.env_shape = tuple(self.params["env.data"].shape)
+        if self.flash:
+            self.popt["flash"] = mi.Float(aligned(self.log_flash))
         self._extra_rates(1.0)
 
     def _prior_pairs(self, v_ref: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -294,6 +305,8 @@ class MorphStage(DrJitStage):
             rates["gain"] = s.lr_exposure * decay
         if self.env_fit:
             rates["env"] = s.lr_env * decay
+        if self.flash:
+            rates["flash"] = s.lr_flash * decay
         if rates:
             self.popt.set_learning_rate(rates)
 
@@ -311,6 +324,8 @@ class MorphStage(DrJitStage):
             self.log_gain = np.array(self.popt["gain"], np.float64).reshape(n, 3)
         if self.env_fit:
             self.env_values = np.array(self.popt["env"], np.float32).reshape(self.env_values.shape)
+        if self.flash:
+            self.log_flash = np.array(self.popt["flash"], np.float64)
 
     def gain_of(self, i: int) -> np.ndarray:
         """Photo ``i``'s RGB gain: its own where fitted, else its fitted neighbours' mean (1 without exposure)."""
@@ -363,7 +378,8 @@ class MorphStage(DrJitStage):
             (("planarity_min_thickness",) if self.s.planarity_where != "thick" else ()) + \
             (() if self.per_view else ("refine_cameras", "lr_camera", "camera_weight", "exposure", "lr_exposure",
                                        "env_resolution", "lr_env")) + \
-            (("refine_focal",) if not self.focal else ())
+            (("refine_focal",) if not self.focal else ()) + \
+            (("flash", "lr_flash") if not self.flash else ())
         settings = {k: v for k, v in asdict(self.s).items() if k not in between + finish_only + same}
         if not self.s.indirect_every:  # no estimate: its settings unread, kept as runs before their defaults changed
             settings["indirect_spp"] = PLAIN_RUN_INDIRECT_SPP
@@ -387,7 +403,7 @@ class MorphStage(DrJitStage):
     def state(self) -> dict:
         self._sync_extras()
         extras = {"cam_rot": self.cam_rot, "cam_shift": self.cam_shift, "log_gain": self.log_gain,
-                  "log_focal": np.array([self.log_focal])}
+                  "log_focal": np.array([self.log_focal]), "log_flash": self.log_flash}
         if self.env_fit:
             extras["env"] = self.env_values
         return {**extras, "faces": self.faces, "v_ref": self.v_ref, "vertices": self.vertices(), "colours": self.colours(),
@@ -400,7 +416,7 @@ class MorphStage(DrJitStage):
 
     def load_state(self, tree: dict) -> None:
         self.lam = float(tree["lambda"])
-        for k in ("cam_rot", "cam_shift", "log_gain"):
+        for k in ("cam_rot", "cam_shift", "log_gain", "log_flash"):
             if k in tree:
                 setattr(self, k, np.asarray(tree[k], np.float64))
         if "log_focal" in tree:
@@ -427,6 +443,13 @@ class MorphStage(DrJitStage):
             return None
         meta = self.bench.meta
         with dr.suspend_grad():
+            if self.flash:  # the flash moves with the camera: one view at a time
+                imgs = []
+                for i in self.val_ids:
+                    self._set_mesh(dr.detach(self._flat()), dr.detach(self.colour_values()), i)
+                    imgs += render_views(self.scene, self.params, meta.cameras, [i], self.res, meta.fov,
+                                         max(self.s.spp, 8), 7_000_003)
+                return float(np.mean([np.asarray(self._l1(img, i)).item() for img, i in zip(imgs, self.val_ids)]))
             if self.per_view:  # the last step left the last view's pose in the scene
                 self._set_mesh(dr.detach(self._flat()), dr.detach(self.colour_values()))
             imgs = render_views(self.scene, self.params, meta.cameras, self.val_ids, self.res, meta.fov,
@@ -589,10 +612,16 @@ class MorphStage(DrJitStage):
             return img * mi.TensorXf(dr.ravel(g), (1, 1, 3))
         return img * mi.TensorXf(self.gain_of(i).astype(np.float32).reshape(1, 1, 3))
 
-    def _set_mesh(self, flat, colours) -> None:
+    def _set_mesh(self, flat, colours, view: int | None = None) -> None:
+        """The step's mesh, the fitted light, and the flash at ``view``'s camera."""
         self.params["mesh.vertex_positions"] = flat
         self.params["mesh.vertex_color"] = colours
         self._set_env()
+        if self.flash and view is not None:
+            if int(view) in self.flash_photos:
+                set_flash(self.params, self.centres[int(view)], mi.Color3f(dr.exp(pm.pick3(self.popt["flash"], 0))))
+            else:
+                set_flash(self.params, self.centres[int(view)], np.zeros(3))
         with mitsuba_log_level(mi.LogLevel.Error):
             self.params.update()
 
@@ -606,7 +635,7 @@ class MorphStage(DrJitStage):
         for k, i in enumerate(views):
             seed = s.seed * 7919 + it * 101
             flat = self._view_flat(self._flat(), i)
-            self._set_mesh(flat, self.colour_values())
+            self._set_mesh(flat, self.colour_values(), i)
             img, = render_views(self.scene, self.params, meta.cameras, [i], self.res, meta.fov, s.spp, seed + k,
                                 integrator_spp=not self.shared_spp)
             loss = photo_l1(self._exposed(img, i), self.photos[int(i)], self.photo_hot.get(int(i)),
@@ -739,12 +768,40 @@ class MorphStage(DrJitStage):
                         else None, camera_rotation=self.cam_rot.tolist() if self.refine else None,
                         camera_shift=self.cam_shift.tolist() if self.refine else None,
                         gains=gains if self.exposure else None, environment=env,
-                        focal_scale=float(np.exp(self.log_focal)) if self.focal else None)
+                        focal_scale=float(np.exp(self.log_focal)) if self.focal else None,
+                        flash=self.flash_intensity().tolist() if self.flash else None,
+                        flash_photos=sorted(self.flash_photos) if self.flash else None)
+
+    def flash_intensity(self, view: int | None = None) -> np.ndarray:
+        """The fitted flash's RGB intensity (W/sr); for ``view``, 0 where its photo was taken without it."""
+        self._sync_extras()
+        on = self.flash and (view is None or int(view) in self.flash_photos)
+        return np.exp(self.log_flash) if on else np.zeros(3)
 
     def close(self) -> None:
         """Free the scene (Mitsuba traces every live plugin instance in every render) and the work file."""
         self.scene = self.params = self.opt = self.popt = self.ls = self.ls_c = None
         self.work_ply.unlink(missing_ok=True)
+
+
+def flash_photos(cameras: list, flash: str) -> set[int]:
+    """The photos a flash lit (:attr:`MorphSettings.flash`): "on" every one, "auto" those whose camera records that
+    the flash fired (a capture's EXIF), "off" none."""
+    if flash == "on":
+        return set(range(len(cameras)))
+    if flash == "auto":
+        return {i for i, c in enumerate(cameras) if getattr(c, "flash", None)}
+    return set()
+
+
+def initial_flash(centres: np.ndarray, v: np.ndarray) -> float:
+    """The flash's starting intensity: the one that gives a diffuse surface its albedo as radiance (ρ·I·cos θ/(π r²) =
+    ρ) at the median distance r from the cameras to the nearest vertex, for the mean cos θ = 2/3 of a sphere's lit
+    half; the photos fit the rest (SfM units are arbitrary: r sets the scale)."""
+    from scipy.spatial import cKDTree
+
+    r, _ = cKDTree(np.asarray(v, np.float64)).query(np.asarray(centres, np.float64))
+    return float(1.5 * np.pi * np.median(r) ** 2)
 
 
 def validation_split(train: list[int], k: int) -> list[int]:

@@ -193,6 +193,10 @@ def _add_run(mr: argparse.ArgumentParser) -> None:
     opt(mr, MorphSettings, "lr_exposure", help="step of the per-photo log-gains")
     opt(mr, MorphSettings, "env_resolution", help="captures: height of the fitted environment map (width twice it)")
     opt(mr, MorphSettings, "lr_env", help="step of the fitted environment's texels")
+    opt(mr, MorphSettings, "flash", choices=["auto", "on", "off"],
+        help="captures, lit mode: a light at the camera, its intensity fitted; auto: for the photos whose EXIF says "
+             "the flash fired")
+    opt(mr, MorphSettings, "lr_flash", help="step of the flash's log-intensity")
     opt(mr, MorphSettings, "mode_select", "--no-mode-select",
         help="captures: keep --mode as given (by default a lit run's unlit twin is asked of the photos)")
     mr.add_argument("--gcn", action="store_true", help="shape-aware GCN trained through the renderer")

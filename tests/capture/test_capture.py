@@ -66,9 +66,19 @@ def test_the_mitsuba_sensor_sees_what_the_pinhole_projects():
 @pytest.mark.parametrize("fmt", ["colmap", "colmap-text", "transforms"])
 def test_export_then_import_gives_the_same_cameras_and_photos(fmt, tmp_path):
     cap = _capture(tmp_path / "mem")
-    src = read_source(export_capture(cap, tmp_path / "exp", fmt))
+    exp = export_capture(cap, tmp_path / "exp", fmt)
+    # the first photo's EXIF says a flash fired (PNG's eXIf chunk): the import records it, the others stay unknown
+    from PIL import Image
+
+    first = cap.meta.cameras[0].name
+    with Image.open(exp / "images" / f"{first}.png") as im:
+        exif = Image.Exif()
+        exif[0x8769] = {0x9209: 9}  # the Exif sub-IFD's Flash tag: fired
+        im.copy().save(exp / "images" / f"{first}.png", exif=exif)
+    src = read_source(exp)
     back = load_capture(import_capture(src, tmp_path / "cap", resolution=None, show_progress=False,
                                        triangulate=False))
+    assert [back.cameras[c.name].flash for c in cap.meta.cameras] == [True] + [None] * (len(cap.meta.cameras) - 1)
     for c in cap.meta.cameras:
         b = back.cameras[c.name]
         assert (b.width, b.height) == (c.width, c.height)
