@@ -54,11 +54,11 @@ class MorphEvaluation:
 
 
 def heldout_renders(bench, meshes: dict, light, res: int, out: Path, max_depth: int,
-                    gain=None, flash=None) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+                    gain=None, flash=None, flash_weight: float = 1.0) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
     """Per mesh (``name: (v, f, colours, mode)``), its render and the photo at every held-out camera: ``path`` at
     ``max_depth``, 32 spp, seed = view index, under ``light`` (an HDRI or a fitted envmap dict), times ``gain(i)``
-    where given; 'lit' meshes also under a flash at the camera of RGB intensity ``flash(i)`` where given
-    (:func:`~inverse.morph.scene.set_flash`). The first held-out view's renders and photo are written to ``out`` as
+    where given; 'lit' meshes also under a flash at the camera of RGB intensity ``flash(i)`` where given, with
+    sampling weight ``flash_weight`` (:func:`~inverse.morph.scene.set_flash`). The first held-out view's renders and photo are written to ``out`` as
     PNGs."""
     meta = bench.meta
     result: dict[str, list] = {}
@@ -71,7 +71,7 @@ def heldout_renders(bench, meshes: dict, light, res: int, out: Path, max_depth: 
         result[name] = []
         for i in meta.test:
             if lit_by_flash:
-                set_flash(params, camera_centre(meta.cameras[i]), flash(i))
+                set_flash(params, camera_centre(meta.cameras[i]), flash(i), flash_weight)
                 params.update()
             sensor = mi.load_dict(sensor_dict(meta.cameras[i], res, meta.fov))
             img = np.array(mi.render(scene, sensor=sensor, spp=32, seed=int(i)))[..., :3]

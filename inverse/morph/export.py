@@ -202,11 +202,13 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
 
     from .benchmark import sensor_dict
     from .photo_model import fitted_envmap
-    from .scene import FLASH, camera_centre, photo_at, set_flash
+    from .scene import FLASH, camera_centre, flash_distance, flash_sampling_weight, photo_at, set_flash
 
     fit = result.photo_fit
+    env_values = None
     if fit is not None and fit.environment:
-        env = fitted_envmap(imageio.exr_layer(imageio.read_exr(run / fit.environment), ""))
+        env_values = imageio.exr_layer(imageio.read_exr(run / fit.environment), "")[..., :3]
+        env = fitted_envmap(env_values)
     else:
         env = envmap(bench.meta.hdri)
     mode = fit.mode if fit is not None else result.settings.mode  # the mode the run ended in (its selection's)
@@ -227,17 +229,19 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
             else:
                 shape["bsdf"] = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": colour}}
             scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 2}, "env": env, "mesh": shape}
-            flash = look == "lit" and fit is not None and fit.flash is not None
+            flash = look == "lit" and fit is not None and fit.flash is not None and env_values is not None
             if flash:
                 scene[FLASH] = {"type": "point", "position": [0.0, 0.0, 0.0], "intensity": {"type": "rgb", "value": 0.0}}
             with mitsuba_log_level(mi.LogLevel.Error):
                 scene = mi.load_dict(scene)
             params = mi.traverse(scene)
+            weight = flash_sampling_weight(fit.flash, env_values, flash_distance(
+                np.array([camera_centre(bench.meta.cameras[k]) for k in fit.train_views]), vv)) if flash else None
             scores = []
             for i in bench.meta.test:
                 if flash:  # the fitted flash at the camera, for the photos it lit
                     set_flash(params, camera_centre(bench.meta.cameras[i]),
-                              fit.flash if i in (fit.flash_photos or ()) else np.zeros(3))
+                              fit.flash if i in (fit.flash_photos or ()) else np.zeros(3), weight)
                     params.update()
                 sensor = mi.load_dict(sensor_dict(bench.meta.cameras[i], s.eval_width, bench.meta.fov))
                 img = np.array(mi.render(scene, sensor=sensor, spp=s.spp, seed=s.seed + int(i)))[..., :3] * gains[i]

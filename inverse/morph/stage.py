@@ -63,7 +63,7 @@ from .evaluate import evaluate_morph
 from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (iron_border_turns, iron_spikes, remesh,
                         repair_flips, undo_flips, unfold_pleats)
-from .scene import (camera_centre, inward_thickness, mask_integrator, mask_scene, morph_scene, photo_l1, photo_masks,
+from .scene import (camera_centre, flash_distance, flash_sampling_weight, inward_thickness, mask_integrator, mask_scene, morph_scene, photo_l1, photo_masks,
                     photo_saturation, photo_tensors, projective_integrator, render_views, set_flash, upsample_bilinear,
                     views_seeing)
 
@@ -202,6 +202,10 @@ class MorphStage(DrJitStage):
         #: the flash's RGB log-intensity (W/sr in the capture's length unit)
         self.log_flash = np.full(3, np.log(initial_flash(self.centres[self.train_ids], v0))) if self.flash \
             else np.zeros(3)
+        self.flash_r = flash_distance(self.centres[self.train_ids], v0) if self.flash else 1.0
+        #: the flash's sampling weight (the environment's is 1), set from the fitted lights at every check
+        self.flash_weight = flash_sampling_weight(np.exp(self.log_flash), self.env_values, self.flash_r) \
+            if self.flash else 1.0
         self.trace: list[TracePoint] = []
         self.snapshots: list[np.ndarray] = []  #: vertices at the trace points (same topology only)
         self.validation_seconds = 0.0
@@ -403,7 +407,8 @@ class MorphStage(DrJitStage):
     def state(self) -> dict:
         self._sync_extras()
         extras = {"cam_rot": self.cam_rot, "cam_shift": self.cam_shift, "log_gain": self.log_gain,
-                  "log_focal": np.array([self.log_focal]), "log_flash": self.log_flash}
+                  "log_focal": np.array([self.log_focal]), "log_flash": self.log_flash,
+                  "flash_weight": np.array([self.flash_weight])}
         if self.env_fit:
             extras["env"] = self.env_values
         return {**extras, "faces": self.faces, "v_ref": self.v_ref, "vertices": self.vertices(), "colours": self.colours(),
@@ -421,6 +426,8 @@ class MorphStage(DrJitStage):
                 setattr(self, k, np.asarray(tree[k], np.float64))
         if "log_focal" in tree:
             self.log_focal = float(np.asarray(tree["log_focal"]).ravel()[0])
+        if "flash_weight" in tree:
+            self.flash_weight = float(np.asarray(tree["flash_weight"]).ravel()[0])
         if self.env_fit and "env" in tree:
             self.env_values = np.asarray(tree["env"], np.float32)
         self._build(tree["vertices"], tree["v_ref"], tree["faces"], tree["colours"])
@@ -499,6 +506,9 @@ class MorphStage(DrJitStage):
 
     def _check(self, run: RunState) -> None:
         s = self.s
+        if self.flash:
+            self._sync_extras()
+            self.flash_weight = flash_sampling_weight(np.exp(self.log_flash), self.env_values, self.flash_r)
         t0 = time.perf_counter()
         val = self.validation_l1()
         self.validation_seconds += time.perf_counter() - t0
@@ -619,7 +629,8 @@ class MorphStage(DrJitStage):
         self._set_env()
         if self.flash and view is not None:
             if int(view) in self.flash_photos:
-                set_flash(self.params, self.centres[int(view)], mi.Color3f(dr.exp(pm.pick3(self.popt["flash"], 0))))
+                set_flash(self.params, self.centres[int(view)], mi.Color3f(dr.exp(pm.pick3(self.popt["flash"], 0))),
+                          self.flash_weight)
             else:
                 set_flash(self.params, self.centres[int(view)], np.zeros(3))
         with mitsuba_log_level(mi.LogLevel.Error):
@@ -772,6 +783,11 @@ class MorphStage(DrJitStage):
                         flash=self.flash_intensity().tolist() if self.flash else None,
                         flash_photos=sorted(self.flash_photos) if self.flash else None)
 
+    def flash_weight_now(self) -> float:
+        """The flash's sampling weight for the fitted lights as they are (the held-out renders')."""
+        self._sync_extras()
+        return flash_sampling_weight(np.exp(self.log_flash), self.env_values, self.flash_r) if self.flash else 1.0
+
     def flash_intensity(self, view: int | None = None) -> np.ndarray:
         """The fitted flash's RGB intensity (W/sr); for ``view``, 0 where its photo was taken without it."""
         self._sync_extras()
@@ -796,12 +812,9 @@ def flash_photos(cameras: list, flash: str) -> set[int]:
 
 def initial_flash(centres: np.ndarray, v: np.ndarray) -> float:
     """The flash's starting intensity: the one that gives a diffuse surface its albedo as radiance (ρ·I·cos θ/(π r²) =
-    ρ) at the median distance r from the cameras to the nearest vertex, for the mean cos θ = 2/3 of a sphere's lit
-    half; the photos fit the rest (SfM units are arbitrary: r sets the scale)."""
-    from scipy.spatial import cKDTree
-
-    r, _ = cKDTree(np.asarray(v, np.float64)).query(np.asarray(centres, np.float64))
-    return float(1.5 * np.pi * np.median(r) ** 2)
+    ρ) at the median distance r from the cameras to the nearest vertex (:func:`flash_distance`), for the mean
+    cos θ = 2/3 of a sphere's lit half; the photos fit the rest (SfM units are arbitrary: r sets the scale)."""
+    return float(1.5 * np.pi * flash_distance(centres, v) ** 2)
 
 
 def validation_split(train: list[int], k: int) -> list[int]:

@@ -99,6 +99,7 @@ def _morph_row(r, s: CaptureBenchSettings) -> dict:
            "mode": r.photo_fit.mode if r.photo_fit else r.settings.mode,
            "mode_selection": None if r.mode_selection is None else
            {"lit": r.mode_selection.validation_l1_lit, "unlit": r.mode_selection.validation_l1_unlit},
+           "flash": None if r.photo_fit is None else r.photo_fit.flash,
            "camera_movement": None if r.photo_fit is None or r.photo_fit.camera_movement is None else
            {k: v for k, v in r.photo_fit.camera_movement.items() if not isinstance(v, list)}}
     gain = row["morphed"]["psnr"] - row["input"]["psnr"]
@@ -374,6 +375,7 @@ def summary(result: dict) -> dict:
                 out[name][key] = {"psnr": [m["input"]["psnr"], m["morphed"]["psnr"]],
                                   "flip": [m["input"]["flip"], m["morphed"]["flip"]], "spikes": m["spikes"],
                                   "inverted_triangles": m["inverted_triangles"], "mode": m["mode"],
+                                  "flash": m.get("flash"),
                                   "targets": m["targets"]}
     return out
 
