@@ -134,11 +134,14 @@ def evaluate_capture_morph(stage, v_in, f_in, c_in, v_out, f_out, c_out, start=N
 
     Both are rendered at the held-out photos' imported cameras, at the fitting width, with the fitted exposure (a
     held-out photo's gain from its two nearest fitted cameras) and the fitted environment as the background (and, for
-    a 'lit' result, the light, with the fitted flash at the camera where the photo's EXIF says it fired). The input is scored as photogrammetry gives it: its colours from the training photos,
-    unlit. Renders: ``path`` at depth 2, 32 spp, seed = view index. Spikes and inverted triangles compare the result
-    with the mesh the optimisation started from (``start``), as for a benchmark."""
+    a 'lit' result, the light, with the fitted flash at the camera where the photo's EXIF says it fired). The input
+    is scored as photogrammetry gives it: its colours from the training photos, unlit. Renders: ``path`` at depth 2,
+    32 spp, seed = view index. The scores are over the whole photo, and again over the object's region: the pixels
+    either mesh covers at least half of (:func:`object_region`), where the two differ at all (the background is the
+    same environment for both). Spikes and inverted triangles compare the result with the mesh the optimisation
+    started from (``start``), as for a benchmark."""
     from foundation.features import perceptual_distance
-    from foundation.metrics import ImageMetrics, image_metrics
+    from foundation.metrics import ImageMetrics, flip, image_metrics, masked_psnr
 
     from . import photo_model as pm
     from .evaluate import MorphEvaluation, heldout_renders, start_spikes
@@ -152,6 +155,12 @@ def evaluate_capture_morph(stage, v_in, f_in, c_in, v_out, f_out, c_out, start=N
     mean = {n: ImageMetrics.mean([image_metrics(img, ref) for img, ref in pairs]) for n, pairs in renders.items()}
     perceptual = {n: [float(perceptual_distance(img[None], ref[None])[0]) for img, ref in pairs]
                   for n, pairs in renders.items()}
+    region = object_region(stage.bench, [(v_in, f_in), (v_out, f_out)], stage.res, stage.out)
+    seen = [k for k, m in enumerate(region) if m.any()]  # a view neither mesh reaches has no region to score
+    obj = {n: {"psnr": float(np.mean([masked_psnr(*pairs[k], region[k]) for k in seen])) if seen else float("nan"),
+               "flip": float(np.mean([flip(np.clip(pairs[k][0], 0, 1), np.clip(pairs[k][1], 0, 1), mask=region[k])
+                                      for k in seen])) if seen else float("nan")}
+           for n, pairs in renders.items()}
     v0, f0 = start if start is not None else (v_in, f_in)
     sp = start_spikes(v0, f0, v_out, f_out)
     nan = float("nan")
@@ -162,4 +171,31 @@ def evaluate_capture_morph(stage, v_in, f_in, c_in, v_out, f_out, c_out, start=N
         inverted_triangles=sp["inverted_triangles"], spikes=sp["spikes"], far_moved_vertices=sp["far_moved_vertices"],
         facing_against_truth=-1, facing_against_truth_input=-1, scene_size=meta.scene_size,
         perceptual_heldout_input=float(np.mean(perceptual["input"])),
-        perceptual_heldout_morphed=float(np.mean(perceptual["morphed"])))
+        perceptual_heldout_morphed=float(np.mean(perceptual["morphed"])),
+        object_share=float(np.mean([m.mean() for m in region])),
+        psnr_object_input=obj["input"]["psnr"], psnr_object_morphed=obj["morphed"]["psnr"],
+        flip_object_input=obj["input"]["flip"], flip_object_morphed=obj["morphed"]["flip"])
+
+
+def object_region(bench, meshes: list[tuple], res: int, work: Path, spp: int = 16) -> list[np.ndarray]:
+    """Per held-out photo, the pixels (bool, its camera at ``res`` across) at least half covered by any of ``meshes``
+    ((v, f) each): the mesh black under a white sky (:func:`~inverse.morph.scene.mask_scene`), ``spp`` samples."""
+    import mitsuba as mi
+
+    from foundation.mesh import write_ply
+
+    from .cameras import sensor_dict
+    from .scene import mask_scene
+
+    meta = bench.meta
+    cover = None
+    for k, (v, f) in enumerate(meshes):
+        ply = work / f".region_{k}.ply"
+        write_ply(ply, v, f)
+        scene = mask_scene(ply, integrator={"type": "direct"})
+        got = [1.0 - np.array(mi.render(scene, sensor=mi.load_dict(sensor_dict(meta.cameras[i], res, meta.fov)),
+                                        spp=spp, seed=int(i)))[..., 0] for i in meta.test]
+        cover = got if cover is None else [np.maximum(a, b) for a, b in zip(cover, got)]
+        del scene
+        ply.unlink(missing_ok=True)
+    return [c >= 0.5 for c in cover]

@@ -51,6 +51,13 @@ class MorphEvaluation:
     #: the ImageNet MobileNetV2 distance of the held-out renders (captures; NaN where not measured)
     perceptual_heldout_input: float = float("nan")
     perceptual_heldout_morphed: float = float("nan")
+    #: captures: the held-out scores over the object's region only (the pixels either mesh covers; NaN elsewhere) and
+    #: that region's share of the photos
+    object_share: float = float("nan")
+    psnr_object_input: float = float("nan")
+    psnr_object_morphed: float = float("nan")
+    flip_object_input: float = float("nan")
+    flip_object_morphed: float = float("nan")
 
 
 def heldout_renders(bench, meshes: dict, light, res: int, out: Path, max_depth: int,

@@ -102,6 +102,10 @@ def _morph_row(r, s: CaptureBenchSettings) -> dict:
            "flash": None if r.photo_fit is None else r.photo_fit.flash,
            "camera_movement": None if r.photo_fit is None or r.photo_fit.camera_movement is None else
            {k: v for k, v in r.photo_fit.camera_movement.items() if not isinstance(v, list)}}
+    row["object_region"] = {"share": r.object_share, "psnr": [r.psnr_object_input, r.psnr_object_morphed],
+                            "flip": [r.flip_object_input, r.flip_object_morphed],
+                            "psnr_gain": r.psnr_object_morphed - r.psnr_object_input,
+                            "flip_reduction": 1.0 - r.flip_object_morphed / r.flip_object_input}
     gain = row["morphed"]["psnr"] - row["input"]["psnr"]
     flip = 1.0 - row["morphed"]["flip"] / row["input"]["flip"]
     row["psnr_gain"], row["flip_reduction"] = gain, flip

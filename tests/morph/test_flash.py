@@ -161,6 +161,7 @@ def test_a_flash_capture_fits_better_with_the_flash(flash_capture, tmp_path):
     fitted = float(np.mean(on.photo_fit.flash))
     assert start < fitted, (start, fitted, intensity)
     assert on.spikes == 0 and on.inverted_triangles == 0
+    assert 0 < on.object_share < 1 and np.isfinite([on.psnr_object_input, on.psnr_object_morphed]).all()
     # the export's held-out scores light the run's mesh as the run did: with its fitted flash close to the run's own
     # score (other spp and width: within 1.5 dB), without it far below
     from foundation.export import ExportSettings
