@@ -151,7 +151,8 @@ def evaluate_capture_morph(stage, v_in, f_in, c_in, v_out, f_out, c_out, start=N
     meshes = {"input": (v_in, f_in, np.clip(c_in, 0, None), "unlit"),
               "morphed": (v_out, f_out, np.clip(c_out, 0, None), stage.s.mode)}
     renders = heldout_renders(stage.bench, meshes, light, stage.res, stage.out, max_depth=2, gain=stage.gain_of,
-                              flash=stage.flash_intensity if stage.flash else None, flash_weight=stage.flash_weight_now())
+                              flash=stage.flash_intensity if stage.flash else None,
+                              flash_weight=stage.flash_weight_now())
     mean = {n: ImageMetrics.mean([image_metrics(img, ref) for img, ref in pairs]) for n, pairs in renders.items()}
     perceptual = {n: [float(perceptual_distance(img[None], ref[None])[0]) for img, ref in pairs]
                   for n, pairs in renders.items()}

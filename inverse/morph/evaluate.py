@@ -65,8 +65,8 @@ def heldout_renders(bench, meshes: dict, light, res: int, out: Path, max_depth: 
     """Per mesh (``name: (v, f, colours, mode)``), its render and the photo at every held-out camera: ``path`` at
     ``max_depth``, 32 spp, seed = view index, under ``light`` (an HDRI or a fitted envmap dict), times ``gain(i)``
     where given; 'lit' meshes also under a flash at the camera of RGB intensity ``flash(i)`` where given, with
-    sampling weight ``flash_weight`` (:func:`~inverse.morph.scene.set_flash`). The first held-out view's renders and photo are written to ``out`` as
-    PNGs."""
+    sampling weight ``flash_weight`` (:func:`~inverse.morph.scene.set_flash`). The first held-out view's renders and
+    photo are written to ``out`` as PNGs."""
     meta = bench.meta
     result: dict[str, list] = {}
     for name, (v, f, c, mode) in meshes.items():

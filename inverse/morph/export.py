@@ -202,7 +202,7 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
 
     from .benchmark import sensor_dict
     from .photo_model import fitted_envmap
-    from .scene import FLASH, camera_centre, flash_distance, flash_sampling_weight, photo_at, set_flash
+    from .scene import FLASH, camera_centre, flash_distance, flash_emitter, flash_sampling_weight, photo_at, set_flash
 
     fit = result.photo_fit
     env_values = None
@@ -231,7 +231,7 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
             scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 2}, "env": env, "mesh": shape}
             flash = look == "lit" and fit is not None and fit.flash is not None and env_values is not None
             if flash:
-                scene[FLASH] = {"type": "point", "position": [0.0, 0.0, 0.0], "intensity": {"type": "rgb", "value": 0.0}}
+                scene[FLASH] = flash_emitter()
             with mitsuba_log_level(mi.LogLevel.Error):
                 scene = mi.load_dict(scene)
             params = mi.traverse(scene)

@@ -40,7 +40,7 @@ def morph_scene(mesh_ply: Path, mode: str, hdri: str | Path | dict, integrator: 
     scene = {"type": "scene", "integrator": integrator or {"type": "direct_projective", "sppi": 0}, "env": env,
              "mesh": shape}
     if flash and mode == "lit":
-        scene[FLASH] = {"type": "point", "position": [0.0, 0.0, 0.0], "intensity": {"type": "rgb", "value": 0.0}}
+        scene[FLASH] = flash_emitter()
     # Remeshed/decimated reconstructions often have a few non-manifold vertices (expected here).
     with mitsuba_log_level(mi.LogLevel.Error):
         return mi.load_dict(scene)
@@ -48,6 +48,11 @@ def morph_scene(mesh_ply: Path, mode: str, hdri: str | Path | dict, integrator: 
 
 #: the scene key of the light attached to the camera (:func:`morph_scene`)
 FLASH = "flash"
+
+
+def flash_emitter() -> dict:
+    """The flash: a point light, placed and given its intensity per view by :func:`set_flash`."""
+    return {"type": "point", "position": [0.0, 0.0, 0.0], "intensity": {"type": "rgb", "value": 0.0}}
 
 
 def set_flash(params, position, intensity, sampling_weight: float | None = None) -> None:

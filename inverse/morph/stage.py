@@ -63,9 +63,9 @@ from .evaluate import evaluate_morph
 from .prior import colour_prior, dihedral_pairs, dominant_plane_fraction, planarity_prior
 from .mesh_edit import (iron_border_turns, iron_spikes, remesh,
                         repair_flips, undo_flips, unfold_pleats)
-from .scene import (camera_centre, flash_distance, flash_sampling_weight, inward_thickness, mask_integrator, mask_scene, morph_scene, photo_l1, photo_masks,
-                    photo_saturation, photo_tensors, projective_integrator, render_views, set_flash, upsample_bilinear,
-                    views_seeing)
+from .scene import (camera_centre, flash_distance, flash_sampling_weight, inward_thickness, mask_integrator,
+                    mask_scene, morph_scene, photo_l1, photo_masks, photo_saturation, photo_tensors,
+                    projective_integrator, render_views, set_flash, upsample_bilinear, views_seeing)
 
 from .results import (ColourPriorDecision, MorphResult, PhotoFit,
                       PlanarityDecision, TracePoint)
@@ -456,6 +456,7 @@ class MorphStage(DrJitStage):
                     self._set_mesh(dr.detach(self._flat()), dr.detach(self.colour_values()), i)
                     imgs += render_views(self.scene, self.params, meta.cameras, [i], self.res, meta.fov,
                                          max(self.s.spp, 8), 7_000_003)
+                    dr.eval(imgs[-1])  # rendered with this view's flash before the next moves it
                 return float(np.mean([np.asarray(self._l1(img, i)).item() for img, i in zip(imgs, self.val_ids)]))
             if self.per_view:  # the last step left the last view's pose in the scene
                 self._set_mesh(dr.detach(self._flat()), dr.detach(self.colour_values()))
