@@ -465,8 +465,8 @@ class ExportSettings:
 
     format: str = "glb"  #: glb (one file), gltf (+ .bin + PNGs) or obj (+ .mtl + PNGs)
     #: morph results: the base-colour texture baked from the photos through the fitted cameras ('photos': a capture's
-    #: run only) or from the vertex colours ('colours'); 'auto': photos where the run's capture is found (the better
-    #: on held-out photos: docs/results/export.md), else colours
+    #: run only) or from the vertex colours ('colours'); 'auto': photos where the run's capture is found and the run
+    #: ended unlit (the better on held-out photos then: docs/results/export.md), else colours
     texture: str = "auto"
     texture_size: int = 1024  #: side of the baked texture (morph results)
     padding: int = 4  #: texels between UV charts (morph results)

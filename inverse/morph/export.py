@@ -140,7 +140,10 @@ def export_morph(run: str | Path, out: str | Path, s: ExportSettings | None = No
         if s.texture == "photos" and not capture:
             raise UsageError(f"{src}: the photos texture is baked through a capture's cameras; this is a synthetic "
                              "benchmark (use --texture colours)")
-        texture = s.texture if s.texture != "auto" else ("photos" if capture else "colours")
+        # auto: a capture's photos where the run ended unlit (radiance, as photogrammetry textures); a lit run's
+        # vertex colours are the albedo under its fitted light, which the photos' texture would bake in twice
+        lit = (result.photo_fit.mode if result.photo_fit is not None else result.settings.mode) == "lit"
+        texture = s.texture if s.texture != "auto" else ("photos" if capture and not lit else "colours")
         atlas = unwrap(v, f, s.texture_size, s.padding)
         vv, ff, uv = v[atlas.vertex_of], atlas.faces, atlas.uvs
         surf = texel_surface(vv, ff, uv, atlas.width, atlas.height, {"colour": c[atlas.vertex_of]})

@@ -48,6 +48,24 @@ def capture_run(small_armadillo, tmp_path_factory):
     return cap_dir, run
 
 
+def test_a_lit_runs_default_texture_is_its_vertex_colours(capture_run, tmp_path):
+    """A capture's run that ended 'lit' (albedo under its fitted light) exports its vertex colours by default: the
+    photos' texture holds the light baked in, which a viewer would light again."""
+    from inverse.capture import load_capture
+    from inverse.morph import CaptureBenchmark, MorphSettings, run_morph
+
+    cap_dir, _ = capture_run
+    s = MorphSettings(iterations=2, mode="lit", mode_select=False, lambda_select=(), planarity_select=(),
+                      step_select_quantile=1.0, early_stop=False, min_vertices=None, check_every=2, checkpoint_every=2,
+                      resolution=32)
+    run = tmp_path / "lit"
+    run_morph(CaptureBenchmark(load_capture(cap_dir), tmp_path / "work"), run, s, show_progress=False)
+    out = tmp_path / "exp"
+    assert _cli("export", run, "--input", cap_dir, "--out", out, "--texture-size", 128, "--eval-width", 32,
+                "--spp", 2) == 0
+    assert json.loads((out / "export.json").read_text())["texture"] == "colours"
+
+
 def test_morph_export_of_a_capture(capture_run, tmp_path, capsys):
     """The default texture of a capture's run is the photos'; the colours' texture renders as the vertex colours do
     on the held-out photos (within 0.5 dB: the same colours through the atlas); the re-import matches."""
