@@ -302,8 +302,11 @@ def directional_albedo(f0: mi.Color3f, f90: mi.Float, roughness: mi.Float, cos_i
                        n: int = 32) -> mi.Color3f:
     """∫ f_s cosθo dωo for view cosine ``cos_i``: F0·A + F90·B, bilinear in the tables (differentiable)."""
     a_tab, b_tab = directional_albedo_table(n)
+    # a NaN cosine (a texel no view sees) must not become a table index: UInt32(NaN) reads out of bounds (a segfault
+    # of the LLVM backend on AVX2 machines); NaN > 0 is false, so it reads row 0
     x = dr.clip(cos_i, 0.0, 1.0) * (n - 1)
     y = dr.clip(roughness, 0.0, 1.0) * (n - 1)
+    x, y = dr.select(x > 0.0, x, 0.0), dr.select(y > 0.0, y, 0.0)
     i0 = mi.UInt32(dr.minimum(dr.floor(x), n - 2))
     j0 = mi.UInt32(dr.minimum(dr.floor(y), n - 2))
     fx, fy = x - mi.Float(i0), y - mi.Float(j0)

@@ -148,3 +148,18 @@ def test_transfer_of_a_convex_sphere_is_the_unoccluded_cosine(tmp_path):
     assert err.max() < 0.12 and err.mean() < 0.03, (err.max(), err.mean())
     # the visible fraction a = T_00 / (π Y_00) is 1 to within the faceted sphere's own grazing hits
     assert np.median(t[m][:, 0] / (np.pi * sh.basis(0.0, 0.0, 1.0, 0)[0])) > 0.99
+
+
+def test_directional_albedo_of_a_nan_cosine_reads_inside_its_table():
+    """A texel no view sees can carry a NaN view cosine into the split-sum lookup: it reads the table's first column
+    (cos θ = 0), never an index made from NaN (out of bounds: a segfault of the LLVM backend on AVX2 machines)."""
+    from mi_plugins import shading as sh
+
+    f0, f90 = mi.Color3f(0.04), mi.Float(1.0)
+    rough = mi.Float([0.3, 0.3, float("nan")])
+    cos_i = mi.Float([float("nan"), 0.0, 0.5])
+    got = np.array(sh.directional_albedo(f0, f90, rough, cos_i))
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got[:, 0], got[:, 1], rtol=1e-6)  # NaN cosine: as cos θ = 0
+    want = np.array(sh.directional_albedo(f0, f90, mi.Float(0.0), mi.Float(0.5)))
+    np.testing.assert_allclose(got[:, 2], want[:, 0], rtol=1e-6)  # NaN roughness: as roughness 0
