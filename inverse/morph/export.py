@@ -225,6 +225,9 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
                    "raw": True, "filter_type": "bilinear", "wrap_mode": "clamp"}
             looks[name] = (bmp, "unlit" if name == "photos" else mode)
         out: dict = {}
+        lit_by_flash = fit is not None and fit.flash is not None and env_values is not None
+        weight = flash_sampling_weight(fit.flash, env_values, flash_distance(
+            np.array([camera_centre(bench.meta.cameras[k]) for k in fit.train_views]), vv)) if lit_by_flash else None
         for name, (colour, look) in looks.items():
             shape = {"type": "ply", "filename": str(ply), "face_normals": True}
             if look == "unlit":
@@ -232,14 +235,12 @@ def score_textures(bench, result: MorphResult, run: Path, mesh: tuple, colours: 
             else:
                 shape["bsdf"] = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": colour}}
             scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 2}, "env": env, "mesh": shape}
-            flash = look == "lit" and fit is not None and fit.flash is not None and env_values is not None
+            flash = look == "lit" and lit_by_flash
             if flash:
                 scene[FLASH] = flash_emitter()
             with mitsuba_log_level(mi.LogLevel.Error):
                 scene = mi.load_dict(scene)
             params = mi.traverse(scene)
-            weight = flash_sampling_weight(fit.flash, env_values, flash_distance(
-                np.array([camera_centre(bench.meta.cameras[k]) for k in fit.train_views]), vv)) if flash else None
             scores = []
             for i in bench.meta.test:
                 if flash:  # the fitted flash at the camera, for the photos it lit

@@ -200,9 +200,8 @@ class MorphStage(DrJitStage):
         self.log_focal = 0.0
         self.env_values = self._initial_env() if self.env_fit else None
         #: the flash's RGB log-intensity (W/sr in the capture's length unit)
-        self.log_flash = np.full(3, np.log(initial_flash(self.centres[self.train_ids], v0))) if self.flash \
-            else np.zeros(3)
         self.flash_r = flash_distance(self.centres[self.train_ids], v0) if self.flash else 1.0
+        self.log_flash = np.full(3, np.log(initial_flash(self.flash_r))) if self.flash else np.zeros(3)
         #: the flash's sampling weight (the environment's is 1), set from the fitted lights at every check
         self.flash_weight = flash_sampling_weight(np.exp(self.log_flash), self.env_values, self.flash_r) \
             if self.flash else 1.0
@@ -811,11 +810,11 @@ def flash_photos(cameras: list, flash: str) -> set[int]:
     return set()
 
 
-def initial_flash(centres: np.ndarray, v: np.ndarray) -> float:
+def initial_flash(distance: float) -> float:
     """The flash's starting intensity: the one that gives a diffuse surface its albedo as radiance (ρ·I·cos θ/(π r²) =
-    ρ) at the median distance r from the cameras to the nearest vertex (:func:`flash_distance`), for the mean
+    ρ) at ``distance`` r, the median distance from the cameras to the mesh (:func:`flash_distance`), for the mean
     cos θ = 2/3 of a sphere's lit half; the photos fit the rest (SfM units are arbitrary: r sets the scale)."""
-    return float(1.5 * np.pi * flash_distance(centres, v) ** 2)
+    return float(1.5 * np.pi * distance ** 2)
 
 
 def validation_split(train: list[int], k: int) -> list[int]:

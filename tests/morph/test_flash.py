@@ -19,7 +19,7 @@ from inverse.capture.sfm import flash_fired
 from inverse.morph import (CaptureBenchmark, MorphBenchmarkSettings, MorphSettings, benchmark_capture,
                            load_morph_benchmark, make_morph_benchmark, run_morph)
 from inverse.morph.cameras import Camera, sensor_dict
-from inverse.morph.scene import flash_sampling_weight, morph_scene, set_flash
+from inverse.morph.scene import flash_distance, flash_sampling_weight, morph_scene, set_flash
 from inverse.morph.stage import flash_photos, initial_flash
 
 ARMADILLO = Path(__file__).resolve().parents[2] / "scenes" / "assets" / "meshes" / "armadillo.ply"
@@ -125,7 +125,7 @@ def flash_capture(tmp_path_factory) -> tuple[Capture, float]:
     ply = out / "albedo_truth.ply"
     write_ply(ply, v, f, albedo)
     cams = [replace(c, flash=True) for c in cap.meta.cameras]
-    intensity = 1.7 * initial_flash(np.array([c.centre for c in cams]), v)
+    intensity = 1.7 * initial_flash(flash_distance(np.array([c.centre for c in cams]), v))
     scene = morph_scene(ply, "lit", {"type": "constant", "radiance": 0.02}, integrator={"type": "path", "max_depth": 2},
                         flash=True)
     params = mi.traverse(scene)
@@ -157,7 +157,7 @@ def test_a_flash_capture_fits_better_with_the_flash(flash_capture, tmp_path):
     assert on.photo_fit.flash is not None and off.photo_fit.flash is None
     assert on.photo_fit.flash_photos == list(range(len(cap.meta.cameras)))
     assert on.heldout_morphed.psnr >= off.heldout_morphed.psnr + 3.0, (on.heldout_morphed, off.heldout_morphed)
-    start = initial_flash(np.array([c.centre for c in cap.meta.cameras]), load_mesh_any(cap.mesh)[0])
+    start = initial_flash(flash_distance(np.array([c.centre for c in cap.meta.cameras]), load_mesh_any(cap.mesh)[0]))
     fitted = float(np.mean(on.photo_fit.flash))
     assert start < fitted, (start, fitted, intensity)
     assert on.spikes == 0 and on.inverted_triangles == 0
