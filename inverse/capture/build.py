@@ -104,7 +104,7 @@ def import_capture(source, out: str | Path, resolution: int | None = 512, mesh: 
     from foundation.records import to_json
 
     from .coarse import coarse_mesh_from_points, load_coarse_mesh
-    from .sfm import flash_fired
+    from .sfm import flash_fired, photo_exposure
 
     t0 = time.perf_counter()
     if resolution is not None and not (isinstance(resolution, int) and 16 <= resolution <= 8192):
@@ -128,7 +128,7 @@ def import_capture(source, out: str | Path, resolution: int | None = 512, mesh: 
                 photo = imageio.read_image(fr.image, channels=3, linear=True, what="photo")
                 src = _fit_camera_to_photo(fr.camera, (photo.shape[1], photo.shape[0]), fr.image)
                 cam, pin = working_camera(fr.name, src, fr.cam_to_world, resolution)
-                pin.flash = flash_fired(fr.image)
+                pin.flash, pin.exposure = flash_fired(fr.image), photo_exposure(fr.image)
                 check_camera(pin, str(source.path))
                 small = area_resize(photo, cam.width, cam.height)
                 img, _ = undistort(small, cam, pin)

@@ -45,6 +45,8 @@ class CaptureCamera:
     cam_to_world: list[list[float]]  #: 4×4, COLMAP axes (x right, y down, z forward)
     #: the photo's EXIF says a flash fired (a light at the camera); None: not known (no EXIF, or not a photo file)
     flash: bool | None = None
+    #: the photo's EXIF exposure, time × ISO / f-number² (relative: photos of one camera compare); None: not known
+    exposure: float | None = None
 
     @property
     def matrix(self) -> np.ndarray:
@@ -58,7 +60,7 @@ class CaptureCamera:
         """The same camera with its image resampled to ``width`` pixels across (the height keeps the aspect)."""
         k = width / self.width
         return CaptureCamera(self.name, int(width), max(1, int(round(self.height * k))), self.f * k, self.cx * k,
-                             self.cy * k, self.cam_to_world, self.flash)
+                             self.cy * k, self.cam_to_world, self.flash, self.exposure)
 
     def K(self) -> np.ndarray:
         return np.array([[self.f, 0.0, self.cx], [0.0, self.f, self.cy], [0.0, 0.0, 1.0]])

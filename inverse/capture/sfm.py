@@ -80,6 +80,25 @@ def flash_fired(path: Path) -> bool | None:
     return None if tag is None else bool(int(tag) & 1)
 
 
+def photo_exposure(path: Path) -> float | None:
+    """A photo's exposure from its EXIF: ExposureTime (0x829A, s) × ISO (0x8827) / FNumber (0x829D)², the light a
+    sensor gathers from the same radiance, up to the camera's constant; None where a tag is missing or not positive."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            sub = im.getexif().get_ifd(0x8769)
+        t, n, iso = (sub.get(k) for k in (0x829A, 0x829D, 0x8827))
+        if isinstance(iso, tuple):  # ISOSpeedRatings may hold several values: the first is the one used
+            iso = iso[0] if iso else None
+        t, n, iso = float(t), float(n), float(iso)
+    except (OSError, ValueError, TypeError, ZeroDivisionError):
+        return None
+    if not (np.isfinite([t, n, iso]).all() and t > 0 and n > 0 and iso > 0):
+        return None
+    return t * iso / (n * n)
+
+
 def _prepare_photos(photos: list[Path], folder: Path, max_size: int) -> dict[str, tuple[Path, float, float | None]]:
     """Upright 8-bit copies at most ``max_size`` on their longest side: name → (original, scale, focal prior)."""
     from PIL import Image

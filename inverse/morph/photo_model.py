@@ -96,6 +96,28 @@ def nearest_fitted(centres: np.ndarray, fitted: list[int], k: int = 2) -> dict[i
     return out
 
 
+def exposure_slope(log_exposure: np.ndarray, log_gain: np.ndarray) -> float:
+    """How the fitted gains follow the photos' EXIF exposures: the least-squares slope of the log gain (RGB mean) on
+    the log exposure over the fitted photos, clipped to [0, 1]. 1 is a linear camera; a JPEG's tone curve, which
+    compresses the highlights a longer exposure brightens, gives less. 0 where fewer than 3 photos have an exposure
+    or their exposures do not differ (the neighbours' mean then stands alone)."""
+    known = np.isfinite(log_exposure)
+    x, y = log_exposure[known], np.asarray(log_gain, np.float64)[known].mean(axis=1)
+    if len(x) < 3 or np.ptp(x) < 1e-3:
+        return 0.0
+    x = x - x.mean()
+    return float(np.clip(np.dot(x, y - y.mean()) / np.dot(x, x), 0.0, 1.0))
+
+
+def neighbour_log_gain(log_gain: np.ndarray, neighbours: list[int], log_exposure: float,
+                       neighbour_exposures: np.ndarray, slope: float) -> np.ndarray:
+    """A photo not fitted: the mean log gain of its fitted ``neighbours`` (rows of ``log_gain``), each moved by
+    ``slope`` × the log ratio of the photo's exposure to the neighbour's, where both are known (never its pixels)."""
+    g = np.asarray(log_gain, np.float64)[neighbours]
+    d = float(log_exposure) - np.asarray(neighbour_exposures, np.float64)
+    return (g + np.where(np.isfinite(d), slope * d, 0.0)[:, None]).mean(axis=0)
+
+
 def envmap_index(height: int, width: int) -> np.ndarray:
     """Flat indices into an (height, width, 3) map that give Mitsuba ``envmap``'s stored ``data`` (its columns wrapped
     at both ends, small maps' rows padded), so that the map itself is what the fit optimises. Read from Mitsuba: an

@@ -185,8 +185,11 @@ class PhotoFit:
     camera_movement: dict | None = None
     camera_rotation: list | None = None  #: per fitted photo, the rotation vector (radians, world axes)
     camera_shift: list | None = None  #: per fitted photo, the centre's shift (world units)
-    #: per photo, its RGB gain (held-out and validation photos: their two nearest fitted cameras' mean)
+    #: per photo, its RGB gain (held-out and validation photos: their two nearest fitted cameras' mean, moved by the
+    #: ratio of the EXIF exposures)
     gains: dict | None = None
+    #: how the fitted gains follow the photos' EXIF exposures (log-log slope, 0–1); a held-out gain follows it
+    exposure_slope: float | None = None
     environment: str | None = None  #: the fitted environment map, in the run folder
     focal_scale: float | None = None  #: the shared focal length's factor, where refined (``refine_focal``)
     flash: list | None = None  #: the fitted flash's RGB intensity (W/sr, the capture's length unit), where modelled

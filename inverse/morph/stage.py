@@ -192,6 +192,9 @@ class MorphStage(DrJitStage):
         self.centres = np.array([camera_centre(c) for c in meta.cameras], np.float64)
         #: a photo not fitted takes the mean gain of these fitted neighbours (never its own pixels)
         self.gain_from = pm.nearest_fitted(self.centres, self.train_ids)
+        #: the photos' EXIF exposures (log; NaN: not known): a held-out photo's gain follows its own exposure
+        self.log_exposure = np.array([np.log(e) if (e := getattr(c, "exposure", None)) else np.nan
+                                      for c in meta.cameras], np.float64)
         n = len(self.train_ids)
         self.cam_rot, self.cam_shift = np.zeros((n, 3)), np.zeros((n, 3))
         self.log_gain = np.zeros((n, 3))
@@ -331,13 +334,22 @@ class MorphStage(DrJitStage):
             self.log_flash = np.array(self.popt["flash"], np.float64)
 
     def gain_of(self, i: int) -> np.ndarray:
-        """Photo ``i``'s RGB gain: its own where fitted, else its fitted neighbours' mean (1 without exposure)."""
+        """Photo ``i``'s RGB gain: its own where fitted, else its fitted neighbours' mean moved by the ratio of the
+        EXIF exposures (:func:`~inverse.morph.photo_model.neighbour_log_gain`; 1 without exposure)."""
         if not self.exposure:
             return np.ones(3)
         self._sync_extras()
         k = self.train_index
-        ids = [k[int(i)]] if int(i) in k else [k[j] for j in self.gain_from[int(i)]]
-        return np.exp(self.log_gain[ids].mean(axis=0))
+        if int(i) in k:
+            return np.exp(self.log_gain[k[int(i)]])
+        return np.exp(pm.neighbour_log_gain(self.log_gain, [k[j] for j in self.gain_from[int(i)]],
+                                            self.log_exposure[int(i)], self.log_exposure[self.gain_from[int(i)]],
+                                            self.exposure_slope()))
+
+    def exposure_slope(self) -> float:
+        """How the fitted gains follow the EXIF exposures (:func:`~inverse.morph.photo_model.exposure_slope`)."""
+        self._sync_extras()
+        return pm.exposure_slope(self.log_exposure[self.train_ids], self.log_gain)
 
     def _set_env(self) -> None:
         if self.env_fit:
@@ -778,7 +790,8 @@ class MorphStage(DrJitStage):
                         camera_movement=pm.camera_movement(self.cam_rot, self.cam_shift, self.size) if self.refine
                         else None, camera_rotation=self.cam_rot.tolist() if self.refine else None,
                         camera_shift=self.cam_shift.tolist() if self.refine else None,
-                        gains=gains if self.exposure else None, environment=env,
+                        gains=gains if self.exposure else None,
+                        exposure_slope=self.exposure_slope() if self.exposure else None, environment=env,
                         focal_scale=float(np.exp(self.log_focal)) if self.focal else None,
                         flash=self.flash_intensity().tolist() if self.flash else None,
                         flash_photos=sorted(self.flash_photos) if self.flash else None)

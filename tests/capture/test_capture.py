@@ -67,18 +67,22 @@ def test_the_mitsuba_sensor_sees_what_the_pinhole_projects():
 def test_export_then_import_gives_the_same_cameras_and_photos(fmt, tmp_path):
     cap = _capture(tmp_path / "mem")
     exp = export_capture(cap, tmp_path / "exp", fmt)
-    # the first photo's EXIF says a flash fired (PNG's eXIf chunk): the import records it, the others stay unknown
+    # the first photo's EXIF says a flash fired and how it was exposed (PNG's eXIf chunk): 1/250 s at f/13, ISO 200;
+    # the import records both (exposure t × ISO / N² = 0.004 × 200 / 169), the others stay unknown
     from PIL import Image
 
     first = cap.meta.cameras[0].name
     with Image.open(exp / "images" / f"{first}.png") as im:
         exif = Image.Exif()
-        exif[0x8769] = {0x9209: 9}  # the Exif sub-IFD's Flash tag: fired
+        exif[0x8769] = {0x9209: 9, 0x829A: 0.004, 0x829D: 13.0, 0x8827: 200}  # Flash (fired), time, f-number, ISO
         im.copy().save(exp / "images" / f"{first}.png", exif=exif)
     src = read_source(exp)
     back = load_capture(import_capture(src, tmp_path / "cap", resolution=None, show_progress=False,
                                        triangulate=False))
-    assert [back.cameras[c.name].flash for c in cap.meta.cameras] == [True] + [None] * (len(cap.meta.cameras) - 1)
+    n = len(cap.meta.cameras)
+    assert [back.cameras[c.name].flash for c in cap.meta.cameras] == [True] + [None] * (n - 1)
+    exposures = [back.cameras[c.name].exposure for c in cap.meta.cameras]
+    assert exposures[0] == pytest.approx(0.004 * 200 / 169, rel=1e-6) and exposures[1:] == [None] * (n - 1)
     for c in cap.meta.cameras:
         b = back.cameras[c.name]
         assert (b.width, b.height) == (c.width, c.height)

@@ -130,8 +130,11 @@ def test_perturbed_cameras_and_known_gains_come_back_toward_the_truth(capture, t
     cap, rot, shift = _perturbed(capture, 0.5, 0.01, seed=3)
     rng = np.random.default_rng(5)
     gains = np.exp(rng.uniform(np.log(0.6), np.log(1.5), size=(len(cap.meta.cameras), 3)))
-    cap = Capture(cap.path, cap.meta, {c.name: capture.photo(c.name) * gains[k].astype(np.float32)
-                                       for k, c in enumerate(cap.meta.cameras)})
+    # a linear camera whose EXIF exposure is each photo's grey gain: the held-out photos' gains follow it
+    grey = np.exp(np.log(gains).mean(axis=1))
+    meta = replace(cap.meta, cameras=[replace(c, exposure=float(grey[k])) for k, c in enumerate(cap.meta.cameras)])
+    cap = Capture(cap.path, meta, {c.name: capture.photo(c.name) * gains[k].astype(np.float32)
+                                   for k, c in enumerate(cap.meta.cameras)})
     s = MorphSettings(iterations=100, resolution=64, min_vertices=None, lambda_select=(), planarity_select=(),
                       step_select_quantile=1.0, mode="unlit", early_stop=False, check_every=50, checkpoint_every=100,
                       validation_views=1, lr_exposure=0.03, env_resolution=32, refine_cameras="auto")
@@ -153,7 +156,38 @@ def test_perturbed_cameras_and_known_gains_come_back_toward_the_truth(capture, t
     got, want = got - got.mean(0), want - want.mean(0)
     assert np.corrcoef(got.ravel(), want.ravel())[0, 1] >= 0.5, np.corrcoef(got.ravel(), want.ravel())[0, 1]
     assert np.abs(got - want).mean() < np.abs(want).mean()
+    # the photos not fitted (held out, validation): their grey log-gain (relative to the fitted photos' mean) is
+    # nearer the truth from the neighbours moved by the exposure ratio than from the neighbours' mean alone
+    assert 0.6 <= fit.exposure_slope <= 1.0, fit.exposure_slope
+    fitted = np.log(np.array([fit.gains[i] for i in fit.train_views])).mean()
+    rest = [i for i in range(len(true)) if i not in fit.train_views]
+    nearest = pm.nearest_fitted(np.array([c.centre for c in cap.meta.cameras]), fit.train_views)
+    truth_grey = np.log(grey) - np.log(grey[fit.train_views]).mean()
+    with_exposure = np.array([np.log(fit.gains[i]).mean() - fitted for i in rest])
+    plain = np.array([np.log([fit.gains[j] for j in nearest[i]]).mean() - fitted for i in rest])
+    assert np.abs(with_exposure - truth_grey[rest]).mean() < 0.5 * np.abs(plain - truth_grey[rest]).mean(), \
+        (with_exposure, plain, truth_grey[rest])
     assert r.spikes == 0 and r.inverted_triangles == 0
+
+
+def test_the_exposure_slope_and_a_held_out_gain_in_closed_form():
+    """:func:`pm.exposure_slope` is the least-squares slope of the mean log-gain on the log exposure (0.4 exactly
+    for gains made so), clipped to [0, 1], and 0 for equal exposures or unknown ones; :func:`pm.neighbour_log_gain`
+    moves each neighbour's log-gain by slope × the log exposure ratio (NaN: not moved) and averages."""
+    log_e = np.log([1 / 250, 1 / 320, 1 / 250, 1 / 320, 1 / 100])
+    log_g = 0.4 * log_e[:, None] + np.array([0.1, -0.2, 0.05])
+    assert pm.exposure_slope(log_e, log_g) == pytest.approx(0.4, abs=1e-9)
+    assert pm.exposure_slope(log_e, 3.0 * log_e[:, None] + np.zeros(3)) == 1.0
+    assert pm.exposure_slope(log_e, -log_e[:, None] + np.zeros(3)) == 0.0
+    assert pm.exposure_slope(np.full(5, np.log(0.004)), log_g) == 0.0
+    assert pm.exposure_slope(np.array([np.nan, np.nan, 1.0, 2.0, np.nan]), log_g) == 0.0  # fewer than 3 known
+    g = np.array([[0.1, 0.2, 0.3], [0.3, 0.2, 0.1], [1.0, 1.0, 1.0]])
+    got = pm.neighbour_log_gain(g, [0, 1], np.log(0.5), np.log([1.0, 0.25]), 0.5)
+    want = 0.5 * ((g[0] + 0.5 * np.log(0.5)) + (g[1] + 0.5 * np.log(2.0)))
+    assert np.allclose(got, want)
+    assert np.allclose(pm.neighbour_log_gain(g, [0, 1], np.nan, np.log([1.0, 0.25]), 0.5), g[:2].mean(axis=0))
+    assert np.allclose(pm.neighbour_log_gain(g, [0, 1], np.log(0.5), np.array([np.nan, np.log(0.25)]), 0.5),
+                       0.5 * (g[0] + g[1] + 0.5 * np.log(2.0)))
 
 
 def test_the_object_region_is_where_rays_meet_the_mesh(capture, tmp_path):
