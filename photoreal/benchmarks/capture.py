@@ -100,6 +100,7 @@ def _morph_row(r, s: CaptureBenchSettings) -> dict:
            "mode_selection": None if r.mode_selection is None else
            {"lit": r.mode_selection.validation_l1_lit, "unlit": r.mode_selection.validation_l1_unlit},
            "flash": None if r.photo_fit is None else r.photo_fit.flash,
+           "exposure_slope": None if r.photo_fit is None else r.photo_fit.exposure_slope,
            "camera_movement": None if r.photo_fit is None or r.photo_fit.camera_movement is None else
            {k: v for k, v in r.photo_fit.camera_movement.items() if not isinstance(v, list)}}
     row["object_region"] = {"share": r.object_share, "psnr": [r.psnr_object_input, r.psnr_object_morphed],
@@ -380,6 +381,7 @@ def summary(result: dict) -> dict:
                                   "flip": [m["input"]["flip"], m["morphed"]["flip"]], "spikes": m["spikes"],
                                   "inverted_triangles": m["inverted_triangles"], "mode": m["mode"],
                                   "flash": m.get("flash"),
+                                  **({"exposure_slope": m["exposure_slope"]} if m.get("exposure_slope") else {}),
                                   "targets": m["targets"]}
     return out
 

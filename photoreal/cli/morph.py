@@ -72,6 +72,8 @@ def _cmd_morph_run(a) -> int:
         if m.photo_fit.camera_movement:
             summary["cameras_moved_deg_max"] = m.photo_fit.camera_movement["rotation_deg_max"]
             summary["cameras_moved_shift_max"] = m.photo_fit.camera_movement["shift_rel_max"]
+        if m.photo_fit.exposure_slope:  # the photos' EXIF exposures differ: held-out gains follow them
+            summary["exposure_slope"] = m.photo_fit.exposure_slope
     print_json(summary)
     return 0
 
