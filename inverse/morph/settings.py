@@ -145,7 +145,7 @@ class MorphSettings:
     #: a colour gain per photo (exposure and white balance): "auto" on for captures (photos of a camera), off for a
     #: benchmark's renders; held-out photos take their two nearest fitted cameras' mean gain
     exposure: Literal["auto", "on", "off"] = "auto"
-    lr_exposure: float = 0.005  #: Adam's step of the log-gains
+    lr_exposure: float = 0.03  #: Adam's step of the log-gains (at 0.005 they had not converged in a run)
     #: where the light is not known (captures): the fitted environment map's height (its width is twice that)
     env_resolution: int = 8
     lr_env: float = 0.01  #: Adam's step of the fitted environment's texels
