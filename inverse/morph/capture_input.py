@@ -74,6 +74,10 @@ class CaptureBenchmark:
             write_ply(self.coarse, v, f, colour_from_photos(capture, v, f))
             key.write_text(want)
         self._photos: dict[tuple[int, int], np.ndarray] = {}
+        #: where the masks come from: "capture" (its own), "backdrop" (:meth:`derive_backdrop`), "none"
+        self.mask_source = "capture" if cm.masks else "none"
+        self.backdrop = None  #: the :class:`~inverse.capture.backdrop.BackdropDecision`, once asked
+        self._backdrop: dict[int, np.ndarray] = {}
 
     @property
     def ground_truth(self) -> Path | None:
@@ -81,7 +85,48 @@ class CaptureBenchmark:
 
     @property
     def has_masks(self) -> bool:
-        return bool(self.capture.meta.masks)
+        return self.mask_source != "none"
+
+    def derive_backdrop(self, folder: Path | None = None):
+        """For a capture without masks: masks from a uniform backdrop where the training photos show one
+        (:mod:`inverse.capture.backdrop`), written as ``folder/NAME.png`` to look at. Returns the decision."""
+        from inverse.capture.backdrop import backdrop_mask, decide_backdrop
+
+        if self.mask_source == "capture":
+            return None
+        if self.backdrop is None:  # once per input: the selection's trials ask again
+            self.backdrop = decide_backdrop(self.photo(i) for i in self.meta.train)
+            if self.backdrop.uniform:
+                self.mask_source = "backdrop"
+                self._backdrop = {i: backdrop_mask(self.photo(i)) for i in range(len(self.meta.names))}
+        if folder is not None and self._backdrop:
+            from foundation import imageio
+
+            folder.mkdir(parents=True, exist_ok=True)
+            for i, (m, unsure) in self._backdrop.items():  # white: object, grey: unsure, black: backdrop
+                imageio.write_png(folder / f"{self.meta.names[i]}.png",
+                                  np.repeat(np.where(unsure, 0.5, m)[..., None], 3, -1).astype(np.float32),
+                                  linear=False)
+        return self.backdrop
+
+    def mask(self, i: int) -> np.ndarray:
+        """(H, W) bool mask of photo ``i`` (the capture's or the backdrop's)."""
+        return self._backdrop[int(i)][0] if self.mask_source == "backdrop" else \
+            self.capture.mask(self.meta.names[int(i)])
+
+    def mask_weights_at(self, res: int, views) -> dict[int, np.ndarray]:
+        """Where derived masks are unsure (:func:`~inverse.capture.backdrop.backdrop_mask`): per view at ``res``
+        across, the share of each pixel they are sure of (float32 in [0, 1]); empty where every pixel counts."""
+        from inverse.capture import area_resize
+
+        if self.mask_source != "backdrop":
+            return {}
+        out = {}
+        for i in views:
+            cam = self.meta.cameras[int(i)].scaled(res)
+            sure = (~self._backdrop[int(i)][1]).astype(np.float32)[..., None]
+            out[int(i)] = np.clip(area_resize(sure, cam.width, cam.height)[..., 0], 0.0, 1.0)
+        return out
 
     def photo(self, i: int) -> np.ndarray:
         """Photo ``i`` at the capture's resolution, linear RGB (H, W, 3)."""
@@ -105,7 +150,7 @@ class CaptureBenchmark:
         out = {}
         for i in views:
             cam = self.meta.cameras[int(i)].scaled(res)
-            m = self.capture.mask(self.meta.names[int(i)]).astype(np.float32)[..., None]
+            m = self.mask(i).astype(np.float32)[..., None]
             out[int(i)] = np.clip(area_resize(m, cam.width, cam.height)[..., 0], 0.0, 1.0)
         return out
 

@@ -194,6 +194,10 @@ class PhotoFit:
     focal_scale: float | None = None  #: the shared focal length's factor, where refined (``refine_focal``)
     flash: list | None = None  #: the fitted flash's RGB intensity (W/sr, the capture's length unit), where modelled
     flash_photos: list | None = None  #: the photos it lit (their indices)
+    #: where the silhouettes came from: "capture" (its masks), "backdrop" (derived, :mod:`inverse.capture.backdrop`),
+    #: "none" (the photos alone); ``backdrop``: what the backdrop test saw (``BackdropDecision.to_json``)
+    masks: str | None = None
+    backdrop: dict | None = None
 
 
 @dataclass

@@ -132,6 +132,9 @@ class MorphSettings:
     mask_weight: float = 2.0
     mask_every: int = 1  #: the silhouette L1 every this many steps, at this × the weight
     mask_downsample: int = 1  #: the masks at the photos' resolution // this
+    #: a capture without masks: "auto" derives them where its photos show a uniform backdrop
+    #: (:mod:`inverse.capture.backdrop`; a scene's photos do not, and keep none); "off": none
+    backdrop: Literal["auto", "off"] = "auto"
     #: refine each training photo's camera pose with the mesh (a rotation and a shift, pulled toward the imported pose by
     #: ``camera_weight``): "auto" where the cameras were estimated (captures), not a benchmark's exact ones. Off by
     #: default: on both vendored captures the held-out photos came out worse with it (docs/results/capture.md)
@@ -168,6 +171,7 @@ class MorphSettings:
         validate.non_negative("mask_weight", self.mask_weight)
         validate.integer("mask_every", self.mask_every, 1)
         validate.integer("mask_downsample", self.mask_downsample, 1, 16)
+        validate.one_of("backdrop", self.backdrop, ("auto", "off"))
         validate.in_range("adam_quantile", self.adam_quantile, 0.0, 1.0, lo_open=True)
         validate.non_negative("saturation", self.saturation)
         validate.in_range("lr_final", self.lr_final, 0.0, 1.0)

@@ -172,6 +172,9 @@ class MorphStage(DrJitStage):
         if self.env_fit and s.indirect_every:
             raise UsageError("indirect_every: the light estimate needs a known light (a benchmark's HDRI); a "
                              "capture's light is fitted")
+        #: a capture without masks of its own: masks from a uniform backdrop, where its photos show one
+        self.backdrop = bench.derive_backdrop(out / "backdrop_masks") \
+            if self.capture and s.mask_weight > 0 and s.backdrop == "auto" else None
         self.mask_weight = s.mask_weight if not self.capture or bench.has_masks else 0.0
         self.photos = photo_tensors(bench, self.res)
         self.saturation_level, self.photo_hot = photo_saturation(self.photos, meta.train, s.saturation)
@@ -219,6 +222,10 @@ class MorphStage(DrJitStage):
         #: the photos' masks as the mask scene renders them (1 − coverage, RGB), training views only
         self.sky = {i: mi.TensorXf(aligned(np.repeat((1.0 - m)[..., None], 3, axis=-1)))
                     for i, m in photo_masks(bench, self.mask_res, self.train_ids).items()} if self.mask_weight > 0 else {}
+        #: where derived masks are unsure of a pixel, the silhouette loss's weight there (none: every pixel counts)
+        self.sky_weight = {i: mi.TensorXf(aligned(np.repeat(w[..., None], 3, axis=-1)))
+                           for i, w in bench.mask_weights_at(self.mask_res, self.train_ids).items()} \
+            if self.mask_weight > 0 and hasattr(bench, "mask_weights_at") else {}
         self._build(v0, v0, f0, c0)
         if self.planarity.weight and dr.width(self.pairs) == 0:  # no manifold edge (an unwelded soup)
             self.planarity.weight = 0.0
@@ -599,7 +606,7 @@ class MorphStage(DrJitStage):
                                  s.seed * 7919 + it * 101 + 1_000_003, integrator_spp=not self.shared_spp)
             silhouettes = 0
             for img, i in zip(skies, views):
-                silhouettes += dr.mean(dr.abs(img[..., :3] - self.sky[int(i)]), axis=None)
+                silhouettes += dr.mean(self._silhouette_l1(img, i), axis=None)
             loss += s.mask_weight * s.mask_every * silhouettes / len(views)
         if self.planarity.weight > 0:
             loss += self.planarity.weight * planarity_prior(dr.unravel(mi.Point3f, flat), self.f_mi, self.pairs,
@@ -669,8 +676,7 @@ class MorphStage(DrJitStage):
                     self.mask_params.update()
                 sky, = render_views(self.mask_scene, self.mask_params, meta.cameras, [i], self.mask_res, meta.fov,
                                     s.spp, seed + k + 1_000_003, integrator_spp=not self.shared_spp)
-                loss += self.mask_weight * s.mask_every * dr.mean(dr.abs(sky[..., :3] - self.sky[int(i)]),
-                                                                  axis=None) / n
+                loss += self.mask_weight * s.mask_every * dr.mean(self._silhouette_l1(sky, i), axis=None) / n
             dr.backward(loss)
             total += float(loss.array[0])
         extra = 0
@@ -777,6 +783,11 @@ class MorphStage(DrJitStage):
                            validation_views=list(self.val_ids), validation_seconds=self.validation_seconds,
                            trace_chamfer_input=trace_in, saturation_level=self.saturation_level, photo_fit=fit)
 
+    def _silhouette_l1(self, img, i):
+        """Per pixel, the mask render's L1 against photo ``i``'s mask (weighted where the mask is unsure)."""
+        d = dr.abs(img[..., :3] - self.sky[int(i)])
+        return d * self.sky_weight[int(i)] if int(i) in self.sky_weight else d
+
     def photo_fit(self) -> PhotoFit:
         """What the fit made of the photos beside the mesh: cameras moved, gains, the fitted light (written as
         ``environment.exr`` in the run folder)."""
@@ -794,7 +805,9 @@ class MorphStage(DrJitStage):
                         exposure_slope=self.exposure_slope() if self.exposure else None, environment=env,
                         focal_scale=float(np.exp(self.log_focal)) if self.focal else None,
                         flash=self.flash_intensity().tolist() if self.flash else None,
-                        flash_photos=sorted(self.flash_photos) if self.flash else None)
+                        flash_photos=sorted(self.flash_photos) if self.flash else None,
+                        masks=getattr(self.bench, "mask_source", None),
+                        backdrop=self.backdrop.to_json() if self.backdrop is not None else None)
 
     def flash_weight_now(self) -> float:
         """The flash's sampling weight for the fitted lights as they are (the held-out renders')."""

@@ -63,8 +63,8 @@ class CaptureBenchSettings:
     seed: int = 0
 
     def __post_init__(self):
-        # `--suite ''`: none (argparse's "+" takes at least one word)
-        self.captures, self.suite = tuple(self.captures), tuple(m for m in self.suite if m)
+        # `--suite ''`, `--captures ''`: none (argparse's "+" takes at least one word)
+        self.captures, self.suite = tuple(c for c in self.captures if c), tuple(m for m in self.suite if m)
         validate.integer("suite_views", self.suite_views, 8, 400)
         validate.integer("suite_iterations", self.suite_iterations, 0)
         validate.integer("suite_resolution", self.suite_resolution, 64, 4096)
@@ -101,6 +101,7 @@ def _morph_row(r, s: CaptureBenchSettings) -> dict:
            {"lit": r.mode_selection.validation_l1_lit, "unlit": r.mode_selection.validation_l1_unlit},
            "flash": None if r.photo_fit is None else r.photo_fit.flash,
            "exposure_slope": None if r.photo_fit is None else r.photo_fit.exposure_slope,
+           "masks": None if r.photo_fit is None else r.photo_fit.masks,
            "camera_movement": None if r.photo_fit is None or r.photo_fit.camera_movement is None else
            {k: v for k, v in r.photo_fit.camera_movement.items() if not isinstance(v, list)}}
     row["object_region"] = {"share": r.object_share, "psnr": [r.psnr_object_input, r.psnr_object_morphed],

@@ -69,6 +69,7 @@ def _cmd_morph_run(a) -> int:
         summary = {"chamfer_input": m.chamfer_input, "chamfer_morphed": m.chamfer_morphed, **summary}
     elif m.photo_fit is not None:
         summary["mode"] = m.photo_fit.mode
+        summary["masks"] = m.photo_fit.masks
         if m.photo_fit.camera_movement:
             summary["cameras_moved_deg_max"] = m.photo_fit.camera_movement["rotation_deg_max"]
             summary["cameras_moved_shift_max"] = m.photo_fit.camera_movement["shift_rel_max"]
