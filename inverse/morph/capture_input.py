@@ -90,7 +90,7 @@ class CaptureBenchmark:
     def derive_backdrop(self, folder: Path | None = None):
         """For a capture without masks: masks from a uniform backdrop where the training photos show one
         (:mod:`inverse.capture.backdrop`), written as ``folder/NAME.png`` to look at. Returns the decision."""
-        from inverse.capture.backdrop import backdrop_mask, decide_backdrop
+        from inverse.capture import backdrop_mask, decide_backdrop
 
         if self.mask_source == "capture":
             return None
