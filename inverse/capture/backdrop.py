@@ -4,9 +4,10 @@
 A photo's backdrop colour is the median of its border; the backdrop is every pixel within a tolerance of that colour
 that is connected to the border (4-neighbours), so a patch of the object that happens to share the colour stays
 object unless it touches the backdrop. What the object encloses in the backdrop's colour (a gap between two parts,
-or a patch of the object) is marked unsure, for a silhouette loss to leave out. A capture counts as having a backdrop only where most of its photos' borders
-are that one colour: a scene (sky above, ground below, the ruins) fails the test and keeps no masks. Colours are
-compared in sRGB (γ 2.2), where a tolerance means about the same thing in the shadows as in the highlights.
+or a patch of the object) is marked unsure, for a silhouette loss to leave out. A capture counts as having a
+backdrop only where most of its photos' borders are that one colour: a scene (sky above, ground below, the ruins)
+fails the test and keeps no masks. Colours are compared in sRGB (γ 2.2), where a tolerance means about the same
+thing in the shadows as in the highlights.
 """
 
 from __future__ import annotations
