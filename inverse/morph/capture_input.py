@@ -117,16 +117,16 @@ class CaptureBenchmark:
     def mask_weights_at(self, res: int, views) -> dict[int, np.ndarray]:
         """Where derived masks are unsure (:func:`~inverse.capture.backdrop.backdrop_mask`): per view at ``res``
         across, the share of each pixel they are sure of (float32 in [0, 1]); empty where every pixel counts."""
-        from inverse.capture import area_resize
-
         if self.mask_source != "backdrop":
             return {}
-        out = {}
-        for i in views:
-            cam = self.meta.cameras[int(i)].scaled(res)
-            sure = (~self._backdrop[int(i)][1]).astype(np.float32)[..., None]
-            out[int(i)] = np.clip(area_resize(sure, cam.width, cam.height)[..., 0], 0.0, 1.0)
-        return out
+        return {int(i): self._share_at(~self._backdrop[int(i)][1], i, res) for i in views}
+
+    def _share_at(self, m: np.ndarray, i: int, res: int) -> np.ndarray:
+        """Bool image ``m`` of photo ``i`` area-resampled to ``res`` across: the share of each pixel that is True."""
+        from inverse.capture import area_resize
+
+        cam = self.meta.cameras[int(i)].scaled(res)
+        return np.clip(area_resize(m.astype(np.float32)[..., None], cam.width, cam.height)[..., 0], 0.0, 1.0)
 
     def photo(self, i: int) -> np.ndarray:
         """Photo ``i`` at the capture's resolution, linear RGB (H, W, 3)."""
@@ -143,16 +143,9 @@ class CaptureBenchmark:
 
     def masks_at(self, res: int, views) -> dict[int, np.ndarray]:
         """The capture's masks of ``views`` at ``res`` pixels across, float32 coverage in [0, 1] (empty without)."""
-        from inverse.capture import area_resize
-
         if not self.has_masks:
             return {}
-        out = {}
-        for i in views:
-            cam = self.meta.cameras[int(i)].scaled(res)
-            m = self.mask(i).astype(np.float32)[..., None]
-            out[int(i)] = np.clip(area_resize(m, cam.width, cam.height)[..., 0], 0.0, 1.0)
-        return out
+        return {int(i): self._share_at(self.mask(i), i, res) for i in views}
 
 
 def is_capture(bench) -> bool:
