@@ -287,6 +287,9 @@ def _add_run(mr: argparse.ArgumentParser) -> None:
          "(the same mean gradient, cheaper)")
     opt(mr, MorphSettings, "mask_downsample", help="the masks and their renders at the photos' resolution // this "
          "(cheaper; a coarser mask still places a silhouette to a fraction of its pixel)")
+    opt(mr, MorphSettings, "backdrop", choices=["auto", "off"],
+        help="a capture without masks: auto derives them where its photos show the object on a plain backdrop "
+             "(written to OUT/backdrop_masks/); off: no silhouette loss")
     opt(mr, MorphSettings, "seed")
     pool_options(mr)
     mr.set_defaults(func=_cmd_morph_run)

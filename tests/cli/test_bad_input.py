@@ -103,7 +103,8 @@ def test_morph_benchmark_settings_are_checked_before_any_work(argv, flag, tmp_pa
     (["--planarity-weight", "nan"], "--planarity-weight must be a finite number"),
     (["--target-vertices", "-5"], "--target-vertices must be ≥ 100"), (["--resolution", "0"], "--resolution must be ≥ 8"),
     (["--iterations", "-1"], "--iterations must be ≥ 0"), (["--lr", "-0.1"], "--lr must be ≥ 0"),
-    (["--lr", "nan"], "--lr must be a finite number")])
+    (["--lr", "nan"], "--lr must be a finite number"),
+    (["--backdrop", "on"], "argument --backdrop: invalid choice")])
 def test_morph_run_flags_are_named(argv, flag, tiny_morph, tmp_path, capsys):
     code, err = run(["morph", "run", tiny_morph, "--out", tmp_path / "m", *argv], capsys)
     assert code == 2 and flag in err, err
