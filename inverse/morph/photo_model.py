@@ -51,6 +51,30 @@ def view_positions(flat, centre: np.ndarray, w, t):
     return dr.ravel(rotate_inverse(p - c - t, w) + c)
 
 
+def remove_gauge(rot: np.ndarray, shift: np.ndarray, centres: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Camera corrections (``rot``: radians, ``shift``: world units, (n, 3) each; ``centres``: the imported cameras'
+    centres) less their part that moves every camera by one world similarity W(x) = x + ω × x + τ + s·x. That part
+    (ω_k = ω, t_k = ω × c_k + τ + s·c_k to first order) changes no render once the mesh moves by W too, so the photos
+    cannot tell it from the mesh's own motion: left in, the fitted cameras and mesh turn together, away from the frame
+    the held-out cameras were imported in. Least squares in the camera prior's metric (:data:`CAMERA_PRIOR_ROT`,
+    :data:`CAMERA_PRIOR_SHIFT` × ``size``): the corrections kept are those nearest the imported poses."""
+    rot, shift = np.asarray(rot, np.float64), np.asarray(shift, np.float64)
+    n = len(rot)
+    if n == 0:
+        return rot.copy(), shift.copy()
+    c = (np.asarray(centres, np.float64) - np.mean(centres, axis=0)) / size
+    a = np.zeros((n, 6, 7))  # per camera: (ω_k, t_k / size) from (ω, τ / size, s)
+    a[:, :3, :3] = np.eye(3)
+    a[:, 3:, :3] = -np.cross(c[:, :, None], np.eye(3)[None], axis=1)  # ω × c = −c × ω: columns −c × e_j
+    a[:, 3:, 3:6] = np.eye(3)
+    a[:, 3:, 6] = c
+    w = np.r_[np.full(3, 1.0 / CAMERA_PRIOR_ROT), np.full(3, 1.0 / CAMERA_PRIOR_SHIFT)]
+    x = np.concatenate([rot, shift / size], axis=1)
+    g = np.linalg.lstsq((a * w[None, :, None]).reshape(-1, 7), (x * w).ravel(), rcond=None)[0]
+    x = x - a @ g
+    return x[:, :3], x[:, 3:] * size
+
+
 def pick3(values, i: int):
     """Entries 3i … 3i+2 of a flat Float as a width-1 mi.Vector3f (differentiable)."""
     return mi.Vector3f(*[dr.gather(mi.Float, values, mi.UInt32(3 * int(i) + k)) for k in range(3)])

@@ -711,6 +711,13 @@ class MorphStage(DrJitStage):
         self.opt.step()
         if self.popt is not None:
             self.popt.step()
+        if self.refine:  # a motion of all cameras together is the mesh's: the corrections keep none of it
+            n = len(self.train_ids)
+            rot, shift = pm.remove_gauge(np.array(self.popt["cam_rot"], np.float64).reshape(n, 3),
+                                         np.array(self.popt["cam_shift"], np.float64).reshape(n, 3) * self.size,
+                                         self.centres[self.train_ids], self.size)
+            self.popt["cam_rot"] = mi.Float(rot.astype(np.float32).ravel())
+            self.popt["cam_shift"] = mi.Float((shift / self.size).astype(np.float32).ravel())
         if self.exposure:  # one overall gain is the colours' (and the light's): the gains' mean stays 0
             g = dr.unravel(mi.Vector3f, self.popt["gain"])
             self.popt["gain"] = dr.ravel(g - mi.Vector3f(*[dr.mean(g[k]) for k in range(3)]))

@@ -170,6 +170,41 @@ def test_perturbed_cameras_and_known_gains_come_back_toward_the_truth(capture, t
     assert r.spikes == 0 and r.inverted_triangles == 0
 
 
+def test_a_motion_of_all_cameras_together_is_removed_from_the_corrections():
+    """:func:`pm.remove_gauge` against exact world similarities: 24 orbit cameras all moved by one similarity (0.3°
+    turn, 0.4 % scale, a shift of 2 % of the scene) leave corrections under 2 % of it (the rest is second order);
+    the same similarity added to other corrections changes what is kept by as little; the removal is a projection
+    (again: unchanged to 1e-12) that never makes the corrections dearer in the camera prior's metric."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(2)
+    size, n = 2.0, 24
+    az = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    centres = 6.0 * np.c_[np.cos(az), 0.4 + 0.2 * np.sin(3 * az), np.sin(az)] + np.array([0.5, 0.2, -0.3])
+    axis = rng.normal(size=3)
+    w = np.radians(0.3) * axis / np.linalg.norm(axis)
+    tau = 0.02 * size * np.array([0.6, -0.8, 0.0])
+    moved = 1.004 * centres @ Rotation.from_rotvec(w).as_matrix().T + tau  # W(c) for every centre
+    g_rot, g_shift = np.tile(w, (n, 1)), moved - centres  # R' = R_w R: each camera's correction turns it by w
+    rot, shift = pm.remove_gauge(g_rot, g_shift, centres, size)
+    assert np.abs(rot).max() < 0.02 * np.linalg.norm(w)
+    assert np.linalg.norm(shift, axis=1).max() < 0.02 * np.linalg.norm(g_shift, axis=1).max()
+    own_rot = np.radians(0.2) * rng.normal(size=(n, 3))
+    own_shift = 0.005 * size * rng.normal(size=(n, 3))
+    kept_rot, kept_shift = pm.remove_gauge(own_rot, own_shift, centres, size)
+    both_rot, both_shift = pm.remove_gauge(own_rot + g_rot, own_shift + g_shift, centres, size)
+    assert np.abs(both_rot - kept_rot).max() < 0.02 * np.linalg.norm(w)
+    assert np.abs(both_shift - kept_shift).max() < 0.02 * np.linalg.norm(g_shift, axis=1).max()
+    again_rot, again_shift = pm.remove_gauge(kept_rot, kept_shift, centres, size)
+    assert np.allclose(again_rot, kept_rot, atol=1e-12) and np.allclose(again_shift, kept_shift, atol=1e-12)
+
+    def cost(r, t):
+        return float((r ** 2).sum() / pm.CAMERA_PRIOR_ROT ** 2 + (t ** 2).sum() / (pm.CAMERA_PRIOR_SHIFT * size) ** 2)
+
+    assert cost(kept_rot, kept_shift) <= cost(own_rot, own_shift)
+    assert cost(kept_rot, kept_shift) > 0.5 * cost(own_rot, own_shift)  # 7 of 144 directions: most of it is kept
+
+
 def test_the_exposure_slope_and_a_held_out_gain_in_closed_form():
     """:func:`pm.exposure_slope` is the least-squares slope of the mean log-gain on the log exposure (0.4 exactly
     for gains made so), clipped to [0, 1], and 0 for equal exposures or unknown ones; :func:`pm.neighbour_log_gain`
