@@ -127,6 +127,7 @@ def _add_sfm(p: argparse.ArgumentParser) -> None:
         "low-texture captures into several models)")
     opt(p, SfmSettings, "single_camera", "--per-photo-cameras", help="a camera of its own for every photo (zoom "
         "lenses, several bodies); by default photos of one size share one")
+    opt(p, SfmSettings, "distortion", choices=["auto", "on", "off"])
     p.set_defaults(func=_cmd_sfm)
 
 
