@@ -164,7 +164,8 @@ def run_sfm(photos: str | Path, work: str | Path, s: SfmSettings | None = None,
     from foundation.records import json_digest
 
     # the distortion is chosen after the mapping: changing it reuses the features and matches
-    key = json_digest([{k: v for k, v in asdict(s).items() if k != "distortion"}, [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files]])
+    mapped = {k: v for k, v in asdict(s).items() if k != "distortion"}
+    key = json_digest([mapped, [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files]])
     steps_file = work / "steps.json"
     try:
         steps = json.loads(steps_file.read_text())
