@@ -64,9 +64,35 @@ def working_camera(name: str, source_camera, c2w: np.ndarray, resolution: int | 
     W, H = max(1, round(w * s)), max(1, round(h * s))
     cam = pycolmap.Camera(model=source_camera.model, width=w, height=h, params=source_camera.params)
     cam.rescale(W, H)
-    out = CaptureCamera(name, W, H, float(cam.focal_length_x), float(cam.principal_point_x),
-                        float(cam.principal_point_y), np.asarray(c2w, np.float64).tolist())
+    cx, cy = float(cam.principal_point_x), float(cam.principal_point_y)
+    out = CaptureCamera(name, W, H, no_blank_focal(cam, float(cam.focal_length_x), cx, cy), cx, cy,
+                        np.asarray(c2w, np.float64).tolist())
     return cam, out
+
+
+def no_blank_focal(cam, f: float, cx: float, cy: float) -> float:
+    """The least focal length ≥ ``f`` at which every pixel of a pinhole of ``cam``'s size maps inside ``cam``'s photo,
+    as COLMAP's undistorter leaves no blank pixels: a lens that magnifies toward its edges (pincushion, a positive
+    radial term) would leave the pinhole's rim without data, black pixels the fit and the scores would count."""
+    w, h = cam.width, cam.height
+    xs, ys = np.arange(w) + 0.5, np.arange(h) + 0.5
+    ring = np.concatenate([np.stack([xs, np.full(w, 0.5)], 1), np.stack([xs, np.full(w, h - 0.5)], 1),
+                           np.stack([np.full(h, 0.5), ys], 1), np.stack([np.full(h, w - 0.5), ys], 1)])
+
+    def fits(fo: float) -> bool:
+        rays = np.stack([(ring[:, 0] - cx) / fo, (ring[:, 1] - cy) / fo, np.ones(len(ring))], 1)
+        uv = np.asarray(cam.img_from_cam(rays, False), np.float64)
+        return bool(np.all(np.isfinite(uv)) and np.all((uv >= 0) & (uv <= [w, h])))
+
+    if fits(f):
+        return f
+    lo, hi = f, 2.0 * f
+    if not fits(hi):
+        return hi
+    for _ in range(40):  # bisection to 2⁻⁴⁰ of f
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if fits(mid) else (mid, hi)
+    return hi
 
 
 def _fit_camera_to_photo(cam, photo_size: tuple[int, int], image: Path):

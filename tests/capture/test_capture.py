@@ -153,6 +153,33 @@ def test_undistortion_puts_every_point_back_within_a_pixel(tmp_path):
     assert max(errs) < 0.2  # bilinear resampling of a 1.2 px blob: a tenth of a pixel, measured 0.06
 
 
+def test_a_pincushion_lens_is_undistorted_without_blank_pixels():
+    """A positive radial term magnifies toward the frame's edges: the pinhole keeps the photo's size and zooms in
+    just enough that every pixel has data (COLMAP's undistorter without blank pixels). Oracle: a linear ramp
+    (bilinear sampling is exact on it) says where each output pixel sampled the photo, which must be where the source
+    model images that pixel's ray. Barrel and no distortion keep the focal length."""
+    from inverse.capture import camera
+    from inverse.capture.build import working_camera
+
+    w, h = 160, 120
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    ramp = np.stack([xx, yy, np.ones_like(xx)], -1).astype(np.float32)  # each pixel holds its own centre
+    for k1 in (0.1, 0.02, 0.0, -0.1):
+        cam = camera("SIMPLE_RADIAL", w, h, [100.0, 80.0, 60.0, k1], "test")
+        src, pin = working_camera("d", cam, np.eye(4), None)
+        out, inside = undistort(ramp, src, pin)
+        assert inside.all()
+        assert pin.f > 100.0 if k1 > 0 else pin.f == 100.0
+        if k1 > 0:  # the least zoom: a thousandth less leaves the rim without data
+            smaller = CaptureCamera("d", w, h, pin.f * 0.999, pin.cx, pin.cy, pin.cam_to_world)
+            assert not undistort(ramp, src, smaller)[1].all()
+        rays = np.stack([(xx - pin.cx) / pin.f, (yy - pin.cy) / pin.f, np.ones_like(xx)], -1).reshape(-1, 3)
+        want = np.asarray(src.img_from_cam(rays, False)).reshape(h, w, 2)
+        # inside the half-pixel rim, where bilinear sampling of the ramp is exact
+        core = (want[..., 0] > 0.5) & (want[..., 0] < w - 0.5) & (want[..., 1] > 0.5) & (want[..., 1] < h - 0.5)
+        assert core.mean() > 0.95 and np.abs(out[..., :2] - want)[core].max() < 1e-3
+
+
 def _run(argv, capsys) -> tuple[int, str]:
     code = main([str(a) for a in argv])
     err = capsys.readouterr().err
