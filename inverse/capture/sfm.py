@@ -290,9 +290,9 @@ def choose_distortion(rec, force_off: bool = False):
 
     A copy with every distortion parameter at zero is refitted (global bundle adjustment, focal lengths, poses and
     points free); with n residuals (two per observation), RSS₁ / RSS₀ the squared reprojection errors with and
-    without distortion and p distortion parameters, the distortion stays only if n·ln(RSS₀/RSS₁) > p·ln n. On
-    an orbit a radial term the points cannot tell from noise trades against the focal length (the suite's renders,
-    pinholes: 1 % off the focal length with it, 0.4 % without). Returns the reconstruction chosen and its figures.
+    without distortion and p distortion parameters, the distortion stays only if n·ln(RSS₀/RSS₁) > p·ln n. A
+    radial term the points cannot tell from noise trades against the focal length (on an orbit of pinhole renders it
+    took the focal length further from the truth). Returns the reconstruction chosen and its figures.
     ``force_off``: the refit without distortion, whatever the criterion says."""
     import pycolmap
 
