@@ -551,8 +551,12 @@ def test_the_lens_distortion_is_kept_only_where_the_points_need_it():
     fitted radial term is noise and goes (three seeds; by chance it would stay in 0.25 % of them), the focal length of
     the refit within 0.1 % of the truth; a real radial term of −0.05 or +0.02 (0.3 % of magnification at the frame's
     edge) stays, recovered within 0.005; ``force_off`` drops it whatever the criterion says."""
+    from foundation.errors import UsageError
+    from inverse.capture import SfmSettings
     from inverse.capture.sfm import choose_distortion
 
+    with pytest.raises(UsageError, match="distortion must be one of auto, on, off"):
+        SfmSettings(distortion="maybe")
     for seed in range(3):
         rec, fig = choose_distortion(_orbit_reconstruction(0.0, 0.3, seed))
         assert not fig["kept"] and fig["fit_gain"] < fig["penalty"], fig
